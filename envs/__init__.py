@@ -1,0 +1,27 @@
+"""Gymnasium tasks of smcd-rl, registered on ``import smcd_rl``.
+
+Each task lives in its own module with a docstring card; the pure batched torch functions
+(kinematics, dynamics, rewards) sit next to the env so planners and the oracle reuse them.
+
+Example:
+    >>> import gymnasium, smcd_rl
+    >>> env = gymnasium.make("smcd_rl/TwoLinkArm-v0")
+    >>> obs, info = env.reset(seed=0)
+"""
+
+from __future__ import annotations
+
+import gymnasium
+
+#: (id, entry point, max_episode_steps) of every task this package provides.
+TASKS: tuple[tuple[str, str, int], ...] = (
+    ("smcd_rl/TwoLinkArm-v0", "smcd_rl.envs.two_link_arm:TwoLinkArmEnv", 100),
+    ("smcd_rl/CrippledAnt-v0", "smcd_rl.envs.crippled_ant:CrippledAntEnv", 1000),
+)
+
+
+def register_all() -> None:
+    """Register every task id with gymnasium (idempotent)."""
+    for env_id, entry_point, max_steps in TASKS:
+        if env_id not in gymnasium.registry:
+            gymnasium.register(id=env_id, entry_point=entry_point, max_episode_steps=max_steps)
