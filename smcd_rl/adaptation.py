@@ -1,0 +1,326 @@
+"""Adaptation strategies: how a trained masked network changes in response to real observations.
+
+A strategy works in the network's normalised units; :class:`smcd_rl.AdaptiveModel` does the
+conversion and the TensorDict plumbing. All three share one interface, so experiments swap them
+by name (:func:`make_adaptation`).
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from typing import Any, ClassVar, Literal
+
+import torch
+from torch import Tensor
+from torch.func import functional_call, grad, vmap
+
+from smcd_rl.filter import SMCDFilter
+from smcd_rl.masked_mlp import MaskedMLP
+from smcd_rl.resampling import ResamplingScheme, check_scheme
+
+__all__ = ["Adaptation", "SMCD", "GradientDescent", "NoAdaptation", "make_adaptation", "ADAPTATIONS"]
+
+
+class Adaptation(ABC):
+    """Base class of the strategies. A strategy instance serves one model at a time."""
+
+    name: ClassVar[str]
+
+    def __init__(self) -> None:
+        self._net: MaskedMLP | None = None
+        self._batch_shape: tuple[int, ...] = ()
+
+    # -------------------------------------------------------------- called by the model
+    def bind(self, net: MaskedMLP, output_scale: Tensor) -> None:
+        """Attach to ``net``; ``output_scale`` converts the target's units to normalised ones."""
+        self._net = net
+
+    @abstractmethod
+    def reset(self, batch_shape: tuple[int, ...]) -> None:
+        """Forget everything adapted so far; keep one independent state per batch element."""
+
+    @abstractmethod
+    def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        """Adapt to one transition per batch element: ``inputs [*B, in]``, ``targets [*B, out]``."""
+
+    @abstractmethod
+    def predict(self, inputs: Tensor) -> Tensor:
+        """Adapted prediction for ``inputs [*B, *extra, in]`` -> ``[*B, *extra, out]``."""
+
+    def predict_particles(self, inputs: Tensor) -> Tensor:
+        """One prediction per posterior sample, ``[*B, *extra, N, out]`` (``N = 1`` without particles)."""
+        return self.predict(inputs).unsqueeze(-2)
+
+    @property
+    def mask(self) -> Tensor | None:
+        """Current mask estimate ``[*B, mask_dim]``, or ``None`` if the strategy has no mask."""
+        return None
+
+    def summary(self) -> dict[str, Tensor]:
+        """Diagnostics per batch element (for example ESS and log evidence)."""
+        return {}
+
+    def config(self) -> dict[str, Any]:
+        """Constructor arguments; ``type(s)(**s.config())`` is an unadapted copy."""
+        return {}
+
+    # -------------------------------------------------------------- helpers
+    @property
+    def net(self) -> MaskedMLP:
+        if self._net is None:
+            raise RuntimeError(f"{type(self).__name__} is not attached to a model; pass it to AdaptiveModel(...)")
+        return self._net
+
+    def _mask_view(self, value: Tensor, inputs: Tensor, trailing: int) -> Tensor:
+        """View ``value [*B, *rest]`` with singleton dims for ``inputs``' extra batch dims."""
+        extra = inputs.dim() - 1 - len(self._batch_shape)
+        if extra < 0 or tuple(inputs.shape[: len(self._batch_shape)]) != self._batch_shape:
+            raise ValueError(
+                f"inputs of shape {list(inputs.shape)} do not start with the model's batch shape "
+                f"{list(self._batch_shape)}; call model.reset(batch_shape=...) to match"
+            )
+        rest = value.shape[value.dim() - trailing :]
+        return value.reshape(*self._batch_shape, *([1] * extra), *rest)
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.config().items())
+        return f"{type(self).__name__}({args})"
+
+
+class NoAdaptation(Adaptation):
+    """Predict with the trained network as it is (dropout off): the M+N baseline.
+
+    Example:
+        >>> import smcd_rl
+        >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(8,))
+        >>> model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee", adaptation=smcd_rl.NoAdaptation())
+    """
+
+    name = "none"
+
+    def reset(self, batch_shape: tuple[int, ...]) -> None:
+        self._batch_shape = batch_shape
+
+    def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        pass
+
+    def predict(self, inputs: Tensor) -> Tensor:
+        return self.net(inputs)
+
+
+class SMCD(Adaptation):
+    """Sequential Monte Carlo Dropout: a particle filter over the network's dropout masks.
+
+    Predictions use the MMSE (weighted mean) mask; :meth:`predict_particles` gives the posterior
+    predictive of eq. (5), one prediction per particle. ``keep_prob`` comes from the network.
+
+    Args:
+        num_particles: masks in the particle set.
+        flip_prob: per-bit flip probability of the transition.
+        noise_std: measurement noise of the Gaussian likelihood, in the target's own units;
+            a scalar or one value per output dimension.
+        resampling: resampling scheme (see :class:`smcd_rl.SMCDFilter`).
+        ess_threshold: resample when ESS < ``ess_threshold * N``.
+        generator: random source of the filter (default: seeded from torch's global generator).
+
+    Example:
+        >>> import smcd_rl
+        >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(8, 8))
+        >>> smcd = smcd_rl.SMCD(num_particles=100, flip_prob=0.01, noise_std=0.05)
+        >>> model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee", adaptation=smcd)
+    """
+
+    name = "smcd"
+
+    def __init__(
+        self,
+        num_particles: int = 1000,
+        flip_prob: float = 0.01,
+        noise_std: float | Sequence[float] = 0.05,
+        resampling: ResamplingScheme = "systematic",
+        ess_threshold: float = 1.0,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        check_scheme(resampling)
+        if int(num_particles) < 1:
+            raise ValueError(f"num_particles must be >= 1, got {num_particles}")
+        noise = torch.as_tensor(noise_std, dtype=torch.float32)
+        if noise.dim() > 1 or not bool((noise > 0).all()) or not bool(torch.isfinite(noise).all()):
+            raise ValueError(f"noise_std must be a positive finite scalar or 1-d sequence, got {noise_std}")
+        self.num_particles = int(num_particles)
+        self.flip_prob = float(flip_prob)
+        self.noise_std = noise_std
+        self.resampling: ResamplingScheme = resampling
+        self.ess_threshold = float(ess_threshold)
+        self._generator = generator
+        self.filter: SMCDFilter | None = None
+        self._sigma = noise
+        self._log_norm = torch.tensor(0.0)
+
+    def config(self) -> dict[str, Any]:
+        noise = self.noise_std if isinstance(self.noise_std, (int, float)) else list(self.noise_std)
+        return {
+            "num_particles": self.num_particles,
+            "flip_prob": self.flip_prob,
+            "noise_std": noise,
+            "resampling": self.resampling,
+            "ess_threshold": self.ess_threshold,
+        }
+
+    def bind(self, net: MaskedMLP, output_scale: Tensor) -> None:
+        super().bind(net, output_scale)
+        noise = torch.as_tensor(self.noise_std, dtype=output_scale.dtype, device=output_scale.device)
+        if noise.dim() == 1 and noise.shape[0] not in (1, net.out_features):
+            raise ValueError(
+                f"noise_std has {noise.shape[0]} values but the model predicts {net.out_features} outputs"
+            )
+        noise = noise.expand(net.out_features)
+        self._sigma = noise / output_scale  # the same noise, in normalised units
+        # Normalising constant in the target's own units, so log evidence is a true log density.
+        self._log_norm = -noise.log().sum() - 0.5 * net.out_features * math.log(2 * math.pi)
+        device = next(net.parameters()).device
+        generator = self._generator
+        if generator is not None and generator.device.type != device.type:
+            raise ValueError(f"the SMCD generator is on {generator.device} but the network is on {device}")
+        self.filter = SMCDFilter(
+            net.mask_dim,
+            num_particles=self.num_particles,
+            flip_prob=self.flip_prob,
+            keep_prob=net.keep_prob,
+            resampling=self.resampling,
+            ess_threshold=self.ess_threshold,
+            generator=generator,
+            device=device,
+        )
+
+    def reset(self, batch_shape: tuple[int, ...]) -> None:
+        self._batch_shape = batch_shape
+        self._filter.reset(batch_shape)
+
+    def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        net, sigma, log_norm = self.net, self._sigma, self._log_norm
+
+        def log_likelihood(masks: Tensor) -> Tensor:
+            predictions = net.forward_particles(inputs, masks)
+            residual = (targets.unsqueeze(-2) - predictions) / sigma
+            return log_norm - 0.5 * residual.square().sum(-1)
+
+        self._filter.update(log_likelihood)
+
+    def predict(self, inputs: Tensor) -> Tensor:
+        mask = self._mask_view(self._filter.mean_mask, inputs, trailing=1)
+        return self.net(inputs, mask=mask)
+
+    def predict_particles(self, inputs: Tensor) -> Tensor:
+        masks = self._mask_view(self._filter.particles, inputs, trailing=2)  # type: ignore[arg-type]
+        return self.net.forward_particles(inputs, masks)
+
+    @property
+    def mask(self) -> Tensor:
+        return self._filter.mean_mask
+
+    def summary(self) -> dict[str, Tensor]:
+        return {"ess": self._filter.ess, "log_evidence": self._filter.log_evidence}
+
+    @property
+    def _filter(self) -> SMCDFilter:
+        if self.filter is None:
+            raise RuntimeError("SMCD is not attached to a model; pass it to AdaptiveModel(...)")
+        return self.filter
+
+
+class GradientDescent(Adaptation):
+    """Online gradient descent on the most recent transitions (the M+G baseline).
+
+    After each observation, ``steps`` SGD steps on the mean squared error (normalised units)
+    over the last ``window`` transitions update a private copy of the weights, one copy per
+    batch element. :meth:`reset` restores the trained weights; the network itself never changes.
+
+    Args:
+        lr: learning rate.
+        steps: gradient steps per observation.
+        window: how many recent transitions the loss uses.
+
+    Example:
+        >>> import smcd_rl
+        >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(8, 8))
+        >>> model = smcd_rl.AdaptiveModel(
+        ...     net, in_keys=["q"], out_key="ee", adaptation=smcd_rl.GradientDescent(lr=0.01, steps=1, window=10))
+    """
+
+    name = "gradient_descent"
+
+    def __init__(self, lr: float = 1e-2, steps: int = 1, window: int = 10) -> None:
+        super().__init__()
+        if lr <= 0 or int(steps) < 1 or int(window) < 1:
+            raise ValueError(f"need lr > 0, steps >= 1 and window >= 1, got lr={lr}, steps={steps}, window={window}")
+        self.lr = float(lr)
+        self.steps = int(steps)
+        self.window = int(window)
+        self._params: dict[str, Tensor] = {}
+        self._inputs: Tensor | None = None
+        self._targets: Tensor | None = None
+        self._count = 0
+
+    def config(self) -> dict[str, Any]:
+        return {"lr": self.lr, "steps": self.steps, "window": self.window}
+
+    def reset(self, batch_shape: tuple[int, ...]) -> None:
+        self._batch_shape = batch_shape
+        net = self.net
+        flat = math.prod(batch_shape)
+        self._params = {k: v.detach().expand(flat, *v.shape).clone() for k, v in net.named_parameters()}
+        device = next(net.parameters()).device
+        self._inputs = torch.zeros(flat, self.window, net.in_features, device=device)
+        self._targets = torch.zeros(flat, self.window, net.out_features, device=device)
+        self._count = 0
+
+    def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        assert self._inputs is not None and self._targets is not None, "call reset() first"
+        slot = self._count % self.window
+        self._inputs[:, slot] = inputs.reshape(-1, inputs.shape[-1])
+        self._targets[:, slot] = targets.reshape(-1, targets.shape[-1])
+        self._count += 1
+        used = min(self._count, self.window)
+        xs, zs = self._inputs[:, :used], self._targets[:, :used]
+        net = self.net
+
+        def loss(params: dict[str, Tensor], x: Tensor, z: Tensor) -> Tensor:
+            return (functional_call(net, params, (x,)) - z).square().mean()
+
+        gradient = vmap(grad(loss))
+        with torch.enable_grad():
+            for _ in range(self.steps):
+                grads = gradient(self._params, xs, zs)
+                self._params = {k: p - self.lr * grads[k] for k, p in self._params.items()}
+
+    def predict(self, inputs: Tensor) -> Tensor:
+        self._mask_view(torch.zeros(*self._batch_shape, 1), inputs, trailing=1)  # shape check only
+        flat = inputs.reshape(math.prod(self._batch_shape), -1, inputs.shape[-1])
+        out = vmap(lambda p, x: functional_call(self.net, p, (x,)))(self._params, flat)
+        return out.reshape(*inputs.shape[:-1], out.shape[-1])
+
+
+#: Strategy classes by name, for configuration files and the CLI.
+ADAPTATIONS: dict[str, type[Adaptation]] = {
+    "none": NoAdaptation,
+    "gradient_descent": GradientDescent,
+    "smcd": SMCD,
+}
+
+
+def make_adaptation(name: Literal["none", "gradient_descent", "smcd"] | str, **kwargs: Any) -> Adaptation:
+    """Build a strategy by name: ``"none"``, ``"gradient_descent"`` (alias ``"gd"``) or ``"smcd"``.
+
+    Example:
+        >>> import smcd_rl
+        >>> smcd_rl.make_adaptation("smcd", num_particles=10)
+        SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0)
+    """
+    key = {"gd": "gradient_descent"}.get(name, name)
+    if key not in ADAPTATIONS:
+        raise ValueError(f"unknown adaptation {name!r}; choose one of {sorted(ADAPTATIONS)} (or 'gd')")
+    return ADAPTATIONS[key](**kwargs)

@@ -1,0 +1,348 @@
+"""Particle filters: the SMCD filter over dropout masks and the weighted-particle machinery it uses.
+
+The filters know particles, log-likelihoods and resampling only; they never see a network, an
+environment or a TensorDict key. A caller turns an observation into per-particle
+log-likelihoods and hands them to :meth:`ParticleFilter.reweight` (or to :meth:`ParticleFilter.update`,
+which also proposes the next particles and rolls everything back if the likelihoods are invalid).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from smcd_rl.resampling import ResamplingScheme, check_scheme, resample_indices
+
+__all__ = ["ParticleFilter", "SMCDFilter", "sample_flip_positions"]
+
+#: Above this flip probability drawing one uniform per bit is as cheap as the sparse sampler.
+_DENSE_FLIP_PROB = 0.05
+
+
+class ParticleFilter:
+    """Weighted particles ``[*batch, N, D]``: reweighting, resampling, ESS and log evidence.
+
+    Subclasses define the prior (:meth:`_initial`) and the transition (:meth:`_transition`).
+    Each element of ``batch_shape`` is an independent filter (one per environment of a vector env).
+
+    Args:
+        num_particles: ``N``.
+        resampling: ``"systematic"``, ``"multinomial"``, ``"stratified"`` or ``"residual"``.
+        ess_threshold: resample a batch element when its ESS drops below ``ess_threshold * N``;
+            ``1.0`` resamples after every informative update (Algorithm 1), ``0.0`` never.
+        generator: random source. Without one the filter seeds its own from torch's global
+            generator, so ``torch.manual_seed`` makes runs repeatable.
+        device: where particles live (default: the generator's device, else CPU).
+    """
+
+    def __init__(
+        self,
+        num_particles: int,
+        *,
+        resampling: ResamplingScheme = "systematic",
+        ess_threshold: float = 1.0,
+        generator: torch.Generator | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        if int(num_particles) < 1:
+            raise ValueError(f"num_particles must be >= 1, got {num_particles}")
+        if not 0.0 <= ess_threshold <= 1.0:
+            raise ValueError(f"ess_threshold must be in [0, 1], got {ess_threshold}")
+        self.resampling: ResamplingScheme = check_scheme(resampling)
+        self.ess_threshold = float(ess_threshold)
+        if device is None:
+            device = generator.device if generator is not None else "cpu"
+        self.device = torch.device(device)
+        if generator is None:
+            generator = torch.Generator(device=self.device)
+            generator.manual_seed(int(torch.randint(0, 2**62, (1,)).item()))
+        elif generator.device.type != self.device.type:
+            raise ValueError(f"generator is on {generator.device} but the filter is on {self.device}")
+        self.generator = generator
+        self._num_particles = int(num_particles)
+        self.particles: Tensor | None = None
+        self.log_weights: Tensor | None = None
+        self.log_evidence: Tensor | None = None
+        #: Ancestor index of every particle at the last resampling (``None``: not resampled).
+        self.ancestors: Tensor | None = None
+
+    # ------------------------------------------------------------------ to implement
+    def _initial(self, batch_shape: tuple[int, ...], num_particles: int) -> Tensor:
+        raise NotImplementedError
+
+    def _transition(self, particles: Tensor) -> Tensor:
+        """Return the next particles; must not modify ``particles`` in place."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ state
+    @property
+    def num_particles(self) -> int:
+        return self._num_particles
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self._state()[0].shape[:-2])
+
+    @property
+    def weights(self) -> Tensor:
+        """Normalised weights ``[*batch, N]``."""
+        return self._state()[1].exp()
+
+    @property
+    def ess(self) -> Tensor:
+        """Effective sample size ``1 / sum w_i^2``, in ``[1, N]``, shape ``[*batch]``."""
+        return torch.exp(-torch.logsumexp(2.0 * self._state()[1], dim=-1))
+
+    def reset(self, batch_shape: Sequence[int] = ()) -> None:
+        """Draw fresh particles from the prior, with uniform weights and zero log evidence."""
+        batch_shape = tuple(int(b) for b in batch_shape)
+        n = self._num_particles
+        self.particles = self._initial(batch_shape, n)
+        self.log_weights = torch.full((*batch_shape, n), -math.log(n), device=self.device)
+        self.log_evidence = torch.zeros(batch_shape, device=self.device)
+        self.ancestors = None
+
+    def propagate(self) -> None:
+        """Move every particle one step through the transition model."""
+        self.particles = self._transition(self._state()[0])
+
+    def reweight(self, log_likelihood: Tensor) -> None:
+        """Multiply the weights by the likelihoods, accumulate the evidence, resample if the ESS is low.
+
+        Args:
+            log_likelihood: ``[*batch, N]`` log p(z | particle). NaN or ``+inf`` entries, or a
+                batch element whose entries are all ``-inf``, raise ValueError and change nothing.
+        """
+        log_likelihood = self._checked_log_likelihood(log_likelihood)
+        self._apply(log_likelihood)
+
+    def update(self, log_likelihood_fn: Callable[[Tensor], Tensor]) -> Tensor:
+        """One filter step: propagate, score the proposed particles, reweight and resample.
+
+        The step is atomic: if ``log_likelihood_fn`` raises or returns invalid values, the
+        particles, weights, evidence and random generator are left exactly as they were.
+
+        Args:
+            log_likelihood_fn: maps the proposed particles ``[*batch, N, D]`` to ``[*batch, N]``.
+
+        Returns:
+            The log-likelihoods of the proposed particles.
+        """
+        particles = self._state()[0]
+        rng_state = self.generator.get_state()
+        try:
+            proposed = self._transition(particles)
+            log_likelihood = self._checked_log_likelihood(log_likelihood_fn(proposed))
+        except BaseException:
+            self.generator.set_state(rng_state)
+            raise
+        self.particles = proposed
+        self._apply(log_likelihood)
+        return log_likelihood
+
+    def resize(self, num_particles: int) -> None:
+        """Change ``N`` online by resampling ``num_particles`` from the current weighted set.
+
+        The weighted distribution is kept (in expectation); weights become uniform.
+        """
+        if int(num_particles) < 1:
+            raise ValueError(f"num_particles must be >= 1, got {num_particles}")
+        particles, log_weights, _ = self._state()
+        idx = resample_indices(log_weights, self.resampling, num_samples=int(num_particles), generator=self.generator)
+        self.particles = _gather_particles(particles, idx)
+        self._num_particles = int(num_particles)
+        self.log_weights = torch.full(idx.shape, -math.log(self._num_particles), device=self.device)
+        self.ancestors = idx
+
+    def state_dict(self) -> dict[str, Any]:
+        """A copy of the full state, generator included; :meth:`load_state_dict` restores it."""
+        particles, log_weights, log_evidence = self._state()
+        return {
+            "particles": particles.clone(),
+            "log_weights": log_weights.clone(),
+            "log_evidence": log_evidence.clone(),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.particles = state["particles"].clone().to(self.device)
+        self.log_weights = state["log_weights"].clone().to(self.device)
+        self.log_evidence = state["log_evidence"].clone().to(self.device)
+        self._num_particles = self.particles.shape[-2]
+        self.generator.set_state(state["generator"])
+        self.ancestors = None
+
+    # ------------------------------------------------------------------ internals
+    def _state(self) -> tuple[Tensor, Tensor, Tensor]:
+        if self.particles is None or self.log_weights is None or self.log_evidence is None:
+            raise RuntimeError(f"{type(self).__name__} has no particles yet: call reset(batch_shape) first")
+        return self.particles, self.log_weights, self.log_evidence
+
+    def _checked_log_likelihood(self, log_likelihood: Tensor) -> Tensor:
+        log_weights = self._state()[1]
+        if not isinstance(log_likelihood, Tensor):
+            raise TypeError(f"log_likelihood must be a Tensor, got {type(log_likelihood).__name__}")
+        if log_likelihood.shape != log_weights.shape:
+            raise ValueError(
+                f"log_likelihood must have shape [*batch, N] = {list(log_weights.shape)}, "
+                f"got {list(log_likelihood.shape)}"
+            )
+        if torch.isnan(log_likelihood).any():
+            raise ValueError("log_likelihood contains NaN; check the observation and the model's prediction")
+        if torch.isposinf(log_likelihood).any():
+            raise ValueError("log_likelihood contains +inf; check the likelihood's noise scale (it must be > 0)")
+        if (log_likelihood == -math.inf).all(dim=-1).any():
+            raise ValueError(
+                "every particle of a batch element has zero likelihood (all -inf): "
+                "the observation is impossible under the model; increase the likelihood's noise scale"
+            )
+        return log_likelihood.to(log_weights.dtype)
+
+    def _apply(self, log_likelihood: Tensor) -> None:
+        particles, log_weights, log_evidence = self._state()
+        joint = log_weights + log_likelihood
+        log_norm = torch.logsumexp(joint, dim=-1)
+        self.log_evidence = log_evidence + log_norm
+        self.log_weights = joint - log_norm.unsqueeze(-1)
+        self._resample_if_needed()
+
+    def _resample_if_needed(self) -> None:
+        particles, log_weights, _ = self._state()
+        n = self._num_particles
+        need = self.ess < self.ess_threshold * n
+        if not bool(need.any()):
+            self.ancestors = None
+            return
+        idx = resample_indices(log_weights, self.resampling, generator=self.generator)
+        if not bool(need.all()):
+            idx = torch.where(need.unsqueeze(-1), idx, torch.arange(n, device=self.device))
+        self.particles = _gather_particles(particles, idx)
+        self.log_weights = torch.where(need.unsqueeze(-1), torch.full_like(log_weights, -math.log(n)), log_weights)
+        self.ancestors = idx
+
+
+def _gather_particles(particles: Tensor, idx: Tensor) -> Tensor:
+    return particles.gather(-2, idx.unsqueeze(-1).expand(*idx.shape, particles.shape[-1]))
+
+
+def sample_flip_positions(
+    numel: int, flip_prob: float, *, generator: torch.Generator | None = None, device: torch.device | str = "cpu"
+) -> Tensor:
+    """Positions of the flipped bits among ``numel`` independent Bernoulli(``flip_prob``) bits.
+
+    Instead of one uniform per bit this draws the gaps between successive flips, which are
+    i.i.d. geometric: ``P(gap >= g) = (1 - p)^g``, sampled exactly as ``floor(log U / log(1 - p))``.
+    The result has exactly the distribution of ``(torch.rand(numel) < p).nonzero()`` but costs
+    about ``numel * p`` uniforms instead of ``numel``.
+
+    Returns:
+        Sorted, distinct int64 positions in ``[0, numel)``.
+
+    Example:
+        >>> import torch
+        >>> from smcd_rl.filter import sample_flip_positions
+        >>> pos = sample_flip_positions(10_000, 0.01, generator=torch.Generator().manual_seed(0))
+        >>> bool((pos[1:] > pos[:-1]).all())
+        True
+    """
+    device = torch.device(device)
+    if not 0.0 <= flip_prob <= 1.0:
+        raise ValueError(f"flip_prob must be in [0, 1], got {flip_prob}")
+    if numel == 0 or flip_prob == 0.0:
+        return torch.empty(0, dtype=torch.long, device=device)
+    if flip_prob >= _DENSE_FLIP_PROB:
+        flips = torch.rand(numel, generator=generator, device=device) < flip_prob
+        return flips.nonzero().squeeze(-1)
+    log_stay = math.log1p(-flip_prob)
+    mean = numel * flip_prob
+    # Enough gaps to pass the end with overwhelming probability; otherwise draw another chunk.
+    chunk = int(mean + 6.0 * math.sqrt(mean) + 16)
+    pieces: list[Tensor] = []
+    start = 0
+    while True:
+        u = 1.0 - torch.rand(chunk, generator=generator, device=device, dtype=torch.float64)  # (0, 1]
+        gaps = torch.floor(torch.log(u) / log_stay).clamp_(max=numel).long()
+        positions = start + torch.cumsum(gaps + 1, dim=0) - 1
+        if int(positions[-1]) >= numel:
+            pieces.append(positions[positions < numel])
+            break
+        pieces.append(positions)
+        start = int(positions[-1]) + 1
+    return torch.cat(pieces)
+
+
+class SMCDFilter(ParticleFilter):
+    """Sequential Monte Carlo Dropout: a bootstrap particle filter over binary dropout masks.
+
+    Algorithm 1 of the paper: masks start as Bernoulli(``keep_prob``) draws (the training
+    distribution), move by xor with Bernoulli(``flip_prob``) bit flips, are weighted by the
+    likelihood of the real observation and resampled; the MMSE mask is the weighted mean.
+
+    Args:
+        mask_dim: bits per mask.
+        num_particles: ``N``.
+        flip_prob: probability ``d`` that a bit flips per :meth:`propagate`.
+        keep_prob: probability that a bit is 1 in the initial masks (``1 - dropout``).
+        resampling: see :class:`ParticleFilter`.
+        ess_threshold: see :class:`ParticleFilter`.
+        generator: see :class:`ParticleFilter`.
+        device: see :class:`ParticleFilter`.
+
+    Example:
+        >>> import torch, smcd_rl
+        >>> filt = smcd_rl.SMCDFilter(8, num_particles=100, generator=torch.Generator().manual_seed(0))
+        >>> filt.reset()
+        >>> filt.propagate()
+        >>> filt.reweight(-(filt.particles.float().sum(-1) - 8) ** 2)  # favour all-ones masks
+        >>> filt.particles.shape, filt.mean_mask.shape
+        (torch.Size([100, 8]), torch.Size([8]))
+    """
+
+    def __init__(
+        self,
+        mask_dim: int,
+        num_particles: int = 1000,
+        flip_prob: float = 0.01,
+        keep_prob: float = 0.5,
+        resampling: ResamplingScheme = "systematic",
+        ess_threshold: float = 1.0,
+        generator: torch.Generator | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__(
+            num_particles, resampling=resampling, ess_threshold=ess_threshold, generator=generator, device=device
+        )
+        if int(mask_dim) < 1:
+            raise ValueError(f"mask_dim must be >= 1, got {mask_dim}")
+        if not 0.0 <= flip_prob <= 1.0:
+            raise ValueError(f"flip_prob must be in [0, 1], got {flip_prob}")
+        if not 0.0 < keep_prob <= 1.0:
+            raise ValueError(f"keep_prob must be in (0, 1], got {keep_prob}")
+        self.mask_dim = int(mask_dim)
+        self.flip_prob = float(flip_prob)
+        self.keep_prob = float(keep_prob)
+        #: Flat positions (into ``particles.reshape(-1)``) flipped by the last transition.
+        self.last_flips: Tensor | None = None
+
+    @property
+    def mean_mask(self) -> Tensor:
+        """The MMSE mask: weighted mean of the particles, float ``[*batch, mask_dim]``."""
+        particles, log_weights, _ = self._state()
+        return (log_weights.exp().unsqueeze(-2) @ particles.to(log_weights.dtype)).squeeze(-2)
+
+    def _initial(self, batch_shape: tuple[int, ...], num_particles: int) -> Tensor:
+        shape = (*batch_shape, num_particles, self.mask_dim)
+        return torch.rand(shape, generator=self.generator, device=self.device) < self.keep_prob
+
+    def _transition(self, particles: Tensor) -> Tensor:
+        flips = sample_flip_positions(
+            particles.numel(), self.flip_prob, generator=self.generator, device=self.device
+        )
+        self.last_flips = flips
+        flat = particles.reshape(-1).clone()
+        flat[flips] = ~flat[flips]
+        return flat.view(particles.shape)

@@ -1,0 +1,187 @@
+"""A multilayer perceptron whose hidden units can be switched off by an explicit dropout mask."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Literal
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["MaskedMLP"]
+
+Activation = Literal["relu", "tanh", "elu", "silu"]
+_ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "relu": nn.ReLU,
+    "tanh": nn.Tanh,
+    "elu": nn.ELU,
+    "silu": nn.SiLU,
+}
+
+
+class MaskedMLP(nn.Module):
+    """MLP with one dropout-mask bit per hidden unit of its masked layers.
+
+    Dropout sits after each masked hidden layer's activation. A kept unit is scaled by
+    ``1 / keep_prob`` exactly as in training, so a mask of ones times ``keep_prob`` (the mean
+    mask) gives the ordinary evaluation-mode network.
+
+    * ``net(x)`` in ``train()`` mode drops units at random (ordinary dropout); in ``eval()`` mode
+      it drops none.
+    * ``net(x, mask=m)`` uses the given mask: ``m`` is ``[..., mask_dim]``, bool or float in
+      ``[0, 1]`` (for example an MMSE mask), broadcast against ``x``'s batch dims.
+    * ``net.forward_particles(x, masks)`` runs every mask of ``masks [..., N, mask_dim]`` in one
+      batched pass; the first layer, which no mask touches, is computed once for all particles.
+
+    Mask bits are laid out layer after layer: bits ``0 .. hidden[i0]-1`` belong to the first
+    masked layer, the next ``hidden[i1]`` bits to the second, and so on.
+
+    Args:
+        in_features: input size.
+        out_features: output size.
+        hidden: widths of the hidden layers.
+        dropout: drop probability ``p`` used in training; ``keep_prob = 1 - p``.
+        activation: hidden activation.
+        masked_layers: indices of the hidden layers that carry mask bits (default: all).
+        device: where the parameters live.
+        dtype: parameter dtype.
+
+    Example:
+        >>> import torch, smcd_rl
+        >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(16, 16), dropout=0.5).eval()
+        >>> net.mask_dim
+        32
+        >>> masks = torch.rand(10, net.mask_dim) < 0.5
+        >>> net.forward_particles(torch.zeros(2), masks).shape
+        torch.Size([10, 2])
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        out_features: int,
+        hidden: Sequence[int] = (512, 512),
+        dropout: float = 0.5,
+        activation: Activation = "relu",
+        masked_layers: Sequence[int] | None = None,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        hidden = tuple(int(h) for h in hidden)
+        if in_features < 1 or out_features < 1:
+            raise ValueError(f"in_features and out_features must be >= 1, got {in_features}, {out_features}")
+        if not hidden or min(hidden) < 1:
+            raise ValueError(f"hidden must list at least one positive width, got {hidden}")
+        if not 0.0 <= dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        if activation not in _ACTIVATIONS:
+            raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(_ACTIVATIONS)}")
+        layers = tuple(range(len(hidden))) if masked_layers is None else tuple(sorted(set(masked_layers)))
+        if not layers or not all(0 <= i < len(hidden) for i in layers):
+            raise ValueError(f"masked_layers must index hidden layers 0..{len(hidden) - 1}, got {masked_layers}")
+
+        self.in_features = int(in_features)
+        self.out_features = int(out_features)
+        self.hidden = hidden
+        self.dropout = float(dropout)
+        self.keep_prob = 1.0 - self.dropout
+        self.activation = activation
+        self.masked_layers = layers
+        widths = (self.in_features, *hidden, self.out_features)
+        self.linears = nn.ModuleList(
+            nn.Linear(a, b, device=device, dtype=dtype) for a, b in zip(widths[:-1], widths[1:])
+        )
+        self.act = _ACTIVATIONS[activation]()
+        # Where each hidden layer's bits sit in the flat mask (None: the layer is not masked).
+        self.mask_slices: list[slice | None] = []
+        start = 0
+        for i, width in enumerate(hidden):
+            if i in layers:
+                self.mask_slices.append(slice(start, start + width))
+                start += width
+            else:
+                self.mask_slices.append(None)
+        self.mask_dim = start
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """The constructor arguments; ``MaskedMLP(**net.config)`` rebuilds the architecture."""
+        return {
+            "in_features": self.in_features,
+            "out_features": self.out_features,
+            "hidden": list(self.hidden),
+            "dropout": self.dropout,
+            "activation": self.activation,
+            "masked_layers": list(self.masked_layers),
+        }
+
+    def extra_repr(self) -> str:
+        return f"mask_dim={self.mask_dim}, keep_prob={self.keep_prob}, masked_layers={self.masked_layers}"
+
+    def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
+        """Predict with one mask per batch element (or ordinary dropout, see the class docstring)."""
+        self._check_input(x)
+        if mask is None:
+            if not self.training or self.dropout == 0.0:
+                return self._run(x, None)
+            mask = torch.rand(*x.shape[:-1], self.mask_dim, device=x.device) < self.keep_prob
+        return self._run(x, self._scaled(mask, x.dtype))
+
+    def forward_particles(self, x: Tensor, masks: Tensor) -> Tensor:
+        """Predict with every mask of a particle set in one batched pass.
+
+        Args:
+            x: inputs ``[..., in_features]`` shared by all particles, or ``[..., N, in_features]``
+                with one input per particle (when ``x.dim() == masks.dim()``).
+            masks: ``[..., N, mask_dim]``, bool or float in ``[0, 1]``; leading dims broadcast
+                against ``x``'s.
+
+        Returns:
+            ``[..., N, out_features]``: one prediction per mask.
+        """
+        self._check_input(x)
+        if masks.dim() < 2 or masks.shape[-1] != self.mask_dim:
+            raise ValueError(
+                f"masks must have shape [..., N, {self.mask_dim}] (mask_dim={self.mask_dim}), got {list(masks.shape)}"
+            )
+        shared = x.dim() < masks.dim()
+        scaled = self._scaled(masks, x.dtype)
+        h = x
+        for i, linear in enumerate(self.linears[:-1]):
+            h = self.act(linear(h))
+            if shared:
+                # Everything before the first mask is the same for all particles: add the
+                # particle dim only now, so that work is done once instead of N times.
+                h = h.unsqueeze(-2)
+                shared = False
+            sl = self.mask_slices[i]
+            if sl is not None:
+                h = h * scaled[..., sl]
+        return self.linears[-1](h)
+
+    # ------------------------------------------------------------------ helpers
+    def _scaled(self, mask: Tensor, dtype: torch.dtype) -> Tensor:
+        if mask.shape[-1] != self.mask_dim:
+            raise ValueError(
+                f"mask must have shape [..., {self.mask_dim}] (mask_dim={self.mask_dim}), got {list(mask.shape)}"
+            )
+        if mask.dtype == torch.bool:
+            mask = mask.to(dtype)
+        # Convert once: multiplying by a float mask is much cheaper than by a bool one.
+        return mask.to(dtype) * (1.0 / self.keep_prob)
+
+    def _run(self, x: Tensor, scaled: Tensor | None) -> Tensor:
+        h = x
+        for i, linear in enumerate(self.linears[:-1]):
+            h = self.act(linear(h))
+            sl = self.mask_slices[i]
+            if scaled is not None and sl is not None:
+                h = h * scaled[..., sl]
+        return self.linears[-1](h)
+
+    def _check_input(self, x: Tensor) -> None:
+        if x.dim() < 1 or x.shape[-1] != self.in_features:
+            raise ValueError(
+                f"input must have shape [..., {self.in_features}] (in_features={self.in_features}), got {list(x.shape)}"
+            )

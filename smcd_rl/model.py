@@ -1,0 +1,360 @@
+"""Adaptive models: a trained masked network plus an adaptation strategy, as TensorDict modules."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import Tensor
+
+from smcd_rl.adaptation import ADAPTATIONS, Adaptation, NoAdaptation
+from smcd_rl.masked_mlp import MaskedMLP
+from smcd_rl.normalization import Normalizer
+
+__all__ = ["AdaptiveModel", "AdaptiveDynamicsModel", "load", "CheckpointMismatchError"]
+
+_FORMAT = "smcd_rl.AdaptiveModel/1"
+
+
+class CheckpointMismatchError(ValueError):
+    """A checkpoint does not fit the model it is loaded into."""
+
+
+class AdaptiveModel(TensorDictModuleBase):
+    """A masked network that adapts online, reading and writing TensorDict keys.
+
+    The inputs are the ``in_keys`` concatenated along the last dim; the prediction is written to
+    ``out_key``. With ``base_key`` the network predicts the change ``target - td[base_key]``
+    (the default for dynamics). Inputs and network outputs are standardised with statistics
+    that :func:`smcd_rl.fit` computes from the training data and that are saved with the model.
+
+    Batch conventions: after ``reset(batch_shape=(B,))`` the model keeps ``B`` independent
+    adaptation states, and a TensorDict passed to :meth:`observe` must have batch ``[B]``. A model
+    reset with ``batch_shape=()`` treats a TensorDict of batch ``[T]`` as ``T`` consecutive
+    transitions. For prediction, batch dims beyond the model's broadcast (e.g. planning candidates).
+
+    Args:
+        net: the trained (or to be trained) masked network.
+        in_keys: keys whose values, concatenated, are the network input.
+        out_key: where :meth:`forward` writes the adapted prediction.
+        target_key: key of the real measurement in :meth:`observe` (default ``out_key``).
+        base_key: if given, the network predicts ``target - td[base_key]``.
+        adaptation: the strategy (default :class:`smcd_rl.NoAdaptation`).
+
+    Example:
+        >>> import torch, smcd_rl
+        >>> from tensordict import TensorDict
+        >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(32, 32))
+        >>> model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee",
+        ...                               adaptation=smcd_rl.SMCD(num_particles=50, noise_std=0.05))
+        >>> model.reset()
+        >>> model.observe(TensorDict({"q": torch.zeros(2), "ee": torch.ones(2)}, []))
+        >>> model(TensorDict({"q": torch.zeros(2)}, []))["ee"].shape
+        torch.Size([2])
+    """
+
+    def __init__(
+        self,
+        net: MaskedMLP,
+        *,
+        in_keys: Sequence[NestedKey],
+        out_key: NestedKey,
+        target_key: NestedKey | None = None,
+        base_key: NestedKey | None = None,
+        adaptation: Adaptation | None = None,
+    ) -> None:
+        super().__init__()
+        if not isinstance(net, MaskedMLP):
+            raise TypeError(f"net must be a smcd_rl.MaskedMLP, got {type(net).__name__}")
+        if not in_keys:
+            raise ValueError("in_keys must name at least one input key")
+        self.net = net
+        self.in_keys = list(in_keys)
+        self.out_keys = [out_key]
+        self.out_key = out_key
+        self.target_key = out_key if target_key is None else target_key
+        self.base_key = base_key
+        self.input_norm = Normalizer(net.in_features)
+        self.output_norm = Normalizer(net.out_features)
+        self.adaptation: Adaptation = NoAdaptation() if adaptation is None else adaptation
+        self._batch_shape: tuple[int, ...] | None = None
+        self._bind(self.adaptation)
+
+    # ------------------------------------------------------------------ adaptation
+    def reset(self, batch_shape: Sequence[int] = ()) -> None:
+        """Start adapting afresh, with one independent state per element of ``batch_shape``."""
+        self.net.eval()
+        # Bind again: training sets the output scale and .to(device) moves the network since.
+        self._bind(self.adaptation)
+        self._batch_shape = tuple(int(b) for b in batch_shape)
+        self.adaptation.reset(self._batch_shape)
+
+    def observe(self, td: TensorDictBase) -> None:
+        """Adapt to real transitions (see the class docstring for batch conventions).
+
+        Raises:
+            KeyError: a key the model needs is missing.
+            ValueError: shapes do not match the model, or a value is NaN or infinite. The
+                adaptation state is unchanged after any error.
+        """
+        batch_shape = self._require_reset()
+        inputs = self._inputs(td, what="observe")
+        target = self._read(td, self.target_key, self.net.out_features, what="observe")
+        outputs = self.output_norm(self._to_output(td, target))
+        td_batch = tuple(td.batch_size)
+        with torch.no_grad():
+            if td_batch == batch_shape:
+                self.adaptation.observe(inputs, outputs)
+            elif batch_shape == () and len(td_batch) == 1:
+                for t in range(td_batch[0]):  # a sequence of transitions, in order
+                    self.adaptation.observe(inputs[t], outputs[t])
+            else:
+                raise ValueError(
+                    f"observe got a TensorDict of batch {list(td_batch)} but the model was reset with "
+                    f"batch_shape={list(batch_shape)}; call model.reset(batch_shape={list(td_batch)}) "
+                    "for one adaptation state per env, or pass one transition per env"
+                )
+
+    @property
+    def mask(self) -> Tensor | None:
+        """Current mask estimate, ``[mask_dim]`` or ``[*batch_shape, mask_dim]`` (None without masks)."""
+        self._require_reset()
+        return self.adaptation.mask
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return self._require_reset()
+
+    def summary(self) -> dict[str, Tensor]:
+        """Diagnostics of the adaptation (SMCD: ``ess`` and ``log_evidence``) per batch element."""
+        self._require_reset()
+        return self.adaptation.summary()
+
+    def with_adaptation(self, adaptation: Adaptation) -> AdaptiveModel:
+        """The same trained network and normalisation with another strategy (M+N, M+G, M+S...).
+
+        The network is shared, not copied; strategies never modify it.
+        """
+        other = _assemble(type(self), self.net, self._key_config(), adaptation)
+        other.input_norm = self.input_norm
+        other.output_norm = self.output_norm
+        return other
+
+    # ------------------------------------------------------------------ prediction
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        """Write the adapted prediction to ``out_key``."""
+        self._require_reset()
+        inputs = self._inputs(td, what="forward")
+        prediction = self._from_output(td, self.output_norm.inverse(self.adaptation.predict(inputs)))
+        td.set(self.out_key, prediction)
+        return td
+
+    def predict_particles(self, td: TensorDictBase) -> Tensor:
+        """Posterior predictive samples of eq. (5): ``[*batch, N, out]``, one per particle."""
+        self._require_reset()
+        inputs = self._inputs(td, what="predict_particles")
+        prediction = self.output_norm.inverse(self.adaptation.predict_particles(inputs))
+        if self.base_key is not None:
+            prediction = prediction + self._read(td, self.base_key, self.net.out_features, what="predict").unsqueeze(-2)
+        return prediction
+
+    # ------------------------------------------------------------------ persistence
+    def checkpoint(self) -> dict[str, Any]:
+        """Everything needed to rebuild this model: architecture, keys, weights, strategy."""
+        return {
+            "format": _FORMAT,
+            "class": type(self).__name__,
+            "net": self.net.config,
+            "keys": self._key_config(),
+            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
+            "adaptation": {"name": self.adaptation.name, "config": self.adaptation.config()},
+        }
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Save to ``path`` (written atomically); :func:`smcd_rl.load` rebuilds the model."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        torch.save(self.checkpoint(), tmp)
+        os.replace(tmp, path)
+
+    def load_checkpoint(self, checkpoint: dict[str, Any] | str | os.PathLike[str]) -> None:
+        """Load trained weights and normalisation into this model, after checking they fit it."""
+        if not isinstance(checkpoint, dict):
+            checkpoint = _read_checkpoint(checkpoint)
+        if checkpoint.get("net") != self.net.config:
+            raise CheckpointMismatchError(
+                f"checkpoint holds a network {checkpoint.get('net')} but this model has {self.net.config}; "
+                "build the model with the checkpoint's architecture, or use smcd_rl.load(path) to rebuild it"
+            )
+        if checkpoint.get("keys") != self._key_config():
+            raise CheckpointMismatchError(
+                f"checkpoint was saved with keys {checkpoint.get('keys')} but this model uses {self._key_config()}"
+            )
+        self.load_state_dict(checkpoint["state_dict"])
+
+    # ------------------------------------------------------------------ internals
+    def _bind(self, adaptation: Adaptation) -> None:
+        if not isinstance(adaptation, Adaptation):
+            raise TypeError(f"adaptation must be a smcd_rl.Adaptation, got {type(adaptation).__name__}")
+        adaptation.bind(self.net, self.output_norm.std)
+
+    def _key_config(self) -> dict[str, Any]:
+        return {
+            "in_keys": [list(k) if isinstance(k, tuple) else k for k in self.in_keys],
+            "out_key": list(self.out_key) if isinstance(self.out_key, tuple) else self.out_key,
+            "target_key": list(self.target_key) if isinstance(self.target_key, tuple) else self.target_key,
+            "base_key": list(self.base_key) if isinstance(self.base_key, tuple) else self.base_key,
+        }
+
+    def _require_reset(self) -> tuple[int, ...]:
+        if self._batch_shape is None:
+            raise RuntimeError("call model.reset() (or model.reset(batch_shape=(B,))) before using the model")
+        return self._batch_shape
+
+    def _read(self, td: TensorDictBase, key: NestedKey, size: int | None, *, what: str) -> Tensor:
+        value = td.get(key, None)
+        if value is None:
+            raise KeyError(f"{what}: the TensorDict has no key {key!r}; it has {sorted(map(str, td.keys(True, True)))}")
+        if size is not None and value.shape[-1:] != (size,):
+            raise ValueError(f"{what}: {key!r} must have shape [..., {size}], got {list(value.shape)}")
+        if not value.is_floating_point():
+            value = value.float()
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(
+                f"{what}: {key!r} contains NaN or inf; the adaptation state is unchanged. "
+                "Drop or repair the transition before passing it"
+            )
+        return value.to(self.input_norm.mean.dtype)
+
+    def training_pairs(self, td: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """Raw (unnormalised) network inputs and regression targets of a batch of transitions."""
+        x = self._raw_inputs(td, what="fit")
+        target = self._read(td, self.target_key, self.net.out_features, what="fit")
+        return x, self._to_output(td, target)
+
+    def _inputs(self, td: TensorDictBase, *, what: str) -> Tensor:
+        return self.input_norm(self._raw_inputs(td, what=what))
+
+    def _raw_inputs(self, td: TensorDictBase, *, what: str) -> Tensor:
+        parts = [self._read(td, key, None, what=what) for key in self.in_keys]
+        try:
+            x = torch.cat(parts, dim=-1) if len(parts) > 1 else parts[0]
+        except RuntimeError as err:
+            shapes = {str(k): list(p.shape) for k, p in zip(self.in_keys, parts)}
+            raise ValueError(f"{what}: cannot concatenate inputs {shapes} along the last dim") from err
+        if x.shape[-1] != self.net.in_features:
+            shapes = {str(k): list(p.shape) for k, p in zip(self.in_keys, parts)}
+            raise ValueError(
+                f"{what}: inputs {shapes} give {x.shape[-1]} features but the network takes {self.net.in_features}"
+            )
+        return x
+
+    def _to_output(self, td: TensorDictBase, target: Tensor) -> Tensor:
+        if self.base_key is None:
+            return target
+        return target - self._read(td, self.base_key, self.net.out_features, what="target")
+
+    def _from_output(self, td: TensorDictBase, output: Tensor) -> Tensor:
+        if self.base_key is None:
+            return output
+        return output + self._read(td, self.base_key, self.net.out_features, what="forward")
+
+
+class AdaptiveDynamicsModel(AdaptiveModel):
+    """An :class:`AdaptiveModel` of dynamics: (observation, action) -> ("next", "observation").
+
+    The network predicts the change of observation (``predict_delta=True``, the default).
+
+    Example:
+        >>> import torch, smcd_rl
+        >>> from tensordict import TensorDict
+        >>> net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=(32, 32))
+        >>> model = smcd_rl.AdaptiveDynamicsModel(net, adaptation=smcd_rl.SMCD(num_particles=50))
+        >>> model.reset()
+        >>> td = TensorDict({"observation": torch.zeros(3), "action": torch.zeros(1)}, [])
+        >>> model(td)["next", "observation"].shape
+        torch.Size([3])
+    """
+
+    def __init__(
+        self,
+        net: MaskedMLP,
+        adaptation: Adaptation | None = None,
+        *,
+        observation_key: NestedKey = "observation",
+        action_key: NestedKey = "action",
+        predict_delta: bool = True,
+    ) -> None:
+        next_key = ("next", observation_key) if isinstance(observation_key, str) else ("next", *observation_key)
+        super().__init__(
+            net,
+            in_keys=[observation_key, action_key],
+            out_key=next_key,
+            target_key=next_key,
+            base_key=observation_key if predict_delta else None,
+            adaptation=adaptation,
+        )
+
+
+_CLASSES: dict[str, type[AdaptiveModel]] = {"AdaptiveModel": AdaptiveModel, "AdaptiveDynamicsModel": AdaptiveDynamicsModel}
+
+
+def _read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}")
+    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != _FORMAT:
+        raise CheckpointMismatchError(f"{path} is not an smcd_rl model checkpoint (expected format {_FORMAT})")
+    return checkpoint
+
+
+def _key(value: Any) -> NestedKey | None:
+    return tuple(value) if isinstance(value, list) else value
+
+
+def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) -> AdaptiveModel:
+    """Rebuild a model saved with :meth:`AdaptiveModel.save`.
+
+    Args:
+        path: the checkpoint file.
+        adaptation: strategy to attach instead of the saved one (a fresh copy of it by default).
+
+    Example:
+        >>> import tempfile, smcd_rl
+        >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+        >>> path = tempfile.mkdtemp() + "/model.pt"
+        >>> model.save(path)
+        >>> type(smcd_rl.load(path)).__name__
+        'AdaptiveModel'
+    """
+    checkpoint = _read_checkpoint(path)
+    net = MaskedMLP(**checkpoint["net"])
+    if adaptation is None:
+        saved = checkpoint["adaptation"]
+        adaptation = ADAPTATIONS[saved["name"]](**saved["config"])
+    model = _assemble(_CLASSES[checkpoint["class"]], net, checkpoint["keys"], adaptation)
+    model.load_checkpoint(checkpoint)
+    return model
+
+
+def _assemble(cls: type[AdaptiveModel], net: MaskedMLP, keys: dict[str, Any], adaptation: Adaptation) -> AdaptiveModel:
+    """Build ``cls`` from a key configuration, bypassing subclass constructors' key defaults."""
+    model = AdaptiveModel.__new__(cls)
+    AdaptiveModel.__init__(
+        model,
+        net,
+        in_keys=[_key(k) for k in keys["in_keys"]],
+        out_key=_key(keys["out_key"]),
+        target_key=_key(keys["target_key"]),
+        base_key=_key(keys["base_key"]),
+        adaptation=adaptation,
+    )
+    return model
