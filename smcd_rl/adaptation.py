@@ -222,6 +222,11 @@ class SMCD(Adaptation):
     def mask(self) -> Tensor:
         return self._filter.mean_mask
 
+    @property
+    def particles(self) -> Tensor:
+        """Current mask particles ``[*B, N, mask_dim]`` (bool)."""
+        return self._filter.particles  # type: ignore[return-value]
+
     def summary(self) -> dict[str, Tensor]:
         return {"ess": self._filter.ess, "log_evidence": self._filter.log_evidence}
 

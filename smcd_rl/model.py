@@ -147,13 +147,29 @@ class AdaptiveModel(TensorDictModuleBase):
         return other
 
     # ------------------------------------------------------------------ prediction
-    def forward(self, td: TensorDictBase) -> TensorDictBase:
-        """Write the adapted prediction to ``out_key``."""
+    def forward(self, td: TensorDictBase, *, mask: Tensor | None = None) -> TensorDictBase:
+        """Write the adapted prediction to ``out_key``.
+
+        Args:
+            td: inputs; batch dims beyond the model's batch shape broadcast.
+            mask: predict with these masks instead of the adapted one, ``[..., mask_dim]``
+                broadcast against the inputs (e.g. one particle per planning candidate,
+                taken from :attr:`particles`).
+        """
         self._require_reset()
         inputs = self._inputs(td, what="forward")
-        prediction = self._from_output(td, self.output_norm.inverse(self.adaptation.predict(inputs)))
-        td.set(self.out_key, prediction)
+        output = self.adaptation.predict(inputs) if mask is None else self.net(inputs, mask=mask)
+        td.set(self.out_key, self._from_output(td, self.output_norm.inverse(output)))
         return td
+
+    @property
+    def particles(self) -> Tensor:
+        """The mask particles ``[*batch_shape, N, mask_dim]`` (strategies with a particle set only)."""
+        self._require_reset()
+        particles = getattr(self.adaptation, "particles", None)
+        if particles is None:
+            raise AttributeError(f"{type(self.adaptation).__name__} keeps no mask particles; use smcd_rl.SMCD")
+        return particles
 
     def predict_particles(self, td: TensorDictBase) -> Tensor:
         """Posterior predictive samples of eq. (5): ``[*batch, N, out]``, one per particle."""

@@ -1,0 +1,87 @@
+"""The ``smcd-rl`` command: one sub-command per experiment or benchmark, each with ``--help``.
+
+Every sub-command is a config dataclass (its field help is the ``--help`` text), an optional
+``--full`` preset (the paper's scale; options given explicitly still win) and a ``run`` function.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib
+import sys
+import typing
+from collections.abc import Sequence
+from typing import Any
+
+__all__ = ["main", "COMMANDS"]
+
+#: sub-command -> (module, config class, one-line description)
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "two-link": (
+        "smcd_rl.experiments.two_link",
+        "TwoLinkConfig",
+        "two-link arm look-ahead prediction after T burn-in steps (paper Fig. 2)",
+    ),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="smcd-rl",
+        description="Sequential Monte Carlo Dropout: experiments and benchmarks. "
+        "Each command writes CSV/JSON results and a PNG plot and prints its table.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module, config_name, summary) in COMMANDS.items():
+        config_cls = getattr(importlib.import_module(module), config_name)
+        sub = commands.add_parser(name, help=summary, description=summary + ".")
+        _add_config_arguments(sub, config_cls)
+        sub.set_defaults(_command=name)
+    return parser
+
+
+def _add_config_arguments(parser: argparse.ArgumentParser, config_cls: type) -> None:
+    hints = typing.get_type_hints(config_cls)
+    defaults = config_cls()
+    for field in dataclasses.fields(config_cls):
+        flag = "--" + field.name.replace("_", "-")
+        kind = hints[field.name]
+        default = getattr(defaults, field.name)
+        help_text = f"{field.metadata.get('help', '')} (default: {default})"
+        # SUPPRESS: only options the user typed reach the config, so --full can fill the rest.
+        if kind is bool:
+            parser.add_argument(flag, action="store_true", default=argparse.SUPPRESS, help=help_text)
+        elif typing.get_origin(kind) is tuple:
+            item = typing.get_args(kind)[0]
+            parser.add_argument(flag, type=item, nargs="+", default=argparse.SUPPRESS, help=help_text)
+        else:
+            parser.add_argument(flag, type=kind, default=argparse.SUPPRESS, help=help_text)
+
+
+def make_config(command: str, given: dict[str, Any]) -> Any:
+    """The config of ``command`` from explicitly given options, with ``--full`` applied under them."""
+    module_name, config_name, _ = COMMANDS[command]
+    module = importlib.import_module(module_name)
+    given = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items()}
+    config = getattr(module, config_name)(**given)
+    if getattr(config, "full", False):
+        config = dataclasses.replace(config, **{**getattr(module, "FULL", {}), **given})
+    return config
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    given = {k: v for k, v in vars(args).items() if k not in ("command", "_command")}
+    config = make_config(args._command, given)
+    module = importlib.import_module(COMMANDS[args._command][0])
+    try:
+        module.run(config)
+    except (ValueError, KeyError, FileNotFoundError) as err:
+        print(f"smcd-rl {args._command}: error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

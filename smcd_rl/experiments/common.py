@@ -1,0 +1,135 @@
+"""Plumbing shared by the experiment commands: configs, result files, resumable caches, tables."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import json
+import os
+import platform
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+__all__ = [
+    "option",
+    "config_dict",
+    "machine_info",
+    "ResultCache",
+    "write_csv",
+    "write_json",
+    "format_table",
+    "seed_everything",
+]
+
+
+def option(default: Any, help: str) -> Any:  # noqa: A002 - mirrors argparse's name
+    """A config dataclass field whose ``help`` becomes the command's ``--help`` text."""
+    if isinstance(default, (list, tuple)):
+        value = tuple(default)
+        return dataclasses.field(default_factory=lambda: value, metadata={"help": help})
+    return dataclasses.field(default=default, metadata={"help": help})
+
+
+def config_dict(config: Any) -> dict[str, Any]:
+    """A JSON-ready dict of a config dataclass (tuples become lists)."""
+    return json.loads(json.dumps(dataclasses.asdict(config), default=list))
+
+
+def machine_info() -> dict[str, Any]:
+    """Where a number was measured: CPU, thread count, torch version, GPU if any."""
+    info: dict[str, Any] = {
+        "machine": platform.machine(),
+        "processor": _cpu_name(),
+        "cpus": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+    }
+    if torch.cuda.is_available():
+        info["gpu"] = torch.cuda.get_device_name(0)
+    return info
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def seed_everything(seed: int) -> torch.Generator:
+    """Seed torch's global generator and return a fresh generator seeded with ``seed``."""
+    torch.manual_seed(seed)
+    return torch.Generator().manual_seed(seed)
+
+
+class ResultCache:
+    """Finished pieces of an experiment, saved as they complete so a rerun skips them.
+
+    The cache is tied to a fingerprint of the settings that determine the results; a rerun
+    with other settings starts afresh instead of mixing results.
+
+    Example:
+        >>> import tempfile
+        >>> cache = ResultCache(tempfile.mkdtemp() + "/cache.pt", {"seed": 0})
+        >>> cache.get("M+S") is None
+        True
+        >>> cache.put("M+S", {"rmse": 0.1})
+        >>> ResultCache(cache.path, {"seed": 0}).get("M+S")
+        {'rmse': 0.1}
+    """
+
+    def __init__(self, path: str | os.PathLike[str], settings: Mapping[str, Any]) -> None:
+        self.path = Path(path)
+        self.fingerprint = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
+        self._entries: dict[str, Any] = {}
+        if self.path.is_file():
+            saved = torch.load(self.path, map_location="cpu", weights_only=False)
+            if isinstance(saved, dict) and saved.get("fingerprint") == self.fingerprint:
+                self._entries = saved["entries"]
+
+    def get(self, key: str) -> Any:
+        return self._entries.get(key)
+
+    def put(self, key: str, value: Any) -> None:
+        self._entries[key] = value
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(self.path.suffix + ".tmp")
+        torch.save({"fingerprint": self.fingerprint, "entries": self._entries}, tmp)
+        os.replace(tmp, self.path)
+
+
+def write_csv(path: str | os.PathLike[str], rows: Sequence[Mapping[str, Any]]) -> None:
+    """Write dict rows to a CSV file (columns from the first row)."""
+    if not rows:
+        raise ValueError(f"no rows to write to {path}")
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def write_json(path: str | os.PathLike[str], payload: Any) -> None:
+    with open(path, "w") as handle:
+        json.dump(payload, handle, indent=2, default=str)
+        handle.write("\n")
+
+
+def format_table(rows: Iterable[Sequence[Any]], header: Sequence[str]) -> str:
+    """A Markdown table (it reads in a terminal and pastes into the README as is)."""
+    cells = [[str(h) for h in header]] + [[_cell(v) for v in row] for row in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(header))]
+    lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths)) + " |" for row in cells]
+    lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    return "\n".join(lines)
+
+
+def _cell(value: Any) -> str:
+    return f"{value:.3f}" if isinstance(value, float) else str(value)
