@@ -81,7 +81,8 @@ def _residual(weights: Tensor, m: int, generator: torch.Generator | None) -> Ten
     residual = (scaled - counts).clamp_min(0.0)
     residual = residual / residual.sum(dim=-1, keepdim=True).clamp_min(1e-300)
     u = torch.rand(*weights.shape[:-1], m, generator=generator, device=weights.device, dtype=torch.float64)
-    picks = _invert_cdf(residual, u.sort(dim=-1).values)
+    # The first `remaining` of i.i.d. (unsorted) uniforms: taking the smallest would bias low indices.
+    picks = _invert_cdf(residual, u)
     used = (torch.arange(m, device=weights.device) < remaining).to(torch.float64)
     counts = counts.scatter_add(-1, picks, used)
     return counts_to_indices(counts.round().long(), m)

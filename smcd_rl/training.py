@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -68,9 +69,9 @@ def fit(
     """
     if epochs < 0 or batch_size < 1 or lr <= 0:
         raise ValueError(f"need epochs >= 0, batch_size >= 1 and lr > 0, got {epochs}, {batch_size}, {lr}")
-    flat = data.reshape(-1)
-    if flat.numel() == 0:
+    if math.prod(data.batch_size) == 0:  # TensorDict.numel() reports 1 for batch [0]
         raise ValueError("fit got an empty dataset (no transitions); collect data before training")
+    flat = data.reshape(-1)
     net = model.net
     device = next(net.parameters()).device
     x, y = model.training_pairs(flat.to(device))
