@@ -185,6 +185,13 @@ class SMCD(Adaptation):
         generator = self._generator
         if generator is not None and generator.device.type != device.type:
             raise ValueError(f"the SMCD generator is on {generator.device} but the network is on {device}")
+        old = self.filter
+        if old is not None and old.device == device and old.mask_dim == net.mask_dim:
+            # Keep the filter object (and its generator) across resets: references stay valid and
+            # a seeded run is one random stream, not a reseed per episode.
+            old.keep_prob = net.keep_prob
+            old._num_particles = self.num_particles  # a reset undoes any online resize()
+            return
         self.filter = SMCDFilter(
             net.mask_dim,
             num_particles=self.num_particles,
@@ -228,7 +235,8 @@ class SMCD(Adaptation):
         return self._filter.particles  # type: ignore[return-value]
 
     def summary(self) -> dict[str, Tensor]:
-        return {"ess": self._filter.ess, "log_evidence": self._filter.log_evidence}
+        # The ESS of the last update before resampling: after resampling it is always N.
+        return {"ess": self._filter.last_ess, "log_evidence": self._filter.log_evidence}  # type: ignore[dict-item]
 
     @property
     def _filter(self) -> SMCDFilter:

@@ -69,6 +69,8 @@ class ParticleFilter:
         self.log_evidence: Tensor | None = None
         #: Ancestor index of every particle at the last resampling (``None``: not resampled).
         self.ancestors: Tensor | None = None
+        #: ESS of the last reweighting, before any resampling (``ess`` is N right after one).
+        self.last_ess: Tensor | None = None
 
     # ------------------------------------------------------------------ to implement
     def _initial(self, batch_shape: tuple[int, ...], num_particles: int) -> Tensor:
@@ -105,6 +107,7 @@ class ParticleFilter:
         self.log_weights = torch.full((*batch_shape, n), -math.log(n), device=self.device)
         self.log_evidence = torch.zeros(batch_shape, device=self.device)
         self.ancestors = None
+        self.last_ess = torch.full(batch_shape, float(n), device=self.device)
 
     def propagate(self) -> None:
         """Move every particle one step through the transition model."""
@@ -208,6 +211,7 @@ class ParticleFilter:
         log_norm = torch.logsumexp(joint, dim=-1)
         self.log_evidence = log_evidence + log_norm
         self.log_weights = joint - log_norm.unsqueeze(-1)
+        self.last_ess = self.ess
         self._resample_if_needed()
 
     def _resample_if_needed(self) -> None:

@@ -193,3 +193,13 @@ def test_seeded_runs_repeat() -> None:
         return filt.particles
 
     assert torch.equal(run(), run())
+
+
+def test_last_ess_is_measured_before_resampling() -> None:
+    filt = smcd_rl.SMCDFilter(4, num_particles=10, ess_threshold=1.0, generator=_gen())
+    filt.reset()
+    ll = torch.full((10,), -50.0)
+    ll[0] = 0.0
+    filt.reweight(ll)
+    assert float(filt.ess) == pytest.approx(10.0)  # resampled: uniform weights again
+    assert float(filt.last_ess) == pytest.approx(1.0, abs=1e-6)  # what the observation did
