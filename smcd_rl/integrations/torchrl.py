@@ -191,7 +191,8 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
     Example:
         >>> import torch, smcd_rl
         >>> from smcd_rl.integrations.torchrl import AdaptiveWorldModelEnv
-        >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(3 + 1, 3, hidden=(32,)), smcd_rl.SMCD(num_particles=10))
+        >>> net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=(32,))
+        >>> model = smcd_rl.AdaptiveDynamicsModel(net, smcd_rl.SMCD(num_particles=10))
         >>> model.reset()
         >>> world = AdaptiveWorldModelEnv(
         ...     model, lambda obs, act, next_obs: -next_obs.square().sum(-1), action_low=-2.0, action_high=2.0)
@@ -217,8 +218,7 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         initial_observation: Tensor | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
-        if not isinstance(model, AdaptiveDynamicsModel):
-            raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel, got {type(model).__name__}")
+        _check_model(model)
         obs_key, action_key = model.in_keys
         if action_key != "action" or not isinstance(obs_key, str):
             raise ValueError(
@@ -246,7 +246,9 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         if bool(torch.isinf(obs_low).all() & torch.isinf(obs_high).all()):
             obs_spec = Unbounded(shape=(obs_dim,), device=self.device, dtype=observation_dtype)
         else:
-            obs_spec = Bounded(low=obs_low, high=obs_high, shape=(obs_dim,), device=self.device, dtype=observation_dtype)
+            obs_spec = Bounded(
+                low=obs_low, high=obs_high, shape=(obs_dim,), device=self.device, dtype=observation_dtype
+            )
         self.observation_spec = Composite({obs_key: obs_spec}, device=self.device)
         self.reward_spec = Unbounded(shape=(1,), device=self.device)
 
@@ -295,6 +297,7 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
             >>> world.action_spec.space.high
             tensor([2.])
         """
+        _check_model(model)
         obs_space = getattr(env, "single_observation_space", env.observation_space)
         action_space = getattr(env, "single_action_space", env.action_space)
         obs_dim, action_dim = _model_sizes(model)
@@ -338,8 +341,7 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
             >>> world.action_spec.space.low
             tensor([-3., -3.])
         """
-        if not isinstance(model, AdaptiveDynamicsModel):
-            raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel, got {type(model).__name__}")
+        _check_model(model)
         obs_dim, action_dim = _model_sizes(model)
         obs_spec = env.observation_spec_unbatched.get(model.in_keys[0], None)
         if obs_spec is None:
@@ -383,6 +385,11 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         """Nothing to seed: steps are deterministic given the model's adaptation state."""
 
 
+def _check_model(model: object) -> None:
+    if not isinstance(model, AdaptiveDynamicsModel):
+        raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel, got {type(model).__name__}")
+
+
 def _model_sizes(model: AdaptiveModel) -> tuple[int, int]:
     obs_dim = model.net.out_features
     action_dim = model.net.in_features - obs_dim
@@ -397,8 +404,7 @@ def _model_sizes(model: AdaptiveModel) -> tuple[int, int]:
 def _bound(value: _Bound | None, size: int, name: str, default: float) -> Tensor:
     if value is None:
         return torch.full((size,), default)
-    bound = torch.as_tensor(np.asarray(value) if isinstance(value, np.ndarray) else value, dtype=torch.float32)
-    bound = bound.detach().cpu().to(torch.float32)
+    bound = torch.as_tensor(value, dtype=torch.float32).detach().cpu()
     if bound.dim() == 0:
         return bound.expand(size).clone()
     if bound.shape != (size,):
@@ -406,10 +412,10 @@ def _bound(value: _Bound | None, size: int, name: str, default: float) -> Tensor
     return bound
 
 
-def _size_error(what: str, shape: object, size: int, model: AdaptiveModel) -> ValueError:
+def _size_error(what: str, kind: str, shape: object, size: int, model: AdaptiveModel) -> ValueError:
     obs_dim, action_dim = model.net.out_features, model.net.in_features - model.net.out_features
     return ValueError(
-        f"the env's {what} has shape {shape} but the model expects {size} {what} features "
+        f"the env's {what} {kind} has shape {shape} but the model expects {size} {what} features "
         f"(network {model.net.in_features} inputs = {obs_dim} observation + {action_dim} action, "
         f"{obs_dim} outputs)"
     )
@@ -419,14 +425,14 @@ def _check_box(space: gymnasium.Space, size: int, what: str, model: AdaptiveMode
     if not isinstance(space, gymnasium.spaces.Box) or len(space.shape) != 1:
         raise ValueError(f"the env's {what} space must be a 1-d gymnasium Box, got {space}")
     if space.shape != (size,):
-        raise _size_error(f"{what} space", tuple(space.shape), size, model)
+        raise _size_error(what, "space", tuple(space.shape), size, model)
 
 
 def _check_spec(spec: TensorSpec, size: int, what: str, model: AdaptiveModel) -> None:
     if len(spec.shape) != 1 or not spec.dtype.is_floating_point:
         raise ValueError(f"the env's {what} spec must be a float vector, got shape {list(spec.shape)} {spec.dtype}")
     if spec.shape != (size,):
-        raise _size_error(f"{what} spec", tuple(spec.shape), size, model)
+        raise _size_error(what, "spec", tuple(spec.shape), size, model)
 
 
 class RewardToGo(TensorDictModuleBase):
@@ -518,14 +524,17 @@ class AdaptationTransform(Transform):
         >>> import torch, smcd_rl
         >>> from torchrl.envs import GymEnv, TransformedEnv
         >>> from smcd_rl.integrations.torchrl import AdaptationTransform
-        >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(4 + 2, 4, hidden=(32,)), smcd_rl.SMCD(num_particles=10))
+        >>> net = smcd_rl.MaskedMLP(4 + 2, 4, hidden=(32,))
+        >>> model = smcd_rl.AdaptiveDynamicsModel(net, smcd_rl.SMCD(num_particles=10))
         >>> env = TransformedEnv(GymEnv("smcd_rl/TwoLinkArm-v0"), AdaptationTransform(model))
         >>> td = env.rollout(3)
         >>> td["next", "smcd_ess"].shape, td["smcd_log_evidence"][0].item()
         (torch.Size([3, 1]), 0.0)
     """
 
-    def __init__(self, model: AdaptiveModel, *, prefix: str = "smcd_", summary_keys: Sequence[str] | None = None) -> None:
+    def __init__(
+        self, model: AdaptiveModel, *, prefix: str = "smcd_", summary_keys: Sequence[str] | None = None
+    ) -> None:
         if not isinstance(model, AdaptiveModel):
             raise TypeError(f"model must be a smcd_rl.AdaptiveModel, got {type(model).__name__}")
         if summary_keys is None:
@@ -753,10 +762,11 @@ def mbrl_loop(
         >>> from torchrl.envs import GymEnv
         >>> from smcd_rl.integrations.torchrl import mbrl_loop
         >>> def reward(obs, action, next_obs):  # Pendulum-v1: upright and still
-        ...     return -(torch.atan2(obs[..., 1], obs[..., 0]) ** 2 + 0.1 * obs[..., 2] ** 2 + 0.001 * action[..., 0] ** 2)
+        ...     angle = torch.atan2(obs[..., 1], obs[..., 0])
+        ...     return -(angle**2 + 0.1 * obs[..., 2] ** 2 + 0.001 * action[..., 0] ** 2)
         >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(4, 3, hidden=(32,)), smcd_rl.SMCD(num_particles=10))
-        >>> returns = mbrl_loop(GymEnv("Pendulum-v1"), model, reward, iterations=1, initial_frames=50,
-        ...                     episode_steps=3, fit_epochs=1, planning_horizon=3, optim_steps=2, num_candidates=10, top_k=3)
+        >>> returns = mbrl_loop(GymEnv("Pendulum-v1"), model, reward, iterations=1, initial_frames=50, episode_steps=3,
+        ...                     fit_epochs=1, planning_horizon=3, optim_steps=2, num_candidates=10, top_k=3)
         >>> len(returns)
         1
     """
@@ -779,12 +789,16 @@ def mbrl_loop(
     if planner == "cem":
         policy = CEMPlanner(world, planning_horizon, optim_steps, num_candidates, top_k)
     else:
-        policy = MPPIPlanner(world, RewardToGo(gamma), temperature, planning_horizon, optim_steps, num_candidates, top_k)
+        policy = MPPIPlanner(
+            world, RewardToGo(gamma), temperature, planning_horizon, optim_steps, num_candidates, top_k
+        )
     adaptive_env = TransformedEnv(env, AdaptationTransform(model))
 
     returns: list[float] = []
     for iteration in range(iterations):
-        fit_from_replay_buffer(model, buffer, epochs=fit_epochs, batch_size=fit_batch_size, lr=lr, seed=seed + iteration)
+        fit_from_replay_buffer(
+            model, buffer, epochs=fit_epochs, batch_size=fit_batch_size, lr=lr, seed=seed + iteration
+        )
         with torch.no_grad():  # not inference_mode: the episode's tensors go into the replay buffer
             episode = adaptive_env.rollout(episode_steps, policy, break_when_any_done=True)
         returns.append(float(episode["next", "reward"].sum()))

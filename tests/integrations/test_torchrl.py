@@ -130,7 +130,8 @@ def test_torchrl_planner_finds_the_known_optimum(make_planner: Callable, toleran
 
 
 def test_cem_optimum_beyond_the_bounds_is_clipped_to_the_bound() -> None:
-    world = AdaptiveWorldModelEnv(point_mass_model(), reach(torch.tensor([2.0, -0.3])), action_low=-1.0, action_high=1.0)
+    goal = torch.tensor([2.0, -0.3])
+    world = AdaptiveWorldModelEnv(point_mass_model(), reach(goal), action_low=-1.0, action_high=1.0)
     torch.manual_seed(0)
     with torch.no_grad():
         action = cem(world)(world.reset())["action"]
@@ -151,7 +152,9 @@ def test_world_model_predicts_with_the_adapted_mask_of_the_shared_model() -> Non
 
     # Adapting the model moves its MMSE mask, and the env (holding a reference) follows.
     mask_before = model.mask.clone()
-    real = TensorDict({"observation": torch.zeros(4), "action": torch.ones(2), ("next", "observation"): torch.ones(4)}, [])
+    real = TensorDict(
+        {"observation": torch.zeros(4), "action": torch.ones(2), ("next", "observation"): torch.ones(4)}, []
+    )
     for _ in range(3):
         model.observe(real)
     assert not torch.equal(model.mask, mask_before)
@@ -161,7 +164,8 @@ def test_world_model_predicts_with_the_adapted_mask_of_the_shared_model() -> Non
 def test_termination_fn_sets_done_and_planners_still_run() -> None:
     model = smcd_model(41, 8)
     model.reset()
-    world = AdaptiveWorldModelEnv.from_env(model, GymEnv("smcd_rl/CrippledAnt-v0"), ant_reward, termination_fn=ant_termination)
+    ant = GymEnv("smcd_rl/CrippledAnt-v0")
+    world = AdaptiveWorldModelEnv.from_env(model, ant, ant_reward, termination_fn=ant_termination)
     assert world.observation_spec["observation"].dtype == torch.float64
     td = world.reset().set("action", torch.zeros(8))
     # The zero observation has torso height 0 < 0.2: an unhealthy Ant, so the step terminates.
