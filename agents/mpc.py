@@ -90,7 +90,8 @@ def model_reward_objective(
     """
     obs_key, action_key = model.in_keys[0], model.in_keys[1]
     next_key = model.out_key
-    obs_dim, action_dim = _dynamics_sizes(model)
+    _check_dynamics_model(model)
+    obs_dim, action_dim = model.observation_dim, model.action_dim
     if observation.shape[-1:] != (obs_dim,):
         raise ValueError(
             f"observation has shape {list(observation.shape)} but the model predicts observations of size "
@@ -200,7 +201,8 @@ class MPCAgent:
         ensemble: Ensemble = "mmse",
         device: torch.device | str | None = None,
     ) -> None:
-        obs_dim, action_dim = _dynamics_sizes(model)
+        _check_dynamics_model(model)
+        obs_dim, action_dim = model.observation_dim, model.action_dim
         if not isinstance(planner, Planner):
             raise TypeError(f"planner must be a smcd_rl.agents.planners.Planner, got {type(planner).__name__}")
         if planner.action_dim != action_dim:
@@ -272,18 +274,6 @@ class MPCAgent:
         )
 
 
-def _dynamics_sizes(model: AdaptiveDynamicsModel) -> tuple[int, int]:
-    """(observation size, action size) of a dynamics model's network."""
-    if not isinstance(model, AdaptiveDynamicsModel):
-        raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel, got {type(model).__name__}")
-    obs_dim = model.net.out_features
-    action_dim = model.net.in_features - obs_dim
-    if action_dim < 1:
-        raise ValueError(
-            f"the model's network takes {model.net.in_features} inputs and predicts {obs_dim}: "
-            "a dynamics network needs observation + action >= observation + 1 inputs"
-        )
-    return obs_dim, action_dim
 
 
 def _check_shape(value: Tensor, expected: tuple[int, ...], what: str) -> None:
@@ -294,3 +284,8 @@ def _check_shape(value: Tensor, expected: tuple[int, ...], what: str) -> None:
             f"{what} returned shape {list(value.shape)}, expected [*batch, P] = {list(expected)}: one value per "
             "candidate, without a trailing dimension (reduce with .sum(-1) or index [..., 0])"
         )
+
+
+def _check_dynamics_model(model: object) -> None:
+    if not isinstance(model, AdaptiveDynamicsModel):
+        raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel, got {type(model).__name__}")

@@ -308,6 +308,11 @@ class AdaptiveDynamicsModel(AdaptiveModel):
         action_key: NestedKey = "action",
         predict_delta: bool = True,
     ) -> None:
+        if net.in_features <= net.out_features:
+            raise ValueError(
+                f"the network takes {net.in_features} inputs and predicts {net.out_features} outputs; a dynamics "
+                "model takes observation + action, so it needs more inputs than outputs"
+            )
         next_key = ("next", observation_key) if isinstance(observation_key, str) else ("next", *observation_key)
         super().__init__(
             net,
@@ -317,6 +322,17 @@ class AdaptiveDynamicsModel(AdaptiveModel):
             base_key=observation_key if predict_delta else None,
             adaptation=adaptation,
         )
+
+
+    @property
+    def observation_dim(self) -> int:
+        """Size of the observation the model predicts."""
+        return self.net.out_features
+
+    @property
+    def action_dim(self) -> int:
+        """Size of the action input (network input = observation + action)."""
+        return self.net.in_features - self.net.out_features
 
 
 _CLASSES: dict[str, type[AdaptiveModel]] = {"AdaptiveModel": AdaptiveModel, "AdaptiveDynamicsModel": AdaptiveDynamicsModel}

@@ -225,7 +225,7 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
                 f"the model reads {model.in_keys}; torchrl's planners need a top-level observation key "
                 "and the action key 'action'"
             )
-        obs_dim, action_dim = _model_sizes(model)
+        obs_dim, action_dim = model.observation_dim, model.action_dim
         world_model = _WorldModel(
             model, reward_fn, termination_fn, observation_key=obs_key, observation_dtype=observation_dtype
         )
@@ -300,7 +300,7 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         _check_model(model)
         obs_space = getattr(env, "single_observation_space", env.observation_space)
         action_space = getattr(env, "single_action_space", env.action_space)
-        obs_dim, action_dim = _model_sizes(model)
+        obs_dim, action_dim = model.observation_dim, model.action_dim
         _check_box(obs_space, obs_dim, "observation", model)
         _check_box(action_space, action_dim, "action", model)
         return cls(
@@ -342,7 +342,7 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
             tensor([-3., -3.])
         """
         _check_model(model)
-        obs_dim, action_dim = _model_sizes(model)
+        obs_dim, action_dim = model.observation_dim, model.action_dim
         obs_spec = env.observation_spec_unbatched.get(model.in_keys[0], None)
         if obs_spec is None:
             raise ValueError(
@@ -390,15 +390,6 @@ def _check_model(model: object) -> None:
         raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel, got {type(model).__name__}")
 
 
-def _model_sizes(model: AdaptiveModel) -> tuple[int, int]:
-    obs_dim = model.net.out_features
-    action_dim = model.net.in_features - obs_dim
-    if action_dim < 1:
-        raise ValueError(
-            f"the model's network takes {model.net.in_features} inputs and predicts {obs_dim} outputs; a dynamics "
-            "model takes observation + action, so it needs more inputs than outputs"
-        )
-    return obs_dim, action_dim
 
 
 def _bound(value: _Bound | None, size: int, name: str, default: float) -> Tensor:

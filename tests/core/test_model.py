@@ -196,3 +196,10 @@ def test_configuration_errors_are_clear() -> None:
     with pytest.raises(RuntimeError, match="reset"):
         smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")(TensorDict({"q": torch.zeros(2)}, []))
     assert isinstance(smcd_rl.make_adaptation("gd", lr=0.1), smcd_rl.GradientDescent)
+
+
+def test_dynamics_model_sizes_and_a_network_too_small_for_observation_plus_action() -> None:
+    model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(5, 3, hidden=(8,)))
+    assert (model.observation_dim, model.action_dim) == (3, 2)
+    with pytest.raises(ValueError, match="more inputs than outputs"):
+        smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(3, 3, hidden=(8,)))
