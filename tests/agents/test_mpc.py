@@ -223,3 +223,15 @@ def test_mismatches_with_the_model_are_named(trained: smcd_rl.AdaptiveDynamicsMo
     with pytest.raises(TypeError, match="AdaptiveDynamicsModel"):
         MPCAgent(smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(3, 2, hidden=(8,)), in_keys=["q"], out_key="y"),
                  cem(), reward_fn)  # type: ignore[arg-type]
+
+
+def test_action_sequences_of_the_wrong_shape_are_named() -> None:
+    from smcd_rl.agents.mpc import model_reward_objective
+
+    model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(2 + 1, 2, hidden=(8,)))
+    model.reset()
+    objective = model_reward_objective(model, torch.zeros(2), lambda o, a, n: -n.square().sum(-1))
+    with pytest.raises(ValueError, match=r"\[\*batch, P, H, A\]"):
+        objective(torch.zeros(5, 1))  # no horizon dim
+    with pytest.raises(ValueError, match="actions of size 1"):
+        objective(torch.zeros(8, 5, 3))  # 3 action dims for a 1-dim action model
