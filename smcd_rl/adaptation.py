@@ -73,14 +73,19 @@ class Adaptation(ABC):
             raise RuntimeError(f"{type(self).__name__} is not attached to a model; pass it to AdaptiveModel(...)")
         return self._net
 
-    def _mask_view(self, value: Tensor, inputs: Tensor, trailing: int) -> Tensor:
-        """View ``value [*B, *rest]`` with singleton dims for ``inputs``' extra batch dims."""
+    def _extra_dims(self, inputs: Tensor) -> int:
+        """How many batch dims ``inputs`` has beyond the model's batch shape (they broadcast)."""
         extra = inputs.dim() - 1 - len(self._batch_shape)
         if extra < 0 or tuple(inputs.shape[: len(self._batch_shape)]) != self._batch_shape:
             raise ValueError(
                 f"inputs of shape {list(inputs.shape)} do not start with the model's batch shape "
                 f"{list(self._batch_shape)}; call model.reset(batch_shape=...) to match"
             )
+        return extra
+
+    def _mask_view(self, value: Tensor, inputs: Tensor, trailing: int) -> Tensor:
+        """View ``value [*B, *rest]`` with singleton dims for ``inputs``' extra batch dims."""
+        extra = self._extra_dims(inputs)
         rest = value.shape[value.dim() - trailing :]
         return value.reshape(*self._batch_shape, *([1] * extra), *rest)
 
@@ -311,7 +316,7 @@ class GradientDescent(Adaptation):
                 self._params = {k: p - self.lr * grads[k] for k, p in self._params.items()}
 
     def predict(self, inputs: Tensor) -> Tensor:
-        self._mask_view(torch.zeros(*self._batch_shape, 1), inputs, trailing=1)  # shape check only
+        self._extra_dims(inputs)
         flat = inputs.reshape(math.prod(self._batch_shape), -1, inputs.shape[-1])
         out = vmap(lambda p, x: functional_call(self.net, p, (x,)))(self._params, flat)
         return out.reshape(*inputs.shape[:-1], out.shape[-1])
