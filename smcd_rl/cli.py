@@ -2,6 +2,8 @@
 
 Every sub-command is a config dataclass (its field help is the ``--help`` text), an optional
 ``--full`` preset (the paper's scale; options given explicitly still win) and a ``run`` function.
+A name with a space in :data:`COMMANDS` is a nested command: ``"bench planners"`` runs as
+``smcd-rl bench planners``.
 """
 
 from __future__ import annotations
@@ -23,6 +25,16 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "TwoLinkConfig",
         "two-link arm look-ahead prediction after T burn-in steps (paper Fig. 2)",
     ),
+    "ant": (
+        "smcd_rl.experiments.ant",
+        "AntConfig",
+        "crippled-leg Ant: planners x adaptations, healthy and crippled (paper appendix C, Fig. 15)",
+    ),
+    "bench planners": (
+        "smcd_rl.experiments.bench_planners",
+        "BenchPlannersConfig",
+        "time our CEM against torchrl's CEMPlanner on the same model, with the bare forwards as the floor",
+    ),
 }
 
 
@@ -33,9 +45,14 @@ def build_parser() -> argparse.ArgumentParser:
         "Each command writes CSV/JSON results and a PNG plot and prints its table.",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    groups: dict[str, Any] = {}  # group name -> its sub-parsers
     for name, (module, config_name, summary) in COMMANDS.items():
         config_cls = getattr(importlib.import_module(module), config_name)
-        sub = commands.add_parser(name, help=summary, description=summary + ".")
+        group, _, leaf = name.rpartition(" ")
+        if group and group not in groups:  # "bench planners": a "bench" command with its own sub-commands
+            parent = commands.add_parser(group, help=f"{group} commands", description=f"{group} commands.")
+            groups[group] = parent.add_subparsers(dest="_" + group, required=True, metavar="COMMAND")
+        sub = (groups[group] if group else commands).add_parser(leaf, help=summary, description=summary + ".")
         _add_config_arguments(sub, config_cls)
         sub.set_defaults(_command=name)
     return parser
@@ -72,7 +89,7 @@ def make_config(command: str, given: dict[str, Any]) -> Any:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    given = {k: v for k, v in vars(args).items() if k not in ("command", "_command")}
+    given = {k: v for k, v in vars(args).items() if k != "command" and not k.startswith("_")}
     config = make_config(args._command, given)
     module = importlib.import_module(COMMANDS[args._command][0])
     try:
