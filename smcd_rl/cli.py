@@ -42,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="smcd-rl",
         description="Sequential Monte Carlo Dropout: experiments and benchmarks. "
-        "Each command writes CSV/JSON results and a PNG plot and prints its table.",
+        "Experiments write CSV/JSON results and a PNG plot and print their table; benchmarks print their ratios and write CSV/JSON.",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     groups: dict[str, Any] = {}  # group name -> its sub-parsers
