@@ -107,8 +107,9 @@ def test_reset_restarts_the_model_and_each_step_observes_once(monkeypatch: pytes
     spy = CountObserve(model, monkeypatch)
     env = AdaptationWrapper(gymnasium.make(ARM), model, context=4)
     obs, info = env.reset(seed=0)
+    env.action_space.seed(0)
     assert spy.calls == [] and info["smcd"] == {"ess": 16.0, "log_evidence": 0.0}
-    previous = obs
+    previous, evidence = obs, 0.0
     for step in range(1, 6):
         particles = model.particles.clone()
         action = env.action_space.sample()
@@ -119,9 +120,11 @@ def test_reset_restarts_the_model_and_each_step_observes_once(monkeypatch: pytes
         np.testing.assert_array_equal(td["action"].numpy(), action)
         np.testing.assert_array_equal(td["next", "observation"].numpy(), obs[:4])
         assert not torch.equal(model.particles, particles)
-        assert isinstance(info["smcd"]["log_evidence"], float) and info["smcd"]["log_evidence"] < 0.0
+        # A log density, so either sign is possible; each observation must add to it.
+        assert isinstance(info["smcd"]["log_evidence"], float) and np.isfinite(info["smcd"]["log_evidence"])
+        assert info["smcd"]["log_evidence"] != evidence
         assert info["smcd"]["log_evidence"] == pytest.approx(float(model.summary()["log_evidence"]))
-        previous = obs
+        previous, evidence = obs, info["smcd"]["log_evidence"]
     obs, info = env.reset()
     assert len(spy.calls) == 5 and info["smcd"]["log_evidence"] == 0.0  # a new adaptation episode
 
@@ -186,22 +189,22 @@ def test_vector_env_keeps_one_particle_set_per_sub_env(mode: AutoresetMode, monk
         history.append(evidence(info).copy())
         assert obs.shape == (2, 9)
     assert (truncated == [True, False]).all()  # sub-env 0 ends after 3 steps, sub-env 1 runs on
-    assert (np.diff(np.stack(history)[:, 1]) < 0).all()  # each step adds evidence to sub-env 1
+    assert (np.diff(np.stack(history)[:, 1]) != 0).all()  # each step adds evidence to sub-env 1
     assert not torch.equal(model.particles[0], model.particles[1])  # separate particle sets
 
     if mode == AutoresetMode.NEXT_STEP:
-        assert (evidence(info) < 0).all()
+        assert (evidence(info) != 0).all()  # a log density: nonzero once adapting, either sign
         long_arm = model.particles[1].clone()
         _, _, _, _, info = envs.step(envs.action_space.sample())  # sub-env 0's reset step
         assert evidence(info)[0] == 0.0  # no transition observed, fresh state
-        assert evidence(info)[1] < history[-1][1]  # sub-env 1 observed its transition as usual
+        assert evidence(info)[1] != history[-1][1]  # sub-env 1 observed its transition as usual
         assert not torch.equal(model.particles[1], long_arm)
         _, _, _, _, info = envs.step(envs.action_space.sample())
-        assert evidence(info)[0] < 0.0  # sub-env 0 adapts again in its new episode
+        assert evidence(info)[0] != 0.0  # sub-env 0 adapts again in its new episode
     elif mode == AutoresetMode.SAME_STEP:
         final = info["final_obs"][0]
         np.testing.assert_array_equal(spy.calls[-1]["next", "observation"][0].numpy(), final)  # into the end state
-        assert evidence(info)[0] == 0.0 and evidence(info)[1] < 0.0  # then sub-env 0 starts afresh
+        assert evidence(info)[0] == 0.0 and evidence(info)[1] != 0.0  # then sub-env 0 starts afresh
         assert not np.array_equal(obs[0, :4], final)  # the observation is already the reset one
     else:
         long_arm = model.particles[1].clone()
@@ -211,7 +214,7 @@ def test_vector_env_keeps_one_particle_set_per_sub_env(mode: AutoresetMode, monk
         assert model.summary()["log_evidence"][1] == pytest.approx(float(history[-1][1]))
         assert torch.equal(model.particles[1], long_arm)  # sub-env 1 untouched by sub-env 0's reset
         _, _, _, _, info = envs.step(envs.action_space.sample())
-        assert (evidence(info) < 0).all()
+        assert (evidence(info) != 0).all()
 
 
 # ---------------------------------------------------------------------------- stable-baselines3
