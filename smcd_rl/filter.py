@@ -168,6 +168,7 @@ class ParticleFilter:
             "particles": particles.clone(),
             "log_weights": log_weights.clone(),
             "log_evidence": log_evidence.clone(),
+            "last_ess": None if self.last_ess is None else self.last_ess.clone(),
             "generator": self.generator.get_state(),
         }
 
@@ -176,8 +177,28 @@ class ParticleFilter:
         self.log_weights = state["log_weights"].clone().to(self.device)
         self.log_evidence = state["log_evidence"].clone().to(self.device)
         self._num_particles = self.particles.shape[-2]
+        self.last_ess = None if state.get("last_ess") is None else state["last_ess"].clone().to(self.device)
         self.generator.set_state(state["generator"])
         self.ancestors = None
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+        """Put back ``state``'s particles, weights and evidence in the batch elements where ``rows`` is True.
+
+        The way to reset or update only some environments of a batch: save :meth:`state_dict`,
+        act on the whole batch, then restore the rows that should not have changed. The
+        generator is left as it is.
+
+        Args:
+            state: a :meth:`state_dict` of this filter with the same batch shape and ``N``.
+            rows: bool ``[*batch]``.
+        """
+        particles, log_weights, log_evidence = self._state()
+        rows = rows.to(self.device).reshape(log_evidence.shape)
+        self.particles = torch.where(rows[..., None, None], state["particles"], particles)
+        self.log_weights = torch.where(rows[..., None], state["log_weights"], log_weights)
+        self.log_evidence = torch.where(rows, state["log_evidence"], log_evidence)
+        if state.get("last_ess") is not None and self.last_ess is not None:
+            self.last_ess = torch.where(rows, state["last_ess"], self.last_ess)
 
     # ------------------------------------------------------------------ internals
     def _state(self) -> tuple[Tensor, Tensor, Tensor]:

@@ -153,14 +153,10 @@ class _Hook:
             return
         particle_filter = self.filter()
         if particle_filter is not None:
-            # The core resets whole batches only: draw a fresh prior for all, keep the others' state.
-            keep = torch.as_tensor(~where, device=particle_filter.device)
-            old = (particle_filter.particles, particle_filter.log_weights, particle_filter.log_evidence)
+            # Draw a fresh prior for the whole batch, then put back the rows that keep adapting.
+            old = particle_filter.state_dict()
             particle_filter.reset(batch_shape)
-            assert old[0] is not None and old[1] is not None and old[2] is not None
-            particle_filter.particles = torch.where(keep[:, None, None], old[0], particle_filter.particles)
-            particle_filter.log_weights = torch.where(keep[:, None], old[1], particle_filter.log_weights)
-            particle_filter.log_evidence = torch.where(keep, old[2], particle_filter.log_evidence)
+            particle_filter.restore_rows(old, torch.as_tensor(~where))
         elif not isinstance(self.model.adaptation, NoAdaptation) and not self._warned:
             self._warned = True
             warnings.warn(

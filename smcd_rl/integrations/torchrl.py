@@ -597,20 +597,11 @@ class AdaptationTransform(Transform):
         adaptation = self.model.adaptation
         filt = getattr(adaptation, "filter", None)
         if isinstance(filt, ParticleFilter):
+            # The core resets and updates every batch element at once: act on all, then put
+            # back the old state where the mask is not set.
             old = filt.state_dict()
             update()
-            filt = adaptation.filter  # model.reset() binds a new filter object
-            new = filt.state_dict()
-            # The core resets and updates every batch element at once: splice the new state in
-            # where the mask is set and keep the old one elsewhere.
-            filt.load_state_dict(
-                {
-                    "particles": torch.where(mask[..., None, None], new["particles"], old["particles"]),
-                    "log_weights": torch.where(mask[..., None], new["log_weights"], old["log_weights"]),
-                    "log_evidence": torch.where(mask, new["log_evidence"], old["log_evidence"]),
-                    "generator": new["generator"],
-                }
-            )
+            filt.restore_rows(old, ~mask)
             return
         if not isinstance(adaptation, NoAdaptation) and not self._warned:
             warnings.warn(

@@ -203,3 +203,17 @@ def test_last_ess_is_measured_before_resampling() -> None:
     filt.reweight(ll)
     assert float(filt.ess) == pytest.approx(10.0)  # resampled: uniform weights again
     assert float(filt.last_ess) == pytest.approx(1.0, abs=1e-6)  # what the observation did
+
+
+def test_restore_rows_puts_back_only_the_chosen_batch_elements() -> None:
+    filt = smcd_rl.SMCDFilter(6, num_particles=8, generator=_gen())
+    filt.reset(batch_shape=(3,))
+    filt.update(lambda m: -m.float().sum(-1))
+    saved = filt.state_dict()
+    filt.reset(batch_shape=(3,))
+    fresh = filt.state_dict()
+    filt.restore_rows(saved, torch.tensor([True, False, True]))
+    for key in ("particles", "log_weights", "log_evidence", "last_ess"):
+        for row, source in ((0, saved), (1, fresh), (2, saved)):
+            assert torch.equal(filt.state_dict()[key][row], source[key][row]), (key, row)
+    assert torch.equal(filt.state_dict()["generator"], fresh["generator"])  # the generator is not restored
