@@ -18,6 +18,7 @@ from torch.func import functional_call, grad, vmap
 
 from smcd_rl.filter import SMCDFilter
 from smcd_rl.masked_mlp import MaskedMLP
+from smcd_rl.particle_forward import Lineage, ParticleForward, ParticlePath
 from smcd_rl.resampling import ResamplingScheme, check_scheme
 
 __all__ = ["Adaptation", "SMCD", "GradientDescent", "NoAdaptation", "make_adaptation", "ADAPTATIONS"]
@@ -129,6 +130,10 @@ class SMCD(Adaptation):
         resampling: resampling scheme (see :class:`smcd_rl.SMCDFilter`).
         ess_threshold: resample when ESS < ``ess_threshold * N``.
         generator: random source of the filter (default: seeded from torch's global generator).
+        forward_path: how an update runs the particles through the network: ``"auto"`` takes the
+            exact incremental path (pre-activations once per distinct parent plus the flipped
+            columns, :mod:`smcd_rl.particle_forward`) when it is cheaper, ``"dense"`` always
+            runs every particle in full, ``"incremental"`` forces the incremental path.
 
     Example:
         >>> import smcd_rl
@@ -147,9 +152,12 @@ class SMCD(Adaptation):
         resampling: ResamplingScheme = "systematic",
         ess_threshold: float = 1.0,
         generator: torch.Generator | None = None,
+        forward_path: ParticlePath = "auto",
     ) -> None:
         super().__init__()
         check_scheme(resampling)
+        if forward_path not in ("auto", "incremental", "dense"):
+            raise ValueError(f"forward_path must be 'auto', 'incremental' or 'dense', got {forward_path!r}")
         if int(num_particles) < 1:
             raise ValueError(f"num_particles must be >= 1, got {num_particles}")
         noise = torch.as_tensor(noise_std, dtype=torch.float32)
@@ -160,8 +168,11 @@ class SMCD(Adaptation):
         self.noise_std = noise_std
         self.resampling: ResamplingScheme = resampling
         self.ess_threshold = float(ess_threshold)
+        self.forward_path: ParticlePath = forward_path
         self._generator = generator
         self.filter: SMCDFilter | None = None
+        #: Runs the proposed particles through the network (the path of ``forward_path``).
+        self.particle_forward: ParticleForward | None = None
         self._sigma = noise
         self._log_norm = torch.tensor(0.0)
 
@@ -173,6 +184,7 @@ class SMCD(Adaptation):
             "noise_std": noise,
             "resampling": self.resampling,
             "ess_threshold": self.ess_threshold,
+            "forward_path": self.forward_path,
         }
 
     def bind(self, net: MaskedMLP, output_scale: Tensor) -> None:
@@ -186,6 +198,7 @@ class SMCD(Adaptation):
         self._sigma = noise / output_scale  # the same noise, in normalised units
         # Normalising constant in the target's own units, so log evidence is a true log density.
         self._log_norm = -noise.log().sum() - 0.5 * net.out_features * math.log(2 * math.pi)
+        self.particle_forward = ParticleForward(net, self.forward_path)
         device = next(net.parameters()).device
         generator = self._generator
         if generator is not None and generator.device.type != device.type:
@@ -213,10 +226,18 @@ class SMCD(Adaptation):
         self._filter.reset(batch_shape)
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
-        net, sigma, log_norm = self.net, self._sigma, self._log_norm
+        sigma, log_norm, filt, forward = self._sigma, self._log_norm, self._filter, self.particle_forward
+        assert forward is not None
+        parents = filt.particles
+        assert parents is not None
+        ancestors = filt.ancestors
+        if ancestors is None:  # unknown copies: each particle is its own parent, always true
+            ancestors = torch.arange(parents.shape[-2], device=parents.device).expand(parents.shape[:-1])
 
         def log_likelihood(masks: Tensor) -> Tensor:
-            predictions = net.forward_particles(inputs, masks)
+            assert filt.last_flips is not None  # the transition that proposed ``masks`` set them
+            lineage = Lineage(parents, ancestors, filt.last_flips)
+            predictions = forward(inputs, masks, lineage)
             residual = (targets.unsqueeze(-2) - predictions) / sigma
             return log_norm - 0.5 * residual.square().sum(-1)
 
@@ -336,7 +357,7 @@ def make_adaptation(name: Literal["none", "gradient_descent", "smcd"] | str, **k
     Example:
         >>> import smcd_rl
         >>> smcd_rl.make_adaptation("smcd", num_particles=10)
-        SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0)
+        SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0, forward_path='auto')
     """
     key = {"gd": "gradient_descent"}.get(name, name)
     if key not in ADAPTATIONS:
