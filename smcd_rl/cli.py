@@ -35,6 +35,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "BenchPlannersConfig",
         "time our CEM against torchrl's CEMPlanner on the same model, with the bare forwards as the floor",
     ),
+    "bench filter": (
+        "smcd_rl.experiments.bench_filter",
+        "BenchFilterConfig",
+        "time one SMCD update against a dense matmul and a naive update, realistic and worst case; peak memory",
+    ),
 }
 
 

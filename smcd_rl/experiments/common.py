@@ -23,6 +23,7 @@ __all__ = [
     "write_json",
     "format_table",
     "seed_everything",
+    "resolve_device",
 ]
 
 
@@ -62,6 +63,24 @@ def _cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown"
+
+
+def resolve_device(name: str) -> str:
+    """``"auto"`` becomes ``"cuda"`` when a GPU is available, else ``"cpu"``; a CUDA name without CUDA is an error.
+
+    Example:
+        >>> resolve_device("cpu")
+        'cpu'
+    """
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ValueError(f"unknown device {name!r}: use auto, cpu, cuda or cuda:N") from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: this machine has no CUDA device (or torch is a CPU build); use --device cpu")
+    return name
 
 
 def seed_everything(seed: int) -> torch.Generator:

@@ -1,0 +1,409 @@
+"""SMCD update speed and memory: ``smcd-rl bench filter``.
+
+Reads top to bottom: build the paper's network (default ``MaskedMLP(4 -> 1024 -> 1024 -> 2)``, masks
+on both hidden layers, dropout 0.5) with random weights, draw a *true* mask and make observations
+``z_t = f(x_t; true mask) + noise`` for random inputs, so that the posterior has a known answer to
+concentrate on. Then, for each particle count ``N``, time side by side in one run (interleaved step
+by step, so all see the same machine load):
+
+* ``ours``: one full update of :class:`smcd_rl.SMCD` as shipped (propagate, particle forward,
+  likelihood, reweight, resample) plus the MMSE mask, on its default path (``forward_path="auto"``);
+* ``ours, dense path``: the same update forced onto the dense particle forward (the reference the
+  incremental path is tested against);
+* ``naive``: :class:`NaiveSMCD`, the straightforward update kept here as the yardstick (dense
+  uniform bit flips, bool-multiply masking of every particle from the input on, multinomial
+  resampling);
+* ``matmul``: one dense fp32 ``(N x 1024) @ (1024 x 1024)`` matmul, the size of the network's
+  largest layer for ``N`` particles.
+
+in two regimes: *realistic*, a ``steps``-step adaptation run in which the posterior concentrates
+(the mean number of distinct parents per step is printed), and *worst case*, a likelihood so flat
+that the weights are uniform and every particle stays distinct. Ratios against the matmul and the
+naive update are checked against the goals of issue 4. Finally the extra peak memory of one
+update at ``memory_particles`` particles on a ``memory_hidden`` network is measured in a fresh
+process (peak resident memory during the updates minus the memory before them; on CUDA the
+allocator's peak). Writes ``results.json`` and ``results.csv``; ``--json`` prints the JSON.
+Timings are never asserted by the tests.
+
+Example:
+    >>> from smcd_rl.experiments.bench_filter import BenchFilterConfig
+    >>> config = BenchFilterConfig()
+    >>> config.particles, config.hidden, config.threads
+    ((100, 1000, 5000), (1024, 1024), 2)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import multiprocessing
+import re
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+import smcd_rl
+from smcd_rl.experiments.common import config_dict, format_table, machine_info, option, resolve_device, seed_everything, write_csv, write_json
+
+__all__ = ["BenchFilterConfig", "FULL", "GOALS", "NaiveSMCD", "run"]
+
+#: Goals of issue 4 at N = 1000 (and the memory goal at ``memory_particles``).
+GOALS = {"realistic_over_matmul": 1.0, "worst_over_matmul": 1.5, "naive_over_ours": 10.0, "peak_extra_mb": 200.0}
+GOAL_PARTICLES = 1000
+
+
+@dataclass
+class BenchFilterConfig:
+    """Settings of ``smcd-rl bench filter``; the defaults are issue 4's reference setting."""
+
+    out: str = option("runs/bench-filter", "output directory (results.json, results.csv)")
+    seed: int = option(0, "seed of the network, the true mask, the observations and the filters")
+    particles: tuple[int, ...] = option((100, 1000, 5000), "particle counts N to time")
+    inputs: int = option(4, "network input size")
+    outputs: int = option(2, "network output size")
+    hidden: tuple[int, ...] = option((1024, 1024), "hidden widths (every hidden layer carries mask bits)")
+    dropout: float = option(0.5, "dropout probability of the network (keep_prob = 1 - dropout)")
+    flip_prob: float = option(0.01, "SMCD bit-flip probability per step")
+    noise_std: float = option(
+        0.05, "observation noise of the realistic regime, in the network's output units (std 1, as after "
+        "training on normalised targets; the two-link arm's 5 cm is about 0.04 there)")
+    steps: int = option(100, "steps of the realistic adaptation run")
+    repeats: int = option(20, "timed updates in the worst case")
+    warmup: int = option(3, "untimed updates per contender first")
+    memory_particles: int = option(5000, "N of the peak-memory measurement (0 skips it)")
+    memory_hidden: tuple[int, ...] = option((1024, 1024, 1024), "hidden widths of the peak-memory network")
+    device: str = option("auto", "torch device: auto (cuda when available), cpu, cuda, cuda:1, ...")
+    threads: int = option(2, "torch CPU threads (0: torch's default)")
+    json: bool = option(False, "print the results as JSON (for tools) instead of the table")
+    full: bool = option(False, "more worst-case repeats for steadier medians")
+
+
+#: What ``--full`` changes (options given explicitly still win).
+FULL = {"repeats": 100, "warmup": 5}
+
+#: A likelihood noise this large makes every particle's weight equal in float32: the worst case.
+_FLAT_NOISE = 1e6
+
+
+class NaiveSMCD:
+    """The straightforward SMCD update, kept as the benchmark's yardstick (not for use).
+
+    Every step: one uniform per bit for the flips, every particle's full forward pass from the
+    input with bool-multiplied masks, a Gaussian likelihood, multinomial resampling and the mean
+    mask. The same algorithm as :class:`smcd_rl.SMCD`, none of its shortcuts.
+    """
+
+    def __init__(self, net: smcd_rl.MaskedMLP, num_particles: int, flip_prob: float, noise_std: float,
+                 generator: torch.Generator) -> None:
+        self.net, self.n, self.flip_prob, self.noise_std, self.generator = net, num_particles, flip_prob, noise_std, generator
+        self.device = next(net.parameters()).device
+        self.masks = torch.empty(0)
+        self.log_weights = torch.empty(0)
+
+    def reset(self) -> None:
+        self.masks = torch.rand(self.n, self.net.mask_dim, generator=self.generator, device=self.device) < self.net.keep_prob
+        self.log_weights = torch.full((self.n,), -math.log(self.n), device=self.device)
+
+    def update(self, x: Tensor, z: Tensor) -> Tensor:
+        flips = torch.rand(self.masks.shape, generator=self.generator, device=self.device) < self.flip_prob
+        self.masks = self.masks ^ flips
+        h = x.expand(self.n, -1)
+        for i, linear in enumerate(self.net.linears[:-1]):
+            h = self.net.act(linear(h))
+            sl = self.net.mask_slices[i]
+            if sl is not None:
+                h = h * self.masks[:, sl] / self.net.keep_prob
+        prediction = self.net.linears[-1](h)
+        log_likelihood = -0.5 * ((z - prediction) / self.noise_std).square().sum(-1)
+        weights = torch.softmax(self.log_weights + log_likelihood, dim=0)
+        idx = torch.multinomial(weights, self.n, replacement=True, generator=self.generator)
+        self.masks = self.masks[idx]
+        return self.masks.float().mean(0)  # MMSE mask after resampling (uniform weights)
+
+
+def run(config: BenchFilterConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Time the updates, print the table and ratios (or JSON), write the files; returns the payload."""
+    _check(config)
+    config = dataclasses.replace(config, device=resolve_device(config.device))
+    threads_before = torch.get_num_threads()
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    try:
+        return _run(config, progress=progress)
+    finally:
+        torch.set_num_threads(threads_before)
+
+
+def _run(config: BenchFilterConfig, *, progress: bool) -> dict[str, Any]:
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = torch.device(config.device)
+    net, observations = _problem(config, config.hidden, config.steps + config.warmup, device)
+    rows = []
+    with torch.no_grad():
+        for n in tqdm(config.particles, desc="bench filter", unit="N", disable=not progress):
+            for regime in ("realistic", "worst"):
+                rows.append(_time_regime(net, observations, n, regime, config, device))
+    memory = _memory(config) if config.memory_particles > 0 else None
+    payload = {
+        "benchmark": "one full SMCD update (propagate, particle forward, likelihood, reweight, resample, MMSE)",
+        "config": config_dict(config),
+        "device": str(device),
+        "machine": machine_info(),
+        "network": {"in": config.inputs, "hidden": list(config.hidden), "out": config.outputs,
+                    "mask_dim": net.mask_dim, "dropout": config.dropout},
+        "results": rows,
+        "memory": memory,
+        "goals": _goals(rows, memory),
+    }
+    write_json(out / "results.json", payload)
+    write_csv(out / "results.csv", rows)
+    print(json.dumps(payload, indent=2, default=str) if config.json else _report(payload))
+    return payload
+
+
+def _check(config: BenchFilterConfig) -> None:
+    bad = [f"{k}={getattr(config, k)}" for k in ("inputs", "outputs", "steps", "repeats") if getattr(config, k) < 1]
+    if not config.particles or min(config.particles) < 1:
+        bad.append(f"particles={list(config.particles)}")
+    if not config.hidden or min(config.hidden) < 1 or not config.memory_hidden or min(config.memory_hidden) < 1:
+        bad.append(f"hidden={list(config.hidden)}, memory_hidden={list(config.memory_hidden)}")
+    if config.warmup < 0 or config.memory_particles < 0:
+        bad.append(f"warmup={config.warmup}, memory_particles={config.memory_particles} (>= 0)")
+    if bad:
+        raise ValueError(f"sizes and counts must be >= 1: {', '.join(bad)}")
+    if not 0.0 <= config.dropout < 1.0 or not 0.0 <= config.flip_prob <= 1.0 or config.noise_std <= 0:
+        raise ValueError(
+            f"need 0 <= dropout < 1, 0 <= flip_prob <= 1 and noise_std > 0, got {config.dropout}, "
+            f"{config.flip_prob}, {config.noise_std}"
+        )
+
+
+def _problem(config: BenchFilterConfig, hidden: tuple[int, ...], steps: int, device: torch.device
+             ) -> tuple[smcd_rl.MaskedMLP, list[tuple[Tensor, Tensor]]]:
+    """A random network with every hidden layer masked, and observations made with a known true mask.
+
+    The output layer is scaled so that predictions under random masks have unit std, the scale of a
+    network trained on normalised targets, in which ``noise_std`` is given.
+    """
+    generator = seed_everything(config.seed)
+    net = smcd_rl.MaskedMLP(config.inputs, config.outputs, hidden=hidden, dropout=config.dropout, device=device).eval()
+    true_mask = (torch.rand(net.mask_dim, generator=generator) < net.keep_prob).to(device)
+    xs = torch.randn(steps, config.inputs, generator=generator).to(device)
+    noise = torch.randn(steps, config.outputs, generator=generator).to(device) * config.noise_std
+    with torch.no_grad():
+        probe = torch.randn(256, config.inputs, generator=generator).to(device)
+        masks = (torch.rand(256, net.mask_dim, generator=generator) < net.keep_prob).to(device)
+        scale = 1.0 / net(probe, mask=masks).std()
+        net.linears[-1].weight.mul_(scale)
+        net.linears[-1].bias.mul_(scale)
+        zs = net(xs, mask=true_mask.expand(steps, -1)) + noise
+    return net, list(zip(xs, zs))
+
+
+def _contenders(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterConfig, device: torch.device
+                ) -> tuple[dict[str, Callable[[Tensor, Tensor], Any]], Callable[[], int]]:
+    """Fresh contenders for one run and a probe of ours' distinct parents before its next update."""
+    def smcd(path: str) -> smcd_rl.SMCD:
+        generator = torch.Generator(device=device).manual_seed(config.seed + 1)
+        adaptation = smcd_rl.SMCD(num_particles=n, flip_prob=config.flip_prob, noise_std=noise_std,
+                                  generator=generator, forward_path=path)  # type: ignore[arg-type]
+        adaptation.bind(net, torch.ones(config.outputs, device=device))
+        adaptation.reset(())
+        return adaptation
+
+    ours, dense = smcd("auto"), smcd("dense")
+    naive = NaiveSMCD(net, n, config.flip_prob, noise_std, torch.Generator(device=device).manual_seed(config.seed + 1))
+    naive.reset()
+    layer_in = torch.rand(n, config.hidden[0], device=device)
+    weight = torch.randn(config.hidden[-1], config.hidden[0], device=device)
+
+    def update(adaptation: smcd_rl.SMCD) -> Callable[[Tensor, Tensor], Any]:
+        def step(x: Tensor, z: Tensor) -> Tensor:
+            adaptation.observe(x, z)
+            return adaptation.mask
+        return step
+
+    contenders = {
+        "ours": update(ours),
+        "ours, dense path": update(dense),
+        "naive": naive.update,
+        "matmul": lambda x, z: layer_in @ weight.t(),
+    }
+
+    def distinct_parents() -> int:  # of ours' last update
+        return ours.particle_forward.last_distinct_parents or n  # type: ignore[union-attr]
+
+    return contenders, distinct_parents
+
+
+def _time_regime(net: smcd_rl.MaskedMLP, observations: list[tuple[Tensor, Tensor]], n: int, regime: str,
+                 config: BenchFilterConfig, device: torch.device) -> dict[str, Any]:
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    noise_std = config.noise_std if regime == "realistic" else _FLAT_NOISE
+    # Warm up on throwaway contenders, then time fresh ones from the prior (the run starts at step 0).
+    warm, _ = _contenders(net, n, noise_std, config, device)
+    for x, z in observations[: config.warmup]:
+        for fn in warm.values():
+            fn(x, z)
+    contenders, distinct_parents = _contenders(net, n, noise_std, config, device)
+    names = list(contenders)
+    steps = config.steps if regime == "realistic" else config.repeats
+    times: dict[str, list[float]] = {name: [] for name in names}
+    parents: list[int] = []
+    for t, (x, z) in enumerate(observations[config.warmup : config.warmup + steps]):
+        for name in names[t % len(names) :] + names[: t % len(names)]:  # rotate who goes first
+            sync()
+            started = time.perf_counter()
+            contenders[name](x, z)
+            sync()
+            times[name].append(time.perf_counter() - started)
+        parents.append(distinct_parents())
+    median = {name: statistics.median(v) * 1e3 for name, v in times.items()}
+    mean = {name: statistics.fmean(v) * 1e3 for name, v in times.items()}
+    return {
+        "N": n,
+        "regime": regime,
+        "steps": steps,
+        "ours_ms": mean["ours"],
+        "ours_median_ms": median["ours"],
+        "dense_path_ms": mean["ours, dense path"],
+        "naive_ms": mean["naive"],
+        "matmul_ms": median["matmul"],
+        "ours_over_matmul": mean["ours"] / median["matmul"],
+        "naive_over_ours": mean["naive"] / mean["ours"],
+        "dense_path_over_ours": mean["ours, dense path"] / mean["ours"],
+        "mean_distinct_parents": statistics.fmean(parents),
+    }
+
+
+def _memory(config: BenchFilterConfig) -> dict[str, Any] | None:
+    """Extra peak memory of SMCD and naive updates, each measured in a fresh process."""
+    results: dict[str, Any] = {"particles": config.memory_particles, "hidden": list(config.memory_hidden)}
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(1, maxtasksperchild=1) as pool:
+        for contender in ("ours", "naive"):
+            mb = pool.apply(_peak_extra_mb, (config, contender))
+            if mb is None:
+                return None
+            results[f"{contender}_peak_extra_mb"] = mb
+    return results
+
+
+def _peak_extra_mb(config: BenchFilterConfig, contender: str) -> float | None:
+    """Run in a fresh process: peak memory of ``warmup + 5`` updates above the memory before them."""
+    device = torch.device(config.device)
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    hidden = config.memory_hidden
+    n = config.memory_particles
+    net, observations = _problem(dataclasses.replace(config, hidden=hidden), hidden, config.warmup + 5, device)
+    if contender == "ours":
+        adaptation = smcd_rl.SMCD(num_particles=n, flip_prob=config.flip_prob, noise_std=config.noise_std,
+                                  generator=torch.Generator(device=device).manual_seed(config.seed + 1))
+        adaptation.bind(net, torch.ones(config.outputs, device=device))
+        adaptation.reset(())
+
+        def update(x: Tensor, z: Tensor) -> None:
+            adaptation.observe(x, z)
+            adaptation.mask  # noqa: B018 - the MMSE mask is part of the update
+    else:
+        naive = NaiveSMCD(net, n, config.flip_prob, config.noise_std, torch.Generator(device=device).manual_seed(config.seed + 1))
+        naive.reset()
+        update = naive.update  # type: ignore[assignment]
+    with torch.no_grad():
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+            before = torch.cuda.memory_allocated(device)
+            torch.cuda.reset_peak_memory_stats(device)
+            for x, z in observations:
+                update(x, z)
+            torch.cuda.synchronize()
+            return (torch.cuda.max_memory_allocated(device) - before) / 2**20
+        try:
+            Path("/proc/self/clear_refs").write_text("5")  # reset the peak resident set (Linux)
+            before = _status_kb("VmRSS")
+        except OSError:
+            return None
+        for x, z in observations:
+            update(x, z)
+        return (_status_kb("VmHWM") - before) / 1024
+
+
+def _status_kb(field: str) -> int:
+    match = re.search(rf"^{field}:\s+(\d+) kB", Path("/proc/self/status").read_text(), re.MULTILINE)
+    if match is None:
+        raise OSError(f"no {field} in /proc/self/status")
+    return int(match.group(1))
+
+
+def _goals(rows: list[dict[str, Any]], memory: dict[str, Any] | None) -> dict[str, bool | None]:
+    at = {row["regime"]: row for row in rows if row["N"] == GOAL_PARTICLES}
+    realistic, worst = at.get("realistic"), at.get("worst")
+    return {
+        "realistic_at_most_1.0x_matmul": None if realistic is None
+        else realistic["ours_over_matmul"] <= GOALS["realistic_over_matmul"],
+        "worst_at_most_1.5x_matmul": None if worst is None else worst["ours_over_matmul"] <= GOALS["worst_over_matmul"],
+        "at_least_10x_faster_than_naive": None if realistic is None
+        else realistic["naive_over_ours"] >= GOALS["naive_over_ours"],
+        "peak_extra_under_200_mb": None if memory is None
+        else memory["ours_peak_extra_mb"] < GOALS["peak_extra_mb"],
+    }
+
+
+def _report(payload: dict[str, Any]) -> str:
+    net = payload["network"]
+    lines = ["machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"]
+    lines.append(
+        f"network: MaskedMLP {net['in']} -> {' -> '.join(map(str, net['hidden']))} -> {net['out']}, "
+        f"{net['mask_dim']} mask bits, dropout {net['dropout']}; flip prob {payload['config']['flip_prob']}"
+    )
+    lines.append("ms per update: mean over the run (ours median in brackets); matmul: median of one "
+                 "(N x 1024) @ (1024 x 1024)")
+    lines.append("")
+    body = [
+        [r["N"], r["regime"], f"{r['mean_distinct_parents']:.0f}", f"{r['ours_ms']:.2f} ({r['ours_median_ms']:.2f})",
+         f"{r['dense_path_ms']:.2f}", f"{r['naive_ms']:.2f}", f"{r['matmul_ms']:.2f}", f"{r['ours_over_matmul']:.2f}x",
+         f"{r['naive_over_ours']:.1f}x"]
+        for r in payload["results"]
+    ]
+    header = ["N", "regime", "distinct parents", "ours ms", "dense path ms", "naive ms", "matmul ms",
+              "ours / matmul", "naive / ours"]
+    lines.append(format_table(body, header))
+    memory = payload["memory"]
+    if memory is not None:
+        lines.append("")
+        lines.append(
+            f"extra peak memory of an update, N={memory['particles']}, hidden {memory['hidden']}: "
+            f"ours {memory['ours_peak_extra_mb']:.0f} MB, naive {memory['naive_peak_extra_mb']:.0f} MB"
+        )
+    lines.append("")
+    verdict = {True: "met", False: "NOT met", None: "not measured"}
+    goals = payload["goals"]
+    at = f"N={GOAL_PARTICLES}"
+    lines.append(f"goal {at}, realistic: ours <= {GOALS['realistic_over_matmul']}x matmul: "
+                 f"{verdict[goals['realistic_at_most_1.0x_matmul']]}")
+    lines.append(f"goal {at}, worst case: ours <= {GOALS['worst_over_matmul']}x matmul: "
+                 f"{verdict[goals['worst_at_most_1.5x_matmul']]}")
+    naive_goal = f"goal {at}, realistic: ours >= {GOALS['naive_over_ours']:.0f}x faster than naive: "
+    realistic = [r for r in payload["results"] if r["N"] == GOAL_PARTICLES and r["regime"] == "realistic"]
+    if realistic:
+        r = realistic[0]
+        naive_goal += (f"{verdict[goals['at_least_10x_faster_than_naive']]} (the naive update takes "
+                       f"{r['naive_ms'] / r['matmul_ms']:.1f}x the matmul here, so this asks for ours <= "
+                       f"{r['naive_ms'] / GOALS['naive_over_ours'] / r['matmul_ms']:.2f}x the matmul)")
+    else:
+        naive_goal += verdict[None]
+    lines.append(naive_goal)
+    size = f"N={memory['particles']}" if memory is not None else "memory"
+    lines.append(f"goal {size}: extra peak memory < {GOALS['peak_extra_mb']:.0f} MB: "
+                 f"{verdict[goals['peak_extra_under_200_mb']]}")
+    return "\n".join(lines)

@@ -1,0 +1,53 @@
+"""``smcd-rl bench filter`` at tiny sizes: it runs, prints ratios and memory, writes files, JSON parses.
+
+No timing is asserted: the numbers depend on the machine and its load.
+"""
+
+import csv
+import json
+
+import pytest
+import torch
+
+from smcd_rl import cli
+
+TINY = ["--particles", "20", "60", "--hidden", "32", "32", "--steps", "6", "--repeats", "3", "--warmup", "1",
+        "--device", "cpu", "--threads", "1"]
+
+
+def test_bench_filter_prints_ratios_memory_and_writes_files(tmp_path, capsys) -> None:
+    out = tmp_path / "bench"
+    args = ["bench", "filter", "--out", str(out), *TINY, "--memory-particles", "50", "--memory-hidden", "16", "16", "16"]
+    assert cli.main(args) == 0
+    printed = capsys.readouterr().out
+    assert "torch_threads=1" in printed and "naive / ours" in printed and "extra peak memory" in printed
+    rows = list(csv.DictReader(open(out / "results.csv")))
+    assert [(int(r["N"]), r["regime"]) for r in rows] == [(20, "realistic"), (20, "worst"), (60, "realistic"), (60, "worst")]
+    for row in rows:
+        assert float(row["ours_ms"]) > 0 and float(row["naive_ms"]) > 0 and float(row["matmul_ms"]) > 0
+        assert 1 <= float(row["mean_distinct_parents"]) <= int(row["N"])
+    worst = [r for r in rows if r["regime"] == "worst"]
+    # Flat weights and systematic resampling keep every particle: nothing for the fast path to share.
+    assert all(float(r["mean_distinct_parents"]) == int(r["N"]) for r in worst)
+    payload = json.loads((out / "results.json").read_text())
+    assert payload["memory"]["ours_peak_extra_mb"] >= 0 and payload["memory"]["particles"] == 50
+    assert set(payload["goals"]) == {"realistic_at_most_1.0x_matmul", "worst_at_most_1.5x_matmul",
+                                     "at_least_10x_faster_than_naive", "peak_extra_under_200_mb"}
+
+
+def test_bench_filter_json_flag_prints_only_json(tmp_path, capsys) -> None:
+    assert cli.main(["bench", "filter", "--out", str(tmp_path), *TINY, "--memory-particles", "0", "--json"]) == 0
+    payload = json.loads(capsys.readouterr().out)
+    assert payload["memory"] is None and payload["machine"]["torch_threads"] == 1
+    assert payload["network"]["mask_dim"] == 64
+
+
+def test_bench_filter_help_and_bad_options(capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["bench", "filter", "--help"])
+    assert exit_info.value.code == 0 and "--particles" in capsys.readouterr().out
+    assert cli.main(["bench", "filter", "--particles", "0", "--out", "/tmp/never"]) == 2
+    assert "particles" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert cli.main(["bench", "filter", "--device", "cuda", "--out", "/tmp/never"]) == 2
+        assert "no CUDA device" in capsys.readouterr().err
