@@ -18,7 +18,6 @@ from typing import Literal
 
 import numpy as np
 import torch
-from tensordict import TensorDict
 from torch import Tensor
 
 from smcd_rl.agents.planners import Objective, Planner
@@ -50,14 +49,14 @@ def model_reward_objective(
 
     The returned function maps actions ``[*batch, P, H, A]`` to returns ``[*batch, P]``, where
     ``*batch`` is ``observation``'s batch shape. It rolls ``model`` forward ``H`` steps for all
-    ``P`` candidates at once (a TensorDict of batch ``[*batch, P]``; a model reset with
-    ``batch_shape=()`` broadcasts over ``*batch``, one reset with ``batch_shape=batch`` keeps one
+    ``P`` candidates at once (:meth:`~smcd_rl.AdaptiveDynamicsModel.step` on a batch ``[*batch, P]``;
+    a model reset with ``batch_shape=()`` broadcasts over ``*batch``, one reset with ``batch_shape=batch`` keeps one
     adaptation state per row) and sums ``reward_fn(obs, action, next_obs)``. After
     ``termination_fn(next_obs)`` is true a candidate earns nothing more; the reward of the
     terminating step itself counts, as in gymnasium. A candidate whose predicted state becomes
     NaN or infinite while still alive scores NaN, which the planners rank last.
 
-    ``ensemble="mmse"`` predicts with the adapted (MMSE) mask, ``model(td)``.
+    ``ensemble="mmse"`` predicts with the adapted (MMSE) mask, ``model.step(obs, action)``.
     ``ensemble="particles"`` gives candidate ``p`` the mask particle ``p % N`` of
     ``model.particles`` (read once, when the objective is built) for the whole horizon:
     trajectory sampling over the mask posterior. The particles are used as equally weighted,
@@ -88,8 +87,6 @@ def model_reward_objective(
         >>> objective(torch.zeros(8, 5, 1)).shape  # 8 candidates, horizon 5
         torch.Size([8])
     """
-    obs_key, action_key = model.in_keys[0], model.in_keys[1]
-    next_key = model.out_key
     _check_dynamics_model(model)
     obs_dim, action_dim = model.observation_dim, model.action_dim
     if observation.shape[-1:] != (obs_dim,):
@@ -126,19 +123,22 @@ def model_reward_objective(
         with torch.no_grad():
             for t in range(horizon):
                 action = actions[..., t, :]
-                td = TensorDict({obs_key: state, action_key: action}, batch_size=shape)
-                next_state = model(td, mask=mask).get(next_key)
+                next_state = model.step(state, action, mask=mask)
                 finite = torch.isfinite(next_state).all(dim=-1)
                 if not bool(finite.all()):
                     # Keep rolling the others; a diverged candidate is ranked last through NaN.
                     diverged |= alive & ~finite
                     next_state = torch.where(finite.unsqueeze(-1), next_state, torch.zeros_like(next_state))
                 reward = reward_fn(state, action, next_state)
-                _check_shape(reward, shape, "reward_fn(obs, action, next_obs)")
-                total = total + torch.where(alive, reward.to(total.dtype), torch.zeros_like(total))
-                if termination_fn is not None:
+                if t == 0:  # the functions are pure: one check of their shapes is enough
+                    _check_shape(reward, shape, "reward_fn(obs, action, next_obs)")
+                if termination_fn is None:
+                    total += reward
+                else:
+                    total += torch.where(alive, reward.to(total.dtype), torch.zeros_like(total))
                     done = termination_fn(next_state)
-                    _check_shape(done, shape, "termination_fn(next_obs)")
+                    if t == 0:
+                        _check_shape(done, shape, "termination_fn(next_obs)")
                     alive = alive & ~done.bool()
                 state = next_state
         total = torch.where(diverged, torch.full_like(total, float("nan")), total)

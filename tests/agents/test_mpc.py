@@ -130,13 +130,13 @@ def test_particles_mode_gives_candidate_p_the_particle_p_mod_n(
 ) -> None:
     model = smcd_copy(trained)
     masks: list[Tensor | None] = []
-    forward = model.forward
+    step = model.step
 
-    def spy(td: Any, *, mask: Tensor | None = None) -> Any:
+    def spy(obs: Tensor, action: Tensor, *, mask: Tensor | None = None) -> Tensor:
         masks.append(mask)
-        return forward(td, mask=mask)
+        return step(obs, action, mask=mask)
 
-    monkeypatch.setattr(model, "forward", spy)
+    monkeypatch.setattr(model, "step", spy)
     objective = model_reward_objective(model, torch.zeros(2), reward_fn, ensemble="particles")
     objective(torch.zeros(80, 3, 1))  # 80 candidates > 32 particles: wraps around
     particles = model.particles

@@ -132,6 +132,18 @@ def test_dynamics_model_predicts_the_change_of_observation() -> None:
     torch.testing.assert_close(td["next", "observation"], torch.full((3,), 5.5), atol=0.15, rtol=0)
     assert model.base_key == "observation"
 
+    # step(): the same prediction from tensors, with the adapted mask or given masks.
+    adapted = model.with_adaptation(smcd_rl.SMCD(num_particles=20, generator=torch.Generator().manual_seed(0)))
+    adapted.reset()
+    adapted.observe(TensorDict({"observation": obs[:8], "action": act[:8], ("next", "observation"): obs[:8] + 5.2}, [8]))
+    states, actions = torch.randn(6, 3), torch.randn(6, 1)
+    td = TensorDict({"observation": states, "action": actions}, [6])
+    torch.testing.assert_close(adapted.step(states, actions), adapted(td)["next", "observation"])
+    masks = adapted.particles[:6]
+    torch.testing.assert_close(adapted.step(states, actions, mask=masks), adapted(td, mask=masks)["next", "observation"])
+    with pytest.raises(ValueError, match=r"action \[..., 1\]"):
+        adapted.step(states, torch.randn(6, 2))
+
 
 def test_save_and_load_round_trip(tmp_path, two_link_model: smcd_rl.AdaptiveModel) -> None:
     model = two_link_model.with_adaptation(_smcd(n=64))
