@@ -63,6 +63,17 @@ class Adaptation(ABC):
         """Diagnostics per batch element (for example ESS and log evidence)."""
         return {}
 
+    def state_dict(self) -> dict[str, Any]:
+        """A copy of the adaptation state; :meth:`restore_rows` puts rows of it back."""
+        return {}
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+        """Put back ``state``'s batch elements where ``rows [*B]`` is True, leave the others.
+
+        With :meth:`state_dict` this resets or updates part of a batch: save the state, act on
+        the whole batch, restore the rows that should not have changed.
+        """
+
     def config(self) -> dict[str, Any]:
         """Constructor arguments; ``type(s)(**s.config())`` is an unadapted copy."""
         return {}
@@ -264,6 +275,12 @@ class SMCD(Adaptation):
         # The ESS of the last update before resampling: after resampling it is always N.
         return {"ess": self._filter.last_ess, "log_evidence": self._filter.log_evidence}  # type: ignore[dict-item]
 
+    def state_dict(self) -> dict[str, Any]:
+        return self._filter.state_dict()
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+        self._filter.restore_rows(state, rows)
+
     @property
     def _filter(self) -> SMCDFilter:
         if self.filter is None:
@@ -302,7 +319,7 @@ class GradientDescent(Adaptation):
         self._params: dict[str, Tensor] = {}
         self._inputs: Tensor | None = None
         self._targets: Tensor | None = None
-        self._count = 0
+        self._count: Tensor | None = None  # transitions seen, per batch element
 
     def config(self) -> dict[str, Any]:
         return {"lr": self.lr, "steps": self.steps, "window": self.window}
@@ -315,26 +332,44 @@ class GradientDescent(Adaptation):
         device = next(net.parameters()).device
         self._inputs = torch.zeros(flat, self.window, net.in_features, device=device)
         self._targets = torch.zeros(flat, self.window, net.out_features, device=device)
-        self._count = 0
+        self._count = torch.zeros(flat, dtype=torch.long, device=device)
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
-        assert self._inputs is not None and self._targets is not None, "call reset() first"
-        slot = self._count % self.window
-        self._inputs[:, slot] = inputs.reshape(-1, inputs.shape[-1])
-        self._targets[:, slot] = targets.reshape(-1, targets.shape[-1])
-        self._count += 1
-        used = min(self._count, self.window)
-        xs, zs = self._inputs[:, :used], self._targets[:, :used]
+        assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
+        rows = torch.arange(self._count.numel(), device=self._count.device)
+        slot = self._count % self.window  # a ring buffer per batch element
+        self._inputs[rows, slot] = inputs.reshape(-1, inputs.shape[-1])
+        self._targets[rows, slot] = targets.reshape(-1, targets.shape[-1])
+        self._count = self._count + 1
+        # Slots filled so far count in the loss; the rest (after a reset) do not.
+        filled = (torch.arange(self.window, device=rows.device) < self._count.unsqueeze(-1)).to(self._inputs.dtype)
         net = self.net
 
-        def loss(params: dict[str, Tensor], x: Tensor, z: Tensor) -> Tensor:
-            return (functional_call(net, params, (x,)) - z).square().mean()
+        def loss(params: dict[str, Tensor], x: Tensor, z: Tensor, weight: Tensor) -> Tensor:
+            error = (functional_call(net, params, (x,)) - z).square().mean(-1)
+            return (error * weight).sum() / weight.sum()
 
         gradient = vmap(grad(loss))
         with torch.enable_grad():
             for _ in range(self.steps):
-                grads = gradient(self._params, xs, zs)
+                grads = gradient(self._params, self._inputs, self._targets, filled)
                 self._params = {k: p - self.lr * grads[k] for k, p in self._params.items()}
+
+    def state_dict(self) -> dict[str, Any]:
+        assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
+        return {"params": {k: v.clone() for k, v in self._params.items()}, "inputs": self._inputs.clone(),
+                "targets": self._targets.clone(), "count": self._count.clone()}
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+        assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
+        rows = rows.to(self._count.device).reshape(-1)
+
+        def pick(saved: Tensor, current: Tensor) -> Tensor:
+            return torch.where(rows.reshape(-1, *([1] * (current.dim() - 1))), saved, current)
+
+        self._params = {k: pick(state["params"][k], p) for k, p in self._params.items()}
+        self._inputs, self._targets = pick(state["inputs"], self._inputs), pick(state["targets"], self._targets)
+        self._count = pick(state["count"], self._count)
 
     def predict(self, inputs: Tensor) -> Tensor:
         self._extra_dims(inputs)

@@ -87,12 +87,40 @@ class AdaptiveModel(TensorDictModuleBase):
         self._bind(self.adaptation)
 
     # ------------------------------------------------------------------ adaptation
-    def reset(self, batch_shape: Sequence[int] = ()) -> None:
-        """Start adapting afresh, with one independent state per element of ``batch_shape``."""
+    def reset(self, batch_shape: Sequence[int] = (), *, where: Tensor | None = None) -> None:
+        """Start adapting afresh, with one independent state per element of ``batch_shape``.
+
+        Args:
+            batch_shape: one adaptation state per element (one per env of a vector env).
+            where: bool ``[*batch_shape]``: reset only these elements and keep the others'
+                state (a vector env whose sub-envs finish at different times). Needs the
+                model to have been reset with this ``batch_shape`` before.
+
+        Example:
+            >>> import torch, smcd_rl
+            >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee",
+            ...                               adaptation=smcd_rl.SMCD(num_particles=10))
+            >>> model.reset(batch_shape=(3,))
+            >>> model.reset(batch_shape=(3,), where=torch.tensor([False, True, False]))  # only env 1
+        """
+        batch_shape = tuple(int(b) for b in batch_shape)
+        if where is not None:
+            if self._batch_shape is None or self._batch_shape != batch_shape:
+                raise ValueError(
+                    f"reset(where=...) resets rows of the current batch {self._batch_shape}, "
+                    f"not of {batch_shape}; call reset(batch_shape={batch_shape}) first"
+                )
+            where = torch.as_tensor(where, dtype=torch.bool).reshape(batch_shape)
+            if not bool(where.all()):
+                if bool(where.any()):  # reset all, then put back the rows that keep adapting
+                    kept = self.adaptation.state_dict()
+                    self.adaptation.reset(batch_shape)
+                    self.adaptation.restore_rows(kept, ~where)
+                return
         self.net.eval()
         # Bind again: training sets the output scale and .to(device) moves the network since.
         self._bind(self.adaptation)
-        self._batch_shape = tuple(int(b) for b in batch_shape)
+        self._batch_shape = batch_shape
         self.adaptation.reset(self._batch_shape)
 
     def observe(self, td: TensorDictBase) -> None:

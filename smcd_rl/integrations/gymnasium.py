@@ -30,7 +30,6 @@ trained network), e.g. ``make_vec_env(lambda: AdaptationWrapper(gymnasium.make(.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable
 from typing import Any, Protocol, SupportsFloat, runtime_checkable
 
@@ -43,7 +42,6 @@ from gymnasium.vector.utils import batch_space
 from tensordict import TensorDict
 from torch import Tensor
 
-from smcd_rl.adaptation import NoAdaptation
 from smcd_rl.filter import ParticleFilter
 from smcd_rl.model import AdaptiveDynamicsModel
 
@@ -98,7 +96,6 @@ class _Hook:
         self.obs_dtype = observation_space.dtype
         self.context = context
         self.projection: Tensor | None = None
-        self._warned = False
         self._seeds: np.random.Generator | None = None
         if context is not None:
             generator = torch.Generator().manual_seed(int(context_seed))
@@ -145,26 +142,7 @@ class _Hook:
 
     def reset_elements(self, where: np.ndarray) -> None:
         """Start a new adaptation episode for the batch elements where ``where`` is True."""
-        if not where.any():
-            return
-        batch_shape = self.model.batch_shape
-        if where.all():
-            self.model.reset(batch_shape=batch_shape)
-            return
-        particle_filter = self.filter()
-        if particle_filter is not None:
-            # Draw a fresh prior for the whole batch, then put back the rows that keep adapting.
-            old = particle_filter.state_dict()
-            particle_filter.reset(batch_shape)
-            particle_filter.restore_rows(old, torch.as_tensor(~where))
-        elif not isinstance(self.model.adaptation, NoAdaptation) and not self._warned:
-            self._warned = True
-            warnings.warn(
-                f"{type(self.model.adaptation).__name__} cannot reset the adaptation state of one sub-env; "
-                "a finished sub-env keeps its state into the next episode (only SMCD and NoAdaptation "
-                "reset per sub-env)",
-                stacklevel=3,
-            )
+        self.model.reset(batch_shape=self.model.batch_shape, where=torch.as_tensor(where))
 
     def observe(self, obs: Tensor, action: Any, next_obs: Tensor, valid: np.ndarray | None = None) -> None:
         """Feed one transition per batch element; rows where ``valid`` is False carry no information.
@@ -322,9 +300,9 @@ class AdaptationVectorWrapper(VectorWrapper):
       state starts afresh from the reset observation.
     * ``DISABLED``: ``reset(options={"reset_mask": m})`` starts afresh the sub-envs in ``m`` only.
 
-    Per-sub-env resets are exact for :class:`smcd_rl.SMCD` (a fresh prior draw for that row of the
-    particle filter) and trivial for :class:`smcd_rl.NoAdaptation`; other strategies cannot reset one
-    row, so a finished sub-env keeps its state (a warning says so once). A full ``reset()`` resets all.
+    A sub-env's reset restarts only its own adaptation state (``model.reset(where=...)``: a fresh
+    prior draw for :class:`smcd_rl.SMCD`, the trained weights and an empty window for
+    :class:`smcd_rl.GradientDescent`). A full ``reset()`` resets all.
 
     ``info[info_key]`` holds the summary as arrays ``[num_envs]`` with gymnasium's ``"_key"``
     masks; ``context`` appends ``context + 1`` numbers to each sub-env's observation.

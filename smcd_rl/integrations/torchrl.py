@@ -36,7 +36,6 @@ Example:
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable, Sequence
 from typing import Literal
 
@@ -54,8 +53,7 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.transforms import Transform
 from torchrl.modules import CEMPlanner, MPPIPlanner
 
-from smcd_rl.adaptation import SMCD, NoAdaptation
-from smcd_rl.filter import ParticleFilter
+from smcd_rl.adaptation import SMCD
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel
 from smcd_rl.training import fit
 
@@ -533,7 +531,6 @@ class AdaptationTransform(Transform):
         self.summary_keys = tuple(summary_keys)
         super().__init__(in_keys=[], out_keys=[prefix + name for name in self.summary_keys])
         self.model = model
-        self._warned = False
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         transition = TensorDict(batch_size=next_tensordict.batch_size, device=next_tensordict.device)
@@ -557,7 +554,7 @@ class AdaptationTransform(Transform):
             same_batch = False
         if not same_batch:
             reset_mask = None
-        self._where(reset_mask, lambda: self.model.reset(batch_shape=batch_shape), batch_shape=batch_shape)
+        self.model.reset(batch_shape=batch_shape, where=reset_mask)
         return self._write_summary(tensordict_reset)
 
     def _reset_on_native_autoreset(
@@ -594,23 +591,12 @@ class AdaptationTransform(Transform):
         if not bool(mask.any()):
             return
         mask = mask.reshape(batch_shape)
+        # The core resets and updates every batch element at once: act on all, then put back
+        # the old state where the mask is not set.
         adaptation = self.model.adaptation
-        filt = getattr(adaptation, "filter", None)
-        if isinstance(filt, ParticleFilter):
-            # The core resets and updates every batch element at once: act on all, then put
-            # back the old state where the mask is not set.
-            old = filt.state_dict()
-            update()
-            filt.restore_rows(old, ~mask)
-            return
-        if not isinstance(adaptation, NoAdaptation) and not self._warned:
-            warnings.warn(
-                f"{type(adaptation).__name__} cannot reset or update part of a batch; the whole batch is "
-                "updated when only some sub-envs step or reset",
-                stacklevel=2,
-            )
-            self._warned = True
+        old = adaptation.state_dict()
         update()
+        adaptation.restore_rows(old, ~mask)
 
 
 # ---------------------------------------------------------------------- fitting and the MBRL loop

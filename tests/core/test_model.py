@@ -121,6 +121,46 @@ def test_gradient_descent_adapts_and_reset_restores_the_trained_weights(
     torch.testing.assert_close(plain(td.clone())["ee"], before)  # the shared network is untouched
 
 
+@pytest.mark.parametrize("strategy", ["gd", "smcd"])
+def test_reset_where_restarts_only_the_chosen_rows(two_link_model: smcd_rl.AdaptiveModel, strategy: str) -> None:
+    """A vector env's finished sub-env restarts its own adaptation; the others keep theirs.
+
+    Row 1 after the partial reset and one more transition must equal a fresh single model that saw
+    only that transition (GD: trained weights and an empty window; SMCD: with the same filter
+    state, compared through the prior's log evidence of zero before it).
+    """
+    def make() -> smcd_rl.AdaptiveModel:
+        if strategy == "gd":
+            return two_link_model.with_adaptation(smcd_rl.GradientDescent(lr=0.05, steps=3, window=5))
+        return two_link_model.with_adaptation(_smcd(n=200))
+
+    model = make()
+    model.reset(batch_shape=(3,))
+    lengths = torch.tensor([[1.0, 0.5], [1.5, 0.8], [0.7, 1.2]])
+    q, ee = _stream(lengths, 6, seed=2)
+    for t in range(5):
+        model.observe(TensorDict({"q": q[t], "ee": ee[t]}, [3]))
+    probe = TensorDict({"q": q[5]}, [3])
+    before = model(probe.clone())["ee"]
+    model.reset(batch_shape=(3,), where=torch.tensor([False, True, False]))
+    after = model(probe.clone())["ee"]
+    torch.testing.assert_close(after[[0, 2]], before[[0, 2]])
+    plain = two_link_model.with_adaptation(smcd_rl.NoAdaptation())
+    plain.reset()
+    if strategy == "gd":
+        torch.testing.assert_close(after[1], plain(probe[1].clone())["ee"])  # trained weights again
+        model.observe(TensorDict({"q": q[5], "ee": ee[5]}, [3]))
+        fresh = make()
+        fresh.reset()
+        fresh.observe(TensorDict({"q": q[5, 1], "ee": ee[5, 1]}, []))
+        torch.testing.assert_close(model(probe.clone())["ee"][1], fresh(probe[1].clone())["ee"])
+    else:
+        assert float(model.summary()["log_evidence"][1]) == 0.0
+        assert bool((model.summary()["log_evidence"][[0, 2]] != 0).all())
+    with pytest.raises(ValueError, match="resets rows of the current batch"):
+        model.reset(batch_shape=(2,), where=torch.tensor([True, False]))
+
+
 def test_dynamics_model_predicts_the_change_of_observation() -> None:
     torch.manual_seed(0)
     obs, act = torch.randn(512, 3), torch.randn(512, 1)
