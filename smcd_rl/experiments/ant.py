@@ -73,6 +73,7 @@ from smcd_rl.experiments.common import (
     machine_info,
     option,
     seed_everything,
+    torch_threads,
     write_csv,
     write_json,
 )
@@ -171,13 +172,8 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     device = torch.device(config.device)
-    threads_before = torch.get_num_threads()
-    if config.threads > 0:
-        torch.set_num_threads(config.threads)
-    try:
+    with torch_threads(config.threads):
         return _run(config, out, device, progress=progress)
-    finally:
-        torch.set_num_threads(threads_before)
 
 
 def _run(config: AntConfig, out: Path, device: torch.device, *, progress: bool) -> dict[str, Any]:

@@ -51,7 +51,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 import smcd_rl
-from smcd_rl.experiments.common import config_dict, format_table, machine_info, option, resolve_device, seed_everything, write_csv, write_json
+from smcd_rl.experiments.common import config_dict, format_table, machine_info, option, resolve_device, seed_everything, torch_threads, write_csv, write_json
 
 __all__ = ["BenchFilterConfig", "FULL", "GOALS", "NaiveSMCD", "run"]
 
@@ -133,13 +133,8 @@ def run(config: BenchFilterConfig, *, progress: bool = True) -> dict[str, Any]:
     """Time the updates, print the table and ratios (or JSON), write the files; returns the payload."""
     _check(config)
     config = dataclasses.replace(config, device=resolve_device(config.device))
-    threads_before = torch.get_num_threads()
-    if config.threads > 0:
-        torch.set_num_threads(config.threads)
-    try:
+    with torch_threads(config.threads):
         return _run(config, progress=progress)
-    finally:
-        torch.set_num_threads(threads_before)
 
 
 def _run(config: BenchFilterConfig, *, progress: bool) -> dict[str, Any]:

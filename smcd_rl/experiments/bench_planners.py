@@ -47,7 +47,7 @@ from tqdm.auto import tqdm
 import smcd_rl
 from smcd_rl.agents.mpc import model_reward_objective
 from smcd_rl.agents.planners import CEM
-from smcd_rl.experiments.common import config_dict, format_table, machine_info, option, resolve_device, seed_everything, write_csv, write_json
+from smcd_rl.experiments.common import config_dict, format_table, machine_info, option, resolve_device, seed_everything, torch_threads, write_csv, write_json
 
 __all__ = ["BenchPlannersConfig", "FULL", "GOAL_SPEEDUP", "GOAL_FLOOR", "run", "bench_reward"]
 
@@ -99,13 +99,8 @@ def run(config: BenchPlannersConfig, *, progress: bool = True) -> dict[str, Any]
     """Time the planners, print the table and ratios (or JSON), write the files; returns the payload."""
     _check(config)
     config = dataclasses.replace(config, device=resolve_device(config.device))
-    threads_before = torch.get_num_threads()
-    if config.threads > 0:
-        torch.set_num_threads(config.threads)
-    try:
+    with torch_threads(config.threads):
         return _run(config, progress=progress)
-    finally:
-        torch.set_num_threads(threads_before)
 
 
 def _run(config: BenchPlannersConfig, *, progress: bool) -> dict[str, Any]:
