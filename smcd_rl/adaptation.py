@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 from torch.func import functional_call, grad, vmap
 
-from smcd_rl.filter import SMCDFilter
+from smcd_rl.filter import SMCDFilter, Transition
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.particle_forward import Lineage, ParticleForward, ParticlePath
 from smcd_rl.resampling import ResamplingScheme, check_scheme
@@ -141,6 +141,9 @@ class SMCD(Adaptation):
         resampling: resampling scheme (see :class:`smcd_rl.SMCDFilter`).
         ess_threshold: resample when ESS < ``ess_threshold * N``.
         generator: random source of the filter (default: seeded from torch's global generator).
+        transition: how masks move between steps: ``"keep_rate"`` keeps them distributed as in
+            training (the paper's xor flips at dropout 0.5), ``"symmetric"`` flips every bit
+            with ``flip_prob`` (see :class:`smcd_rl.SMCDFilter`).
         forward_path: how an update runs the particles through the network: ``"auto"`` takes the
             exact incremental path (pre-activations once per distinct parent plus the flipped
             columns, :mod:`smcd_rl.particle_forward`) when it is cheaper, ``"dense"`` always
@@ -163,6 +166,7 @@ class SMCD(Adaptation):
         resampling: ResamplingScheme = "systematic",
         ess_threshold: float = 1.0,
         generator: torch.Generator | None = None,
+        transition: Transition = "keep_rate",
         forward_path: ParticlePath = "auto",
     ) -> None:
         super().__init__()
@@ -180,6 +184,9 @@ class SMCD(Adaptation):
         self.resampling: ResamplingScheme = resampling
         self.ess_threshold = float(ess_threshold)
         self.forward_path: ParticlePath = forward_path
+        if transition not in ("keep_rate", "symmetric"):
+            raise ValueError(f"transition must be 'keep_rate' or 'symmetric', got {transition!r}")
+        self.transition: Transition = transition
         self._generator = generator
         self.filter: SMCDFilter | None = None
         #: Runs the proposed particles through the network (the path of ``forward_path``).
@@ -195,6 +202,7 @@ class SMCD(Adaptation):
             "noise_std": noise,
             "resampling": self.resampling,
             "ess_threshold": self.ess_threshold,
+            "transition": self.transition,
             "forward_path": self.forward_path,
         }
 
@@ -219,6 +227,7 @@ class SMCD(Adaptation):
             # Keep the filter object (and its generator) across resets: references stay valid and
             # a seeded run is one random stream, not a reseed per episode.
             old.keep_prob = net.keep_prob
+            old.flip_rates()  # the new keep_prob may not admit flip_prob
             old._num_particles = self.num_particles  # a reset undoes any online resize()
             return
         self.filter = SMCDFilter(
@@ -230,6 +239,7 @@ class SMCD(Adaptation):
             ess_threshold=self.ess_threshold,
             generator=generator,
             device=device,
+            transition=self.transition,
         )
 
     def reset(self, batch_shape: tuple[int, ...]) -> None:
@@ -392,7 +402,7 @@ def make_adaptation(name: Literal["none", "gradient_descent", "smcd"] | str, **k
     Example:
         >>> import smcd_rl
         >>> smcd_rl.make_adaptation("smcd", num_particles=10)
-        SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0, forward_path='auto')
+        SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0, transition='keep_rate', forward_path='auto')
     """
     key = {"gd": "gradient_descent"}.get(name, name)
     if key not in ADAPTATIONS:

@@ -10,14 +10,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
 
 from smcd_rl.resampling import ResamplingScheme, check_scheme, resample_indices
 
-__all__ = ["ParticleFilter", "SMCDFilter", "sample_flip_positions"]
+__all__ = ["ParticleFilter", "SMCDFilter", "sample_flip_positions", "Transition"]
+
+#: How :class:`SMCDFilter` moves its masks, see its docstring.
+Transition = Literal["keep_rate", "symmetric"]
 
 #: Above this flip probability drawing one uniform per bit is as cheap as the sparse sampler.
 _DENSE_FLIP_PROB = 0.05
@@ -333,14 +336,27 @@ class SMCDFilter(ParticleFilter):
     """Sequential Monte Carlo Dropout: a bootstrap particle filter over binary dropout masks.
 
     Algorithm 1 of the paper: masks start as Bernoulli(``keep_prob``) draws (the training
-    distribution), move by xor with Bernoulli(``flip_prob``) bit flips, are weighted by the
-    likelihood of the real observation and resampled; the MMSE mask is the weighted mean.
+    distribution), move by xor with random bit flips, are weighted by the likelihood of the real
+    observation and resampled; the MMSE mask is the weighted mean.
+
+    The transition (``transition``):
+
+    * ``"keep_rate"`` (default): a kept bit (1) flips with probability ``2 d (1 - k)``, a dropped
+      bit (0) with ``2 d k``, for ``d = flip_prob`` and ``k = keep_prob``. Masks then stay
+      distributed as in training, Bernoulli(``k``), and forget their start at the rate ``1 - 2d``
+      of symmetric flips. At ``k = 0.5`` (the paper's dropout) this *is* the paper's xor with
+      Bernoulli(``d``) flips, random stream included.
+    * ``"symmetric"``: every bit flips with probability ``d``, the paper's rule taken literally.
+      With ``k != 0.5`` it drifts the masks towards half the units kept, a network the training
+      never ran (with dropout 0.1 the share of kept units falls from 0.9 to 0.65 in 50 steps),
+      which biases every prediction.
 
     Args:
         mask_dim: bits per mask.
         num_particles: ``N``.
-        flip_prob: probability ``d`` that a bit flips per :meth:`propagate`.
+        flip_prob: ``d``, the flip probability per bit and :meth:`propagate` at ``keep_prob = 0.5``.
         keep_prob: probability that a bit is 1 in the initial masks (``1 - dropout``).
+        transition: ``"keep_rate"`` or ``"symmetric"``, see above.
         resampling: see :class:`ParticleFilter`.
         ess_threshold: see :class:`ParticleFilter`.
         generator: see :class:`ParticleFilter`.
@@ -366,10 +382,13 @@ class SMCDFilter(ParticleFilter):
         ess_threshold: float = 1.0,
         generator: torch.Generator | None = None,
         device: torch.device | str | None = None,
+        transition: Transition = "keep_rate",
     ) -> None:
         super().__init__(
             num_particles, resampling=resampling, ess_threshold=ess_threshold, generator=generator, device=device
         )
+        if transition not in ("keep_rate", "symmetric"):
+            raise ValueError(f"transition must be 'keep_rate' or 'symmetric', got {transition!r}")
         if int(mask_dim) < 1:
             raise ValueError(f"mask_dim must be >= 1, got {mask_dim}")
         if not 0.0 <= flip_prob <= 1.0:
@@ -379,6 +398,8 @@ class SMCDFilter(ParticleFilter):
         self.mask_dim = int(mask_dim)
         self.flip_prob = float(flip_prob)
         self.keep_prob = float(keep_prob)
+        self.transition: Transition = transition
+        self.flip_rates()  # fail now, not at the first propagate
         #: Flat positions (into ``particles.reshape(-1)``) flipped by the last transition.
         self.last_flips: Tensor | None = None
 
@@ -415,14 +436,33 @@ class SMCDFilter(ParticleFilter):
         bits = particles.view(torch.uint8).to(dtype)
         return (weights.unsqueeze(-2) @ bits).squeeze(-2)
 
+    def flip_rates(self) -> tuple[float, float]:
+        """``(P(1 -> 0), P(0 -> 1))`` per bit and step, under :attr:`transition`."""
+        d, k = self.flip_prob, self.keep_prob
+        if self.transition == "symmetric":
+            return d, d
+        off, on = 2.0 * d * (1.0 - k), 2.0 * d * k
+        if max(off, on) > 1.0:
+            raise ValueError(
+                f"flip_prob={d} is too large for the keep_rate transition at keep_prob={k}: a bit would flip "
+                f"with probability {max(off, on):.3g} > 1; use flip_prob <= {1 / (2 * max(k, 1 - k)):.3g}"
+            )
+        return off, on
+
     def _initial(self, batch_shape: tuple[int, ...], num_particles: int) -> Tensor:
         shape = (*batch_shape, num_particles, self.mask_dim)
         return torch.rand(shape, generator=self.generator, device=self.device) < self.keep_prob
 
     def _transition(self, particles: Tensor) -> Tensor:
-        flips = sample_flip_positions(
-            particles.numel(), self.flip_prob, generator=self.generator, device=self.device
-        )
+        off, on = self.flip_rates()
+        top = max(off, on)
+        flips = sample_flip_positions(particles.numel(), top, generator=self.generator, device=self.device)
+        if off != on:
+            # Thinning: a candidate flips with (its bit's rate) / top, so each bit flips with
+            # exactly its own rate, independently.
+            bits = particles.reshape(-1)[flips]
+            rate = torch.where(bits, off / top, on / top)
+            flips = flips[torch.rand(flips.shape, generator=self.generator, device=self.device) < rate]
         self.last_flips = flips
         flat = particles.reshape(-1).clone()
         flat[flips] = ~flat[flips]

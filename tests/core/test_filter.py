@@ -118,6 +118,53 @@ def test_propagate_flips_bits_at_flip_prob(p: float) -> None:
     assert abs(float(flipped.sum()) - n * p) < 5 * math.sqrt(n * p * (1 - p))
 
 
+def test_keep_rate_transition_keeps_the_training_distribution() -> None:
+    """With dropout 0.1 the masks must stay 90% kept; symmetric flips drift them towards 50%.
+
+    Expected kept share after t symmetric steps: 0.5 + 0.4 (1 - 2d)^t = 0.501 at t = 300; over
+    51,200 bits the keep_rate share has a standard error of about 0.0013, so 0.88-0.92 cannot be
+    hit by a drifting chain and cannot be missed by a stationary one.
+    """
+    shares = {}
+    for transition in ("keep_rate", "symmetric"):
+        filt = smcd_rl.SMCDFilter(256, num_particles=200, flip_prob=0.01, keep_prob=0.9,
+                                  transition=transition, generator=_gen(4))
+        filt.reset()
+        for _ in range(300):
+            filt.propagate()
+        shares[transition] = float(filt.particles.float().mean())
+    assert 0.88 < shares["keep_rate"] < 0.92
+    assert abs(shares["symmetric"] - 0.5) < 0.02
+
+
+def test_keep_rate_flips_each_bit_at_its_own_rate() -> None:
+    filt = smcd_rl.SMCDFilter(512, num_particles=1000, flip_prob=0.01, keep_prob=0.9, generator=_gen(5))
+    assert filt.flip_rates() == pytest.approx((0.002, 0.018))
+    filt.reset()
+    before = filt.particles.clone()
+    filt.propagate()
+    flipped = before ^ filt.particles
+    for was, rate in ((True, 0.002), (False, 0.018)):
+        n = int((before == was).sum())
+        count = float((flipped & (before == was)).sum())
+        assert abs(count - n * rate) < 5 * math.sqrt(n * rate * (1 - rate)), (was, count / n)
+    assert torch.equal(filt.last_flips, flipped.reshape(-1).nonzero().squeeze(-1))
+
+
+def test_keep_rate_is_the_papers_xor_at_half_dropout() -> None:
+    particles = {}
+    for transition in ("keep_rate", "symmetric"):
+        filt = smcd_rl.SMCDFilter(64, num_particles=50, flip_prob=0.03, keep_prob=0.5, transition=transition,
+                                  generator=_gen(6))
+        filt.reset()
+        for _ in range(5):
+            filt.propagate()
+        particles[transition] = filt.particles
+    assert torch.equal(particles["keep_rate"], particles["symmetric"])
+    with pytest.raises(ValueError, match="too large for the keep_rate transition"):
+        smcd_rl.SMCDFilter(8, flip_prob=0.6, keep_prob=0.9)
+
+
 def test_initial_masks_follow_keep_prob() -> None:
     filt = smcd_rl.SMCDFilter(100, num_particles=1000, keep_prob=0.8, generator=_gen())
     filt.reset(batch_shape=(2,))

@@ -15,9 +15,9 @@ from smcd_rl.particle_forward import Lineage, ParticleForward
 LAYOUTS = [((48, 40), None), ((32, 32, 24), None), ((32, 40), (0,)), ((32, 40, 24), (1, 2)), ((40,), None)]
 
 
-def _net(hidden, masked, seed=0):
+def _net(hidden, masked, seed=0, dropout=0.5):
     torch.manual_seed(seed)
-    return smcd_rl.MaskedMLP(3, 2, hidden=hidden, dropout=0.5, masked_layers=masked).eval()
+    return smcd_rl.MaskedMLP(3, 2, hidden=hidden, dropout=dropout, masked_layers=masked).eval()
 
 
 def _run_pair(net, n, batch, flip_prob, steps=12, ess_threshold=1.0, noise=0.05):
@@ -50,6 +50,14 @@ def test_incremental_and_dense_updates_agree(hidden, masked, n, batch, flip_prob
         torch.testing.assert_close(fast.mask, dense.mask)
         took_incremental += fast.particle_forward.last_path == "incremental"
     assert took_incremental >= 10, "the forced incremental path was not taken"
+
+
+def test_paths_agree_under_the_keep_rate_transition_at_low_dropout() -> None:
+    """At dropout 0.1 the transition thins its flips per bit; the lineage must record only real flips."""
+    net = _net((48, 40), None, dropout=0.1)
+    for fast, dense in _run_pair(net, 80, (2,), 0.05):
+        assert torch.equal(fast.particles, dense.particles)
+        torch.testing.assert_close(fast.filter.log_evidence, dense.filter.log_evidence, rtol=1e-5, atol=1e-4)
 
 
 def test_partial_resampling_and_restored_rows_keep_the_paths_equal() -> None:
