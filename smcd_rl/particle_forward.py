@@ -9,20 +9,21 @@ shared by every particle (no mask acts before them), so for particle ``i``::
           = pre_parent(i) + sum over the bits j flipped in i of  (+-h_j / keep) * W[:, j]
 
 with ``+`` where the flip turned the bit on. After resampling many particles are copies of one
-parent, and a transition flips only a few bits, so :func:`forward_incremental` computes the
-pre-activations once per distinct parent (a ``U x width`` matmul) and adds every child's flipped
-columns with one sparse matmul of a few nonzeros per row. Later layers are computed per particle as
+parent, and a transition flips only a few bits, so :class:`ParticleForward` computes the
+pre-activations once per distinct parent (each batch element's first parent in full, the others as
+its row plus their differing columns) and adds every child's flipped columns with one sparse
+matmul of a few nonzeros per row. Later layers are computed per particle as
 usual. The result equals :meth:`MaskedMLP.forward_particles` up to float rounding.
 
-Which path an update takes (:func:`choose_path` with ``path="auto"``):
+Which path an update takes (``ParticleForward(net, path="auto")``, what :class:`smcd_rl.SMCD` uses):
 
 =====================================================================  ===========
 case                                                                   path
 =====================================================================  ===========
 shared input, duplicates known from the last resampling, and           incremental
 ``U * width + SPARSE_COST * flips < N * width``
-no resampling since the last reset, ``propagate()`` or state load     dense
-(the filter cannot tell which particles are copies)
+no resampling since the last reset, ``propagate()``, state load or    dense
+``restore_rows`` (the filter cannot tell which particles are copies)
 weights so flat that (almost) every particle is distinct               dense
 masks on the last hidden layer only (the next linear is the small      dense
 output layer: nothing worth saving)
