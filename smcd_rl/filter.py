@@ -17,7 +17,7 @@ from torch import Tensor
 
 from smcd_rl.resampling import ResamplingScheme, check_scheme, resample_indices
 
-__all__ = ["ParticleFilter", "SMCDFilter", "sample_flip_positions", "Transition"]
+__all__ = ["ParticleFilter", "SMCDFilter", "sample_flip_positions", "flat_particle_index", "Transition"]
 
 #: How :class:`SMCDFilter` moves its masks, see its docstring.
 Transition = Literal["keep_rate", "symmetric"]
@@ -278,11 +278,23 @@ class ParticleFilter:
         self.ancestors = idx
 
 
+def flat_particle_index(idx: Tensor, num_particles: int) -> Tensor:
+    """Flatten per-batch-element particle indices ``idx [*batch, M]`` into rows of ``[prod(batch) * N]``.
+
+    Example:
+        >>> import torch
+        >>> flat_particle_index(torch.tensor([[0, 2], [1, 1]]), num_particles=3)
+        tensor([0, 2, 4, 4])
+    """
+    batch = idx.shape[:-1]
+    offsets = (torch.arange(math.prod(batch), device=idx.device) * num_particles).reshape(*batch, 1)
+    return (idx + offsets).reshape(-1)
+
+
 def _gather_particles(particles: Tensor, idx: Tensor) -> Tensor:
     """``particles[..., idx, :]`` per batch element, as one row copy (``gather`` is ~50x slower here)."""
     n, dim = particles.shape[-2], particles.shape[-1]
-    offsets = (torch.arange(math.prod(idx.shape[:-1]), device=idx.device) * n).reshape(*idx.shape[:-1], 1)
-    rows = particles.reshape(-1, dim).index_select(0, (idx + offsets).reshape(-1))
+    rows = particles.reshape(-1, dim).index_select(0, flat_particle_index(idx, n))
     return rows.reshape(*idx.shape, dim)
 
 
@@ -421,8 +433,7 @@ class SMCDFilter(ParticleFilter):
         n, dim = particles.shape[-2], particles.shape[-1]
         if self.ancestors is not None:
             total = weights.numel()
-            offsets = torch.arange(0, total, n, device=self.device).reshape(*weights.shape[:-1], 1)
-            group = (self.ancestors + offsets).reshape(-1)
+            group = flat_particle_index(self.ancestors, n)
             group_weight = torch.zeros(total, dtype=dtype, device=self.device).index_add_(0, group, weights.reshape(-1))
             present = group_weight.nonzero().squeeze(-1)
             if 2 * present.numel() <= total:

@@ -43,6 +43,7 @@ from typing import Literal, NamedTuple
 import torch
 from torch import Tensor
 
+from smcd_rl.filter import flat_particle_index
 from smcd_rl.masked_mlp import MaskedMLP
 
 __all__ = ["Lineage", "ParticlePath", "ParticleForward", "SPARSE_COST"]
@@ -121,8 +122,7 @@ class ParticleForward:
         self._check(x, masks, lineage)
         n = masks.shape[-2]
         total = masks[..., 0].numel()
-        element = torch.arange(total, device=masks.device) // n
-        groups, child_group = torch.unique(element * n + lineage.ancestors.reshape(-1), return_inverse=True)
+        groups, child_group = torch.unique(flat_particle_index(lineage.ancestors, n), return_inverse=True)
         self.last_distinct_parents = groups.numel()
         if self.path == "auto" and not self._pays(groups.numel(), total, lineage.flips.numel()):
             return self.net.forward_particles(x, masks)
