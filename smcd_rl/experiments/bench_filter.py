@@ -207,29 +207,14 @@ def _problem(config: BenchFilterConfig, hidden: tuple[int, ...], steps: int, dev
 def _contenders(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterConfig, device: torch.device
                 ) -> tuple[dict[str, Callable[[Tensor, Tensor], Any]], Callable[[], int]]:
     """Fresh contenders for one run and a probe of ours' distinct parents before its next update."""
-    def smcd(path: str) -> smcd_rl.SMCD:
-        generator = torch.Generator(device=device).manual_seed(config.seed + 1)
-        adaptation = smcd_rl.SMCD(num_particles=n, flip_prob=config.flip_prob, noise_std=noise_std,
-                                  generator=generator, forward_path=path)  # type: ignore[arg-type]
-        adaptation.bind(net, torch.ones(config.outputs, device=device))
-        adaptation.reset(())
-        return adaptation
-
-    ours, dense = smcd("auto"), smcd("dense")
-    naive = NaiveSMCD(net, n, config.flip_prob, noise_std, torch.Generator(device=device).manual_seed(config.seed + 1))
-    naive.reset()
+    ours, dense = _smcd(net, n, noise_std, config, device), _smcd(net, n, noise_std, config, device, path="dense")
+    naive = _naive(net, n, noise_std, config, device)
     layer_in = torch.rand(n, config.hidden[0], device=device)
     weight = torch.randn(config.hidden[-1], config.hidden[0], device=device)
 
-    def update(adaptation: smcd_rl.SMCD) -> Callable[[Tensor, Tensor], Any]:
-        def step(x: Tensor, z: Tensor) -> Tensor:
-            adaptation.observe(x, z)
-            return adaptation.mask
-        return step
-
     contenders = {
-        "ours": update(ours),
-        "ours, dense path": update(dense),
+        "ours": _update(ours),
+        "ours, dense path": _update(dense),
         "naive": naive.update,
         "matmul": lambda x, z: layer_in @ weight.t(),
     }
@@ -238,6 +223,31 @@ def _contenders(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchF
         return ours.particle_forward.last_distinct_parents or n  # type: ignore[union-attr]
 
     return contenders, distinct_parents
+
+
+def _smcd(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterConfig, device: torch.device,
+          path: str = "auto") -> smcd_rl.SMCD:
+    generator = torch.Generator(device=device).manual_seed(config.seed + 1)
+    adaptation = smcd_rl.SMCD(num_particles=n, flip_prob=config.flip_prob, noise_std=noise_std, generator=generator,
+                              forward_path=path)  # type: ignore[arg-type]
+    adaptation.bind(net, torch.ones(config.outputs, device=device))
+    adaptation.reset(())
+    return adaptation
+
+
+def _update(adaptation: smcd_rl.SMCD) -> Callable[[Tensor, Tensor], Tensor]:
+    """One full update: the filter step and the MMSE mask."""
+    def step(x: Tensor, z: Tensor) -> Tensor:
+        adaptation.observe(x, z)
+        return adaptation.mask
+    return step
+
+
+def _naive(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterConfig, device: torch.device
+           ) -> NaiveSMCD:
+    naive = NaiveSMCD(net, n, config.flip_prob, noise_std, torch.Generator(device=device).manual_seed(config.seed + 1))
+    naive.reset()
+    return naive
 
 
 def _time_regime(net: smcd_rl.MaskedMLP, observations: list[tuple[Tensor, Tensor]], n: int, regime: str,
@@ -300,20 +310,11 @@ def _peak_extra_mb(config: BenchFilterConfig, contender: str) -> float | None:
         torch.set_num_threads(config.threads)
     hidden = config.memory_hidden
     n = config.memory_particles
-    net, observations = _problem(dataclasses.replace(config, hidden=hidden), hidden, config.warmup + 5, device)
+    net, observations = _problem(config, hidden, config.warmup + 5, device)
     if contender == "ours":
-        adaptation = smcd_rl.SMCD(num_particles=n, flip_prob=config.flip_prob, noise_std=config.noise_std,
-                                  generator=torch.Generator(device=device).manual_seed(config.seed + 1))
-        adaptation.bind(net, torch.ones(config.outputs, device=device))
-        adaptation.reset(())
-
-        def update(x: Tensor, z: Tensor) -> None:
-            adaptation.observe(x, z)
-            adaptation.mask  # noqa: B018 - the MMSE mask is part of the update
+        update = _update(_smcd(net, n, config.noise_std, config, device))
     else:
-        naive = NaiveSMCD(net, n, config.flip_prob, config.noise_std, torch.Generator(device=device).manual_seed(config.seed + 1))
-        naive.reset()
-        update = naive.update  # type: ignore[assignment]
+        update = _naive(net, n, config.noise_std, config, device).update
     with torch.no_grad():
         if device.type == "cuda":
             torch.cuda.synchronize()
