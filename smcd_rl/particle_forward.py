@@ -171,14 +171,16 @@ class ParticleForward:
         delta = _sparse_rows(rows, flips - rows * dim, values, (total, width))
 
         # The per-particle buffers are kept between calls: fresh multi-MB tensors cost a page fault
-        # per 4 kB on first touch, as much as the arithmetic on them.
-        pre = torch.index_select(parent_pre, 0, child_group, out=self._buffer(0, (total, parent_pre.shape[1]), parent_pre))
+        # per 4 kB on first touch, as much as the arithmetic on them. Not when ``pre`` is already the
+        # network's output (masks on the last hidden layer only): the caller keeps that.
+        last = len(net.hidden) - 1
+        buffer = self._buffer(0, (total, parent_pre.shape[1]), parent_pre) if layer < last else None
+        pre = torch.index_select(parent_pre, 0, child_group, out=buffer)
         pre.addmm_(delta, self._weight_t(following.weight))
 
         # Every later layer: per particle, the dense way, in place; 1 / keep_prob goes into the matmul.
         h = pre
         flat_masks = masks.reshape(total, dim)
-        last = len(net.hidden) - 1
         for i in range(layer + 1, last + 1):
             h = h.relu_() if net.activation == "relu" else net.act(h)
             later = net.mask_slices[i]

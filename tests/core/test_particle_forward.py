@@ -154,3 +154,16 @@ def test_bad_calls_name_the_problem() -> None:
         ParticleForward(net, path="fast")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="forward_path"):
         smcd_rl.SMCD(forward_path="fast")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("hidden, masked", LAYOUTS)
+def test_a_later_call_does_not_overwrite_an_earlier_result(hidden, masked) -> None:
+    """The incremental path reuses work buffers; what it returns must never be one of them."""
+    net = _net(hidden, masked)
+    forward = ParticleForward(net, path="incremental")
+    parents = (torch.rand(1, net.mask_dim) < 0.5).expand(6, -1).clone()
+    lineage = Lineage(parents, torch.zeros(6, dtype=torch.long), torch.zeros(0, dtype=torch.long))
+    first = forward(torch.randn(3), parents, lineage)
+    kept = first.clone()
+    forward(torch.randn(3), parents, lineage)
+    assert torch.equal(first, kept)
