@@ -16,9 +16,9 @@ import torch
 from torch import Tensor
 from torch.func import functional_call, grad, vmap
 
-from smcd_rl.filter import SMCDFilter, Transition
+from smcd_rl.filter import SMCDFilter, Transition, check_transition
 from smcd_rl.masked_mlp import MaskedMLP
-from smcd_rl.particle_forward import Lineage, ParticleForward, ParticlePath
+from smcd_rl.particle_forward import Lineage, ParticleForward, ParticlePath, check_path
 from smcd_rl.resampling import ResamplingScheme, check_scheme
 
 __all__ = ["Adaptation", "SMCD", "GradientDescent", "NoAdaptation", "make_adaptation", "ADAPTATIONS"]
@@ -171,8 +171,6 @@ class SMCD(Adaptation):
     ) -> None:
         super().__init__()
         check_scheme(resampling)
-        if forward_path not in ("auto", "incremental", "dense"):
-            raise ValueError(f"forward_path must be 'auto', 'incremental' or 'dense', got {forward_path!r}")
         if int(num_particles) < 1:
             raise ValueError(f"num_particles must be >= 1, got {num_particles}")
         noise = torch.as_tensor(noise_std, dtype=torch.float32)
@@ -183,10 +181,9 @@ class SMCD(Adaptation):
         self.noise_std = noise_std
         self.resampling: ResamplingScheme = resampling
         self.ess_threshold = float(ess_threshold)
-        self.forward_path: ParticlePath = forward_path
-        if transition not in ("keep_rate", "symmetric"):
-            raise ValueError(f"transition must be 'keep_rate' or 'symmetric', got {transition!r}")
-        self.transition: Transition = transition
+        # Checked here too, so a bad name fails at construction and not at the first reset.
+        self.forward_path = check_path(forward_path, "forward_path")
+        self.transition = check_transition(transition)
         self._generator = generator
         self.filter: SMCDFilter | None = None
         #: Runs the proposed particles through the network (the path of ``forward_path``).

@@ -22,6 +22,13 @@ __all__ = ["ParticleFilter", "SMCDFilter", "sample_flip_positions", "flat_partic
 #: How :class:`SMCDFilter` moves its masks, see its docstring.
 Transition = Literal["keep_rate", "symmetric"]
 
+
+def check_transition(transition: str) -> Transition:
+    """Return ``transition`` if it names a :data:`Transition`, else raise a ValueError that lists them."""
+    if transition not in ("keep_rate", "symmetric"):
+        raise ValueError(f"transition must be 'keep_rate' or 'symmetric', got {transition!r}")
+    return transition  # type: ignore[return-value]
+
 #: Above this flip probability drawing one uniform per bit is as cheap as the sparse sampler.
 _DENSE_FLIP_PROB = 0.05
 
@@ -399,8 +406,6 @@ class SMCDFilter(ParticleFilter):
         super().__init__(
             num_particles, resampling=resampling, ess_threshold=ess_threshold, generator=generator, device=device
         )
-        if transition not in ("keep_rate", "symmetric"):
-            raise ValueError(f"transition must be 'keep_rate' or 'symmetric', got {transition!r}")
         if int(mask_dim) < 1:
             raise ValueError(f"mask_dim must be >= 1, got {mask_dim}")
         if not 0.0 <= flip_prob <= 1.0:
@@ -410,7 +415,7 @@ class SMCDFilter(ParticleFilter):
         self.mask_dim = int(mask_dim)
         self.flip_prob = float(flip_prob)
         self.keep_prob = float(keep_prob)
-        self.transition: Transition = transition
+        self.transition = check_transition(transition)
         self.flip_rates()  # fail now, not at the first propagate
         #: Flat positions (into ``particles.reshape(-1)``) flipped by the last transition.
         self.last_flips: Tensor | None = None

@@ -46,7 +46,7 @@ from torch import Tensor
 from smcd_rl.filter import flat_particle_index
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["Lineage", "ParticlePath", "ParticleForward", "SPARSE_COST"]
+__all__ = ["Lineage", "ParticlePath", "ParticleForward", "SPARSE_COST", "check_path"]
 
 ParticlePath = Literal["auto", "incremental", "dense"]
 
@@ -69,6 +69,13 @@ class Lineage(NamedTuple):
     parents: Tensor
     ancestors: Tensor
     flips: Tensor
+
+
+def check_path(path: str, what: str = "path") -> ParticlePath:
+    """Return ``path`` if it names a :data:`ParticlePath`, else raise a ValueError naming ``what``."""
+    if path not in ("auto", "incremental", "dense"):
+        raise ValueError(f"{what} must be 'auto', 'incremental' or 'dense', got {path!r}")
+    return path  # type: ignore[return-value]
 
 
 class ParticleForward:
@@ -94,10 +101,8 @@ class ParticleForward:
     """
 
     def __init__(self, net: MaskedMLP, path: ParticlePath = "auto") -> None:
-        if path not in ("auto", "incremental", "dense"):
-            raise ValueError(f"path must be 'auto', 'incremental' or 'dense', got {path!r}")
         self.net = net
-        self.path: ParticlePath = path
+        self.path = check_path(path)
         #: The path the last call took: ``"incremental"`` or ``"dense"``.
         self.last_path: str | None = None
         #: Distinct parents of the last call's particle set (``None`` after a dense call without lineage).
