@@ -336,9 +336,10 @@ class GradientDescent(Adaptation):
         net = self.net
         flat = math.prod(batch_shape)
         self._params = {k: v.detach().expand(flat, *v.shape).clone() for k, v in net.named_parameters()}
-        device = next(net.parameters()).device
-        self._inputs = torch.zeros(flat, self.window, net.in_features, device=device)
-        self._targets = torch.zeros(flat, self.window, net.out_features, device=device)
+        weight = next(net.parameters())  # the buffers take the network's device and dtype
+        self._inputs = weight.new_zeros(flat, self.window, net.in_features)
+        self._targets = weight.new_zeros(flat, self.window, net.out_features)
+        device = weight.device
         self._count = torch.zeros(flat, dtype=torch.long, device=device)
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:

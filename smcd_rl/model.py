@@ -192,6 +192,36 @@ class AdaptiveModel(TensorDictModuleBase):
         td.set(self.out_key, self._from_output(td, self.output_norm.inverse(output)))
         return td
 
+    def predict(self, inputs: Tensor, *, mask: Tensor | None = None) -> Tensor:
+        """The adapted prediction from a raw input tensor: ``model(td)[out_key]`` without the TensorDict.
+
+        Differentiable in ``inputs`` (no ``no_grad`` inside), so a controller can take the
+        Jacobian of the adapted network, e.g. with ``torch.func.jacrev``. Models with a
+        ``base_key`` (dynamics) use :meth:`AdaptiveDynamicsModel.step` instead.
+
+        Args:
+            inputs: the ``in_keys`` values concatenated, ``[*batch, in_features]``, in raw units.
+            mask: as in :meth:`forward`.
+
+        Example:
+            >>> import torch, smcd_rl
+            >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 3, hidden=(8,)), in_keys=["q"], out_key="ee")
+            >>> model.reset()
+            >>> torch.func.jacrev(model.predict)(torch.zeros(2)).shape  # d ee / d q
+            torch.Size([3, 2])
+        """
+        self._require_reset()
+        if self.base_key is not None:
+            raise ValueError(
+                f"predict returns the network's target, but this model predicts the change from {self.base_key!r}; "
+                "use model.step(observation, action) for dynamics models"
+            )
+        if inputs.shape[-1:] != (self.net.in_features,):
+            raise ValueError(f"predict needs inputs [..., {self.net.in_features}], got {list(inputs.shape)}")
+        x = self.input_norm(inputs.to(self.input_norm.mean.dtype))
+        output = self.adaptation.predict(x) if mask is None else self.net(x, mask=mask)
+        return self.output_norm.inverse(output)
+
     @property
     def particles(self) -> Tensor:
         """The mask particles ``[*batch_shape, N, mask_dim]`` (strategies with a particle set only)."""
