@@ -17,7 +17,7 @@ from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation, 
 from smcd_rl.filter import ParticleFilter, SMCDFilter
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel, CheckpointMismatchError, load
-from smcd_rl.training import fit, fit_dynamics
+from smcd_rl.training import fit, fit_dynamics, fit_reptile
 from smcd_rl.envs import register_all as _register_envs
 
 _register_envs()
@@ -38,5 +38,6 @@ __all__ = [
     "CheckpointMismatchError",
     "fit",
     "fit_dynamics",
+    "fit_reptile",
     "load",
 ]

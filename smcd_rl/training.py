@@ -1,22 +1,32 @@
-"""Multi-task dropout training: fit a masked network on transitions pooled from many settings."""
+"""Training with dropout: multi-task (:func:`fit`, samples pooled from many settings) or Reptile meta-learning."""
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 from tensordict import TensorDictBase
+from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel, CheckpointMismatchError
 
-__all__ = ["fit", "fit_dynamics"]
+__all__ = ["fit", "fit_dynamics", "fit_reptile"]
 
 _FORMAT = "smcd_rl.fit/1"
+
+
+class _Checkpointable(Protocol):
+    """What the training checkpoints need of a model."""
+
+    def checkpoint(self) -> dict[str, Any]: ...
+
+    def load_checkpoint(self, checkpoint: dict[str, Any]) -> None: ...
 
 
 def fit(
@@ -69,31 +79,15 @@ def fit(
     """
     if epochs < 0 or batch_size < 1 or lr <= 0:
         raise ValueError(f"need epochs >= 0, batch_size >= 1 and lr > 0, got {epochs}, {batch_size}, {lr}")
-    if math.prod(data.batch_size) == 0:  # TensorDict.numel() reports 1 for batch [0]
-        raise ValueError("fit got an empty dataset (no transitions); collect data before training")
-    flat = data.reshape(-1)
+    _require_samples(data, "fit")
     net = model.net
     device = next(net.parameters()).device
-    x, y = model.training_pairs(flat.to(device))
-    if not bool(model.input_norm.fitted):
-        model.input_norm.fit(x)
-        model.output_norm.fit(y)
-    x, y = model.input_norm(x), model.output_norm(y)
-
+    x, y = _normalised_pairs(model, data.reshape(-1), device)
     optimizer = torch.optim.Adam(net.parameters(), lr=lr, weight_decay=weight_decay)
     settings = {"batch_size": batch_size, "lr": lr, "weight_decay": weight_decay, "seed": seed}
-    history: list[float] = []
-    start = 0
-    path = Path(checkpoint) if checkpoint is not None else None
-    if path is not None and path.is_file():
-        start, history = _resume(path, model, optimizer, settings)
-
-    generator = torch.Generator(device=device)
     n = x.shape[0]
-    bar = tqdm(range(start, epochs), desc="fit", unit="epoch", disable=not progress, initial=start, total=epochs)
-    for epoch in bar:
-        net.train()
-        generator.manual_seed(seed * 1_000_003 + epoch)
+
+    def one_epoch(generator: torch.Generator) -> float:
         order = torch.randperm(n, generator=generator, device=device)
         total = 0.0
         for begin in range(0, n, batch_size):
@@ -104,14 +98,12 @@ def fit(
             loss.backward()
             optimizer.step()
             total += float(loss.detach()) * idx.shape[0]
-        history.append(total / n)
-        bar.set_postfix(loss=f"{history[-1]:.4g}")
-        if path is not None:
-            _save(path, model, optimizer, epoch + 1, history, settings)
-        if callback is not None:
-            callback(epoch, history[-1])
-    net.eval()
-    return history
+        return total / n
+
+    return _train(
+        model, one_epoch, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=optimizer,
+        checkpoint=checkpoint, desc="fit", progress=progress, callback=callback,
+    )
 
 
 def fit_dynamics(model: AdaptiveDynamicsModel, data: TensorDictBase, **kwargs: Any) -> list[float]:
@@ -131,15 +123,215 @@ def fit_dynamics(model: AdaptiveDynamicsModel, data: TensorDictBase, **kwargs: A
     return fit(model, data, **kwargs)
 
 
+def fit_reptile(
+    model: AdaptiveModel,
+    data: TensorDictBase,
+    *,
+    epochs: int = 100,
+    batch_size: int = 64,
+    lr: float = 0.1,
+    inner_lr: float = 0.02,
+    inner_epochs: int = 1,
+    tasks_per_batch: int = 1,
+    seed: int = 0,
+    checkpoint: str | os.PathLike[str] | None = None,
+    progress: bool = True,
+    callback: Callable[[int, float], None] | None = None,
+) -> list[float]:
+    """Train ``model.net`` with Reptile (first-order meta-learning, Nichol et al. 2018) and dropout.
+
+    ``data``'s first batch dim indexes tasks (e.g. ``motor_babbling`` gives ``[tasks, episodes,
+    steps]``); everything after it is that task's samples. An epoch visits every task once, in
+    random order, ``tasks_per_batch`` tasks per meta step. For each task of a meta step the
+    weights are copied and trained by plain SGD (``inner_lr``) for ``inner_epochs`` passes over
+    the task's samples in mini-batches of ``batch_size``, with one Bernoulli(``keep_prob``)
+    dropout mask per sample as in :func:`fit`, so the result works with :class:`smcd_rl.SMCD`.
+    The meta weights then move toward the adapted ones::
+
+        theta <- theta + lr * mean_over_tasks(theta_task - theta)
+
+    ``lr`` is this outer (meta) step size, the fraction of the way to the tasks' mean adapted
+    weights: 1 replaces ``theta`` by that mean, small values move it gently. The defaults (0.1,
+    one task per meta step) are those of Reptile's reference sine-wave regression, whose inner
+    settings (SGD at 0.02, one inner epoch) are the ones the paper kept fixed. Unlike there the
+    step is not annealed, so a run does not depend on its planned number of epochs. Progress
+    per epoch grows with ``lr / tasks_per_batch`` and with the inner steps per task
+    (samples / ``batch_size``).
+
+    Normalisation, repeatability from ``seed`` and checkpoint/resume behave exactly as in
+    :func:`fit`. (The tasks of a meta step are trained one after the other: on CPU a
+    ``torch.func.vmap`` over them measured no faster.)
+
+    Args:
+        model: the model whose network is trained.
+        data: ``[tasks, *samples]`` with the model's input and target keys; every task has the
+            same number of samples (a dense TensorDict).
+        epochs: passes over all tasks.
+        batch_size: samples per inner SGD step.
+        lr: outer (meta) step size, see above.
+        inner_lr: SGD learning rate of the inner loop (normalised units).
+        inner_epochs: passes over a task's samples in its inner loop.
+        tasks_per_batch: tasks adapted per meta step (the last step of an epoch may have fewer).
+        seed: seed of task order, shuffling and dropout masks.
+        checkpoint: file to save to after each epoch and to resume from.
+        progress: show a progress bar.
+        callback: called as ``callback(epoch, mean_loss)`` after each epoch.
+
+    Returns:
+        Mean inner-loop training loss (MSE in normalised units, before each SGD step) of every
+        epoch, resumed ones included.
+
+    Example:
+        >>> import torch, smcd_rl
+        >>> from tensordict import TensorDict
+        >>> q = torch.rand(8, 32, 2)  # 8 tasks of 32 samples
+        >>> data = TensorDict({"q": q, "ee": torch.cos(q) * torch.rand(8, 1, 2)}, [8, 32])
+        >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(32,)), in_keys=["q"], out_key="ee")
+        >>> losses = smcd_rl.fit_reptile(model, data, epochs=2, batch_size=16, tasks_per_batch=4, progress=False)
+        >>> len(losses)
+        2
+    """
+    if epochs < 0 or batch_size < 1 or lr <= 0 or inner_lr <= 0 or inner_epochs < 1 or tasks_per_batch < 1:
+        raise ValueError(
+            "need epochs >= 0, batch_size >= 1, lr > 0, inner_lr > 0, inner_epochs >= 1 and tasks_per_batch >= 1, "
+            f"got {epochs}, {batch_size}, {lr}, {inner_lr}, {inner_epochs}, {tasks_per_batch}"
+        )
+    if data.batch_dims < 2:
+        raise ValueError(
+            f"fit_reptile needs data whose first batch dim indexes tasks, [tasks, *samples], got batch "
+            f"{list(data.batch_size)}; e.g. data.reshape(num_tasks, -1), or smcd_rl.fit for pooled multi-task training"
+        )
+    _require_samples(data, "fit_reptile")
+    num_tasks = data.batch_size[0]
+    if tasks_per_batch > num_tasks:
+        raise ValueError(
+            f"tasks_per_batch={tasks_per_batch} exceeds the {num_tasks} tasks in data; pass at most {num_tasks}"
+        )
+    net = model.net
+    device = next(net.parameters()).device
+    x, y = _normalised_pairs(model, data.reshape(num_tasks, -1), device)  # [tasks, n, features]
+    n = x.shape[1]
+    settings = {
+        "trainer": "reptile", "batch_size": batch_size, "lr": lr, "inner_lr": inner_lr,
+        "inner_epochs": inner_epochs, "tasks_per_batch": tasks_per_batch, "seed": seed,
+    }
+
+    params = list(net.parameters())
+    # The inner loops run on a copy of the network, so the meta weights stay put until the meta step.
+    worker = copy.deepcopy(net)
+    worker_params = list(worker.parameters())
+
+    def one_epoch(generator: torch.Generator) -> float:
+        tasks = torch.randperm(num_tasks, generator=generator, device=device)
+        total = 0.0
+        for first in range(0, num_tasks, tasks_per_batch):
+            chosen = tasks[first : first + tasks_per_batch].tolist()
+            summed = [torch.zeros_like(p) for p in params]
+            for task in chosen:
+                with torch.no_grad():
+                    for w, p in zip(worker_params, params):
+                        w.copy_(p)
+                for _ in range(inner_epochs):
+                    order = torch.randperm(n, generator=generator, device=device)
+                    for begin in range(0, n, batch_size):
+                        idx = order[begin : begin + batch_size]
+                        draw = torch.rand(idx.shape[0], net.mask_dim, generator=generator, device=device)
+                        mask = draw < net.keep_prob
+                        loss = (worker(x[task, idx], mask=mask) - y[task, idx]).square().mean()
+                        grads = torch.autograd.grad(loss, worker_params)
+                        with torch.no_grad():
+                            for w, g in zip(worker_params, grads):
+                                w.add_(g, alpha=-inner_lr)
+                        total += float(loss.detach()) * idx.shape[0]
+                with torch.no_grad():
+                    for total_w, w in zip(summed, worker_params):
+                        total_w.add_(w)
+            with torch.no_grad():
+                for p, s in zip(params, summed):
+                    p.add_(s / len(chosen) - p, alpha=lr)
+        return total / (num_tasks * n * inner_epochs)
+
+    return _train(
+        model, one_epoch, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=None,
+        checkpoint=checkpoint, desc="fit_reptile", progress=progress, callback=callback,
+    )
+
+
+def _require_samples(data: TensorDictBase, what: str) -> None:
+    if math.prod(data.batch_size) == 0:  # TensorDict.numel() reports 1 for batch [0]
+        raise ValueError(f"{what} got an empty dataset (no transitions); collect data before training")
+
+
+def _normalised_pairs(model: Any, data: TensorDictBase, device: torch.device) -> tuple[Tensor, Tensor]:
+    """Normalised inputs and targets ``[*batch, features]`` from ``model.training_pairs``, on ``device``.
+
+    ``model.input_norm`` and ``model.output_norm`` are fitted on ``data`` the first time a model
+    is trained, then kept.
+    """
+    x, y = model.training_pairs(data.to(device))
+    if not bool(model.input_norm.fitted):
+        model.input_norm.fit(x)
+        model.output_norm.fit(y)
+    return model.input_norm(x), model.output_norm(y)
+
+
+def _train(
+    model: _Checkpointable,
+    one_epoch: Callable[[torch.Generator], float],
+    *,
+    trained: nn.Module,
+    epochs: int,
+    seed: int,
+    settings: dict[str, Any],
+    optimizer: torch.optim.Optimizer | None,
+    checkpoint: str | os.PathLike[str] | None,
+    desc: str,
+    progress: bool,
+    callback: Callable[[int, float], None] | None,
+) -> list[float]:
+    """The epoch loop shared by the trainers: resume, seeding, progress bar, checkpoints, callback.
+
+    ``one_epoch(generator)`` trains one epoch and returns its mean loss; the generator is
+    reseeded from (seed, epoch) before each epoch, which is what makes a resumed run identical
+    to an uninterrupted one. ``trained`` is the module put in train mode meanwhile (and in
+    eval mode after); ``model`` is what the checkpoint saves and restores.
+    """
+    net = trained
+    device = next(net.parameters()).device
+    history: list[float] = []
+    start = 0
+    path = Path(checkpoint) if checkpoint is not None else None
+    if path is not None and path.is_file():
+        start, history = _resume(path, model, optimizer, settings)
+    generator = torch.Generator(device=device)
+    bar = tqdm(range(start, epochs), desc=desc, unit="epoch", disable=not progress, initial=start, total=epochs)
+    for epoch in bar:
+        net.train()
+        generator.manual_seed(seed * 1_000_003 + epoch)
+        history.append(one_epoch(generator))
+        bar.set_postfix(loss=f"{history[-1]:.4g}")
+        if path is not None:
+            _save(path, model, optimizer, epoch + 1, history, settings)
+        if callback is not None:
+            callback(epoch, history[-1])
+    net.eval()
+    return history
+
+
 def _save(
-    path: Path, model: AdaptiveModel, optimizer: torch.optim.Optimizer, epoch: int, history: list[float], settings: dict
+    path: Path,
+    model: _Checkpointable,
+    optimizer: torch.optim.Optimizer | None,
+    epoch: int,
+    history: list[float],
+    settings: dict,
 ) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     state = {
         "format": _FORMAT,
         "model": model.checkpoint(),
-        "optimizer": optimizer.state_dict(),
+        "optimizer": None if optimizer is None else optimizer.state_dict(),
         "epoch": epoch,
         "history": history,
         "settings": settings,
@@ -149,7 +341,7 @@ def _save(
 
 
 def _resume(
-    path: Path, model: AdaptiveModel, optimizer: torch.optim.Optimizer, settings: dict
+    path: Path, model: _Checkpointable, optimizer: torch.optim.Optimizer | None, settings: dict
 ) -> tuple[int, list[float]]:
     state = torch.load(path, map_location="cpu", weights_only=False)
     if not isinstance(state, dict) or state.get("format") != _FORMAT:
@@ -160,5 +352,6 @@ def _resume(
             "resume with the same settings or use a new checkpoint path"
         )
     model.load_checkpoint(state["model"])
-    optimizer.load_state_dict(state["optimizer"])
+    if optimizer is not None:
+        optimizer.load_state_dict(state["optimizer"])
     return int(state["epoch"]), list(state["history"])

@@ -1,9 +1,11 @@
 """Two-link arm look-ahead prediction (paper section 4.1, Fig. 2): ``smcd-rl two-link``.
 
-Reads top to bottom: seed, make data, train one multi-task dropout model, then for every method
-adapt for T burn-in steps on a held-out arm and predict the end effector H steps ahead with no
-further observations. Writes ``results.csv`` (the table), ``trials.csv`` (every trial's RMSE),
-``results.json`` (settings, table, training loss, timings, machine) and ``lookahead.png``.
+Reads top to bottom: seed, make data, train the models on the same data (a multi-task dropout
+network M, the same architecture trained with Reptile R, and the latent-variable VRNN LV), then
+for every method adapt for T burn-in steps on a held-out arm and predict the end effector H steps
+ahead with no further observations. Writes ``results.csv`` (the table), ``trials.csv`` (every
+trial's RMSE), ``results.json`` (settings, table, training losses, timings, machine) and
+``lookahead.png``.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 import smcd_rl
-from smcd_rl.baselines import OracleModel
+from smcd_rl.baselines import LatentVariableModel, OracleModel, fit_latent
 from smcd_rl.envs.two_link_arm import (
     DEFAULT_DT,
     integrate_joints,
@@ -41,7 +43,7 @@ from smcd_rl.experiments.common import (
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "run", "table"]
 
 #: Method labels of Fig. 2 that this command runs.
-METHODS = ("O+P", "M+N", "M+G", "M+S")
+METHODS = ("O+P", "M+N", "M+G", "M+S", "R+N", "R+G", "R+S", "LV+N")
 
 
 @dataclass
@@ -64,7 +66,18 @@ class TwoLinkConfig:
     chunk: int = option(100, "trials evaluated at once (bounds memory: chunk x particles x hidden)")
     burn_in: tuple[int, ...] = option((1, 5, 10, 20), "burn-in (adaptation) steps T")
     horizons: tuple[int, ...] = option((1, 5, 10, 20), "look-ahead horizons H")
-    methods: tuple[str, ...] = option(METHODS, "methods to run: O+P (oracle PF), M+N, M+G, M+S")
+    methods: tuple[str, ...] = option(
+        METHODS, "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G or S; LV+N (VRNN)"
+    )
+    reptile_epochs: int = option(20, "Reptile epochs (passes over all tasks) of the R network")
+    reptile_batch_size: int = option(64, "Reptile inner mini-batch size")
+    reptile_lr: float = option(0.1, "Reptile outer (meta) step size")
+    reptile_inner_lr: float = option(0.02, "Reptile inner SGD learning rate (the paper's 0.02)")
+    reptile_tasks_per_batch: int = option(1, "tasks per Reptile meta step")
+    lv_epochs: int = option(20, "training epochs of the latent-variable (VRNN) model")
+    lv_width: int = option(128, "width of the VRNN's layers (its recurrent state h has 8 dims)")
+    lv_batch_size: int = option(256, "VRNN batch size (two-step windows)")
+    lv_lr: float = option(1e-3, "VRNN Adam learning rate")
     particles: int = option(1000, "SMCD mask particles")
     flip_prob: float = option(0.01, "SMCD bit-flip probability per step")
     noise_std: float = option(0.05, "likelihood noise std (m) of SMCD and the oracle")
@@ -74,7 +87,9 @@ class TwoLinkConfig:
     oracle_particles: int = option(1000, "oracle particle count over link lengths")
     oracle_jitter: float = option(0.005, "oracle random-walk std of link lengths per step")
     device: str = option("cpu", "torch device")
-    full: bool = option(False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials")
+    full: bool = option(
+        False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials, Reptile 1000 and LV 200 epochs"
+    )
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -87,6 +102,9 @@ FULL = {
     "lr": 1e-4,
     "trials": 1000,
     "chunk": 25,
+    "reptile_epochs": 1000,
+    "lv_epochs": 200,
+    "lv_batch_size": 64,
 }
 
 
@@ -121,10 +139,12 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
     )
     train_seconds = time.perf_counter() - started
     model.save(out / "model.pt")
+    extra = _train_baselines(config, data, device, out, progress=progress)
 
     # --- held-out trials ----------------------------------------------------------------
     q, ee, ee_true, lengths = _trials(config, device)
-    methods = {name: _method(name, model, config) for name in config.methods}
+    methods = {name: _method(name, model, extra.get("reptile_model"), extra.get("latent_model"), config)
+               for name in config.methods}
     settings = {k: v for k, v in config_dict(config).items() if k not in ("out", "full")}
     cache = ResultCache(out / "partial.pt", settings)
     sq_errors: dict[str, torch.Tensor] = {}
@@ -167,6 +187,7 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         "machine": machine_info(),
         "train_loss": losses,
         "train_seconds": train_seconds,
+        **{k: v for k, v in extra.items() if not k.endswith("_model")},
         "method_seconds": timings,
         "test_link_lengths": lengths.tolist(),
         "results": rows,
@@ -203,7 +224,65 @@ def _trials(config: TwoLinkConfig, device: torch.device) -> tuple[torch.Tensor, 
     return joints.to(device), ee.to(device), ee_true.to(device), lengths
 
 
-def _method(name: str, model: smcd_rl.AdaptiveModel, config: TwoLinkConfig) -> Any:
+def _train_baselines(
+    config: TwoLinkConfig, data: TensorDict, device: torch.device, out: Path, *, progress: bool
+) -> dict[str, Any]:
+    """Train (or load from their checkpoints) the Reptile network and the VRNN that the chosen methods need."""
+    result: dict[str, Any] = {}
+    # Their initial weights come from seeds of their own, and the global RNG is left as it was,
+    # so adding or dropping these methods changes nothing for the others.
+    if any(name.startswith("R+") for name in config.methods):
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(config.seed + 17)
+            net = smcd_rl.MaskedMLP(
+                2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device
+            )
+        reptile = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+        started = time.perf_counter()
+        result["reptile_train_loss"] = smcd_rl.fit_reptile(
+            reptile,
+            data.to(device),
+            epochs=config.reptile_epochs,
+            batch_size=config.reptile_batch_size,
+            lr=config.reptile_lr,
+            inner_lr=config.reptile_inner_lr,
+            tasks_per_batch=config.reptile_tasks_per_batch,
+            seed=config.seed,
+            checkpoint=out / "reptile.ckpt",
+            progress=progress,
+        )
+        result["reptile_train_seconds"] = time.perf_counter() - started
+        reptile.save(out / "reptile_model.pt")
+        result["reptile_model"] = reptile
+    if "LV+N" in config.methods:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(config.seed + 19)
+            latent = LatentVariableModel(2, 2, in_keys=["q"], out_key="ee", width=config.lv_width, device=device)
+        started = time.perf_counter()
+        result["latent_train_loss"] = fit_latent(
+            latent,
+            data.to(device),
+            epochs=config.lv_epochs,
+            batch_size=config.lv_batch_size,
+            lr=config.lv_lr,
+            seed=config.seed,
+            checkpoint=out / "latent.ckpt",
+            progress=progress,
+        )
+        result["latent_train_seconds"] = time.perf_counter() - started
+        result["latent_model"] = latent
+    return result
+
+
+def _method(
+    name: str,
+    model: smcd_rl.AdaptiveModel,
+    reptile: smcd_rl.AdaptiveModel | None,
+    latent: LatentVariableModel | None,
+    config: TwoLinkConfig,
+) -> Any:
+    if name == "LV+N":
+        return latent
     if name == "O+P":
         return OracleModel(
             lambda lengths, q: two_link_fk(q, lengths),
@@ -216,17 +295,20 @@ def _method(name: str, model: smcd_rl.AdaptiveModel, config: TwoLinkConfig) -> A
             lower=0.1,
             generator=torch.Generator().manual_seed(config.seed + 7),
         )
+    # M and R differ only in how the network was trained; they adapt with identical strategies.
+    trained = {"M": model, "R": reptile}[name[0]]
+    assert trained is not None
     strategy = {
-        "M+N": lambda: smcd_rl.NoAdaptation(),
-        "M+G": lambda: smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window),
-        "M+S": lambda: smcd_rl.SMCD(
+        "N": lambda: smcd_rl.NoAdaptation(),
+        "G": lambda: smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window),
+        "S": lambda: smcd_rl.SMCD(
             num_particles=config.particles,
             flip_prob=config.flip_prob,
             noise_std=config.noise_std,
             generator=torch.Generator(device=config.device).manual_seed(config.seed + 11),
         ),
-    }[name]()
-    return model.with_adaptation(strategy)
+    }[name[2]]()
+    return trained.with_adaptation(strategy)
 
 
 @torch.no_grad()
@@ -262,7 +344,7 @@ def _plot(rows: list[dict[str, Any]], config: TwoLinkConfig, path: Path) -> None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(config.burn_in), figsize=(3.2 * len(config.burn_in), 3.2), sharey=True)
+    fig, axes = plt.subplots(1, len(config.burn_in), figsize=(3.2 * len(config.burn_in) + 1.0, 3.2), sharey=True)
     axes = [axes] if len(config.burn_in) == 1 else list(axes)
     for ax, t in zip(axes, config.burn_in):
         for method in dict.fromkeys(r["method"] for r in rows):
@@ -279,7 +361,7 @@ def _plot(rows: list[dict[str, Any]], config: TwoLinkConfig, path: Path) -> None
         ax.set_xlabel("look-ahead H (steps)")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("end-effector RMSE (m)")
-    axes[-1].legend()
+    axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1.0))  # outside: eight methods would hide lines
     fig.suptitle(f"Two-link look-ahead prediction ({config.trials} held-out arms)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -7,34 +7,42 @@ import pytest
 
 from smcd_rl import cli
 from smcd_rl.experiments import two_link
+from smcd_rl.experiments.common import torch_threads
 
 SMALL = [
     "--tasks", "100", "--episodes", "20", "--hidden", "128", "--epochs", "10", "--batch-size", "128",
     "--lr", "2e-3", "--trials", "60", "--chunk", "30", "--burn-in", "1", "10", "--horizons", "1", "10",
-    "--particles", "300", "--oracle-particles", "300",
+    "--particles", "300", "--oracle-particles", "300", "--reptile-epochs", "3", "--lv-epochs", "3", "--lv-width", "64",
 ]
 
 
 @pytest.mark.slow
 def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> None:
-    """60 held-out arms after 10 burn-in steps. Measured: O+P ~0.01 m, M+S ~0.2 m, M+N ~0.4 m.
+    """60 held-out arms after 10 burn-in steps. Measured: O+P ~0.01 m, M+S ~0.2 m, M+N ~0.4 m,
+    R+N ~0.9 m, R+S ~0.4 m, R+G ~0.5 m.
 
     The oracle knows the kinematics, so it must beat M+N by a factor of 5; SMCD must cut M+N's
     error by 25%: a per-trial spread of ~0.2 m gives a standard error of ~0.03 m on 60 trials.
+    SMCD adapts the Reptile network too (R+S cuts R+N's error by 25%), and the multi-task
+    network adapts better than the Reptile one (M+S below R+S), as in the paper.
     """
     out = tmp_path / "run"
     assert cli.main(["two-link", "--out", str(out), *SMALL]) == 0
     printed = capsys.readouterr().out
     assert "| M+S" in printed and "H=10" in printed
-    for name in ("results.csv", "trials.csv", "results.json", "lookahead.png", "model.pt"):
+    for name in ("results.csv", "trials.csv", "results.json", "lookahead.png", "model.pt", "reptile_model.pt"):
         assert (out / name).is_file(), name
     rows = {(r["method"], int(r["burn_in"]), int(r["horizon"])): float(r["rmse_mean"])
             for r in csv.DictReader(open(out / "results.csv"))}
     assert rows[("O+P", 10, 10)] < rows[("M+N", 10, 10)] / 5
     assert rows[("M+S", 10, 10)] < 0.75 * rows[("M+N", 10, 10)]
     assert rows[("M+S", 10, 1)] < 0.75 * rows[("M+N", 10, 1)]
+    assert rows[("R+S", 10, 1)] < 0.75 * rows[("R+N", 10, 1)]
+    assert rows[("M+S", 10, 10)] < rows[("R+S", 10, 10)]
+    assert {m for m, _, _ in rows} == set(two_link.METHODS)
     payload = json.loads((out / "results.json").read_text())
     assert payload["config"]["trials"] == 60 and payload["machine"]["torch_threads"] >= 1
+    assert len(payload["reptile_train_loss"]) == 3 and len(payload["latent_train_loss"]) == 3
 
     # A rerun finds the trained model and every method's trials done, and prints the same table.
     assert cli.main(["two-link", "--out", str(out), *SMALL]) == 0
@@ -53,3 +61,27 @@ def test_help_and_bad_options(capsys) -> None:
     assert exit_info.value.code == 0 and "--burn-in" in capsys.readouterr().out
     assert cli.main(["two-link", "--methods", "X+Y", "--out", "/tmp/never"]) == 2
     assert "unknown method" in capsys.readouterr().err
+
+
+TINY = [
+    "--tasks", "20", "--episodes", "5", "--hidden", "32", "--epochs", "2", "--trials", "8", "--chunk", "8",
+    "--burn-in", "1", "3", "--horizons", "1", "2", "--particles", "50", "--oracle-particles", "50",
+    "--reptile-epochs", "1", "--lv-epochs", "1", "--lv-width", "16",
+]
+
+
+def _rows(out) -> dict:
+    return {(r["method"], r["burn_in"], r["horizon"]): r["rmse_mean"] for r in csv.DictReader(open(out / "results.csv"))}
+
+
+def test_reptile_and_latent_methods_leave_the_multitask_rows_unchanged(tmp_path, capsys) -> None:
+    """R and LV train their own networks from their own seeds, so M's rows do not depend on them."""
+    with torch_threads(1):  # tiny networks: one thread is fastest, and stays fast on a busy machine
+        assert cli.main(["two-link", "--out", str(tmp_path / "m"), *TINY, "--methods", "M+N", "M+S"]) == 0
+        methods = ["--methods", "R+S", "M+N", "LV+N", "M+S"]
+        assert cli.main(["two-link", "--out", str(tmp_path / "all"), *TINY, *methods]) == 0
+    alone, together = _rows(tmp_path / "m"), _rows(tmp_path / "all")
+    assert alone and all(together[key] == value for key, value in alone.items())
+    assert {m for m, _, _ in together} == {"M+N", "M+S", "R+S", "LV+N"}
+    assert (tmp_path / "all" / "reptile.ckpt").is_file() and (tmp_path / "all" / "latent.ckpt").is_file()
+    assert not (tmp_path / "m" / "reptile.ckpt").exists()  # no Reptile method, no Reptile training
