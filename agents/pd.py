@@ -72,7 +72,7 @@ class JacobianPD:
         damping: ``0`` gives the Moore-Penrose pseudo-inverse of the paper; ``lambda > 0`` gives
             the damped least-squares inverse ``J^T (J J^T + lambda^2 I)^-1``, bounded near
             singularities.
-        max_speed: optional bound on every joint-velocity command (rad/s).
+        max_command: optional bound on every joint-acceleration command (rad/s^2).
 
     Example:
         >>> import torch
@@ -82,15 +82,15 @@ class JacobianPD:
     """
 
     def __init__(
-        self, kinematics: Kinematics, *, k1: float, k2: float, damping: float = 0.0, max_speed: float | None = None
+        self, kinematics: Kinematics, *, k1: float, k2: float, damping: float = 0.0, max_command: float | None = None
     ) -> None:
-        if damping < 0 or (max_speed is not None and max_speed <= 0):
-            raise ValueError(f"need damping >= 0 and max_speed > 0, got damping={damping}, max_speed={max_speed}")
+        if damping < 0 or (max_command is not None and max_command <= 0):
+            raise ValueError(f"need damping >= 0 and max_command > 0, got damping={damping}, max_command={max_command}")
         self.kinematics = kinematics
-        self.k1, self.k2, self.damping, self.max_speed = k1, k2, damping, max_speed
+        self.k1, self.k2, self.damping, self.max_command = k1, k2, damping, max_command
 
     def __call__(self, q: Tensor, q_dot: Tensor, goal: Tensor, position: Tensor | None = None) -> Tensor:
-        """The joint-velocity command.
+        """The joint-acceleration command.
 
         Args:
             q: joint angles ``[*batch, n]``.
@@ -114,7 +114,7 @@ class JacobianPD:
             raise ValueError(f"position must have the goal's shape {list(goal.shape)}, got {list(position.shape)}")
         error = (position - goal).unsqueeze(-1)
         u = -self.k1 * (self._inverse(jacobian) @ error).squeeze(-1) - self.k2 * q_dot
-        return u if self.max_speed is None else u.clamp(-self.max_speed, self.max_speed)
+        return u if self.max_command is None else u.clamp(-self.max_command, self.max_command)
 
     def jacobian(self, q: Tensor) -> Tensor:
         """``dx/dq`` of the controller's kinematics, ``[*batch, m, n]``."""

@@ -68,8 +68,8 @@ def test_pd_with_true_kinematics_reaches_goals() -> None:
     assert (distance < 0.01).float().mean() >= 0.95
 
 
-def test_position_overrides_the_model_and_max_speed_clips() -> None:
-    pd = JacobianPD(lambda q: q, k1=1.0, k2=0.0, max_speed=0.5)
+def test_position_overrides_the_model_and_max_command_clips() -> None:
+    pd = JacobianPD(lambda q: q, k1=1.0, k2=0.0, max_command=0.5)
     q = torch.zeros(2)
     assert torch.equal(pd(q, q, torch.zeros(2), position=torch.tensor([0.2, -3.0])), torch.tensor([-0.2, 0.5]))
 

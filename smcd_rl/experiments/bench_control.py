@@ -1,0 +1,283 @@
+"""Control-loop speed of Panda reaching: ``smcd-rl bench control``.
+
+Reads top to bottom: seed, build the forward-kinematics network ``q (7) -> x (3)`` (default the
+paper's ``MaskedMLP(7 -> 1024 -> 1024 -> 1024 -> 3)``, dropout 0.5, masks on every hidden layer)
+or load a trained one (``--model``, e.g. ``runs/panda/model.pt``), then time, interleaved step
+by step in one run so that all see the same machine load, one control step of the reaching loop
+of ``smcd-rl panda`` with a measurement every step:
+
+* ``M+S``: SMCD with ``--particles`` masks (default 1000): observe ``(q, measured x)``, the
+  Jacobian of the adapted network, the PD law, the joint update;
+* ``M+G``: the same with online gradient descent as the strategy;
+* ``M+N``: the network with no adaptation (Jacobian, PD and update only: what the network
+  costs without any adaptation);
+* ``analytic``: the same loop on the analytic chain :func:`~smcd_rl.envs.panda_reach.panda_fk`
+  (Jacobian, PD and update; nothing to adapt).
+
+Each contender drives its own ``--batch`` arms from the ready pose towards random goals with
+:class:`~smcd_rl.agents.pd.JacobianPD`. With random weights the "true" end effector is the network
+itself under a hidden mask (as in ``smcd-rl bench filter``), so SMCD's posterior concentrates as
+it does on a real task; with ``--model`` it is the Panda with a random tool. Reports control steps
+per second (from the mean step time), the median step time and the ratios between contenders.
+Writes ``results.json`` and ``results.csv``; ``--json`` prints the JSON instead of the table.
+Timings are never asserted by the tests.
+
+One thread by default: the Jacobian's backward passes multiply a few rows by each weight matrix
+(``[3, 1024] @ [1024, 1024]``), and on the 2-core reference machine torch spreads such a product
+over both threads at a great loss (16 ms on 2 threads against 0.15 ms on one), which made every
+network loop 10-30 times slower. ``--threads 2`` shows it.
+
+Example:
+    >>> from smcd_rl.experiments.bench_control import BenchControlConfig
+    >>> config = BenchControlConfig()
+    >>> config.hidden, config.particles, config.batch
+    ((1024, 1024, 1024), 1000, 1)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor
+from tqdm.auto import tqdm
+
+import smcd_rl
+from smcd_rl.agents.pd import JacobianPD
+from smcd_rl.envs.panda_reach import (
+    DEFAULT_DT,
+    READY_POSE,
+    integrate_panda,
+    panda_fk,
+    panda_kinematics_data,
+    sample_goals,
+    sample_tool_lengths,
+)
+from smcd_rl.experiments.common import (
+    config_dict,
+    format_table,
+    machine_info,
+    option,
+    resolve_device,
+    seed_everything,
+    torch_threads,
+    write_csv,
+    write_json,
+)
+
+__all__ = ["BenchControlConfig", "CONTENDERS", "FULL", "run"]
+
+#: The timed loops, in table order.
+CONTENDERS = ("M+S", "M+G", "M+N", "analytic")
+
+
+@dataclass
+class BenchControlConfig:
+    """Settings of ``smcd-rl bench control``; the defaults are the paper's Panda network and SMCD at N = 1000."""
+
+    out: str = option("runs/bench-control", "output directory (results.json, results.csv)")
+    seed: int = option(0, "seed of the network, the hidden mask, the goals and the filters")
+    model: str = option("", "a trained model.pt to time (e.g. runs/panda/model.pt); empty: random weights of --hidden")
+    hidden: tuple[int, ...] = option((1024, 1024, 1024), "hidden widths of the random network (every layer masked)")
+    dropout: float = option(0.5, "dropout probability of the random network")
+    batch: int = option(1, "arms controlled at once by each contender")
+    particles: int = option(1000, "SMCD particles")
+    flip_prob: float = option(0.01, "SMCD bit-flip probability per step")
+    noise_std: float = option(0.05, "SMCD likelihood noise std (m)")
+    gd_lr: float = option(0.01, "online gradient-descent learning rate (normalised units)")
+    gd_steps: int = option(5, "gradient steps per observation")
+    gd_window: int = option(10, "recent transitions in the gradient-descent loss")
+    steps: int = option(50, "timed control steps per contender")
+    warmup: int = option(3, "untimed control steps per contender first")
+    device: str = option("auto", "torch device: auto (cuda when available), cpu, cuda, cuda:1, ...")
+    threads: int = option(1, "torch CPU threads (0: torch's default); see the module docstring for why 1")
+    json: bool = option(False, "print the results as JSON (for tools) instead of the table")
+    full: bool = option(False, "more timed steps for steadier means")
+
+
+#: What ``--full`` changes (options given explicitly still win).
+FULL = {"steps": 200, "warmup": 10}
+
+
+def run(config: BenchControlConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Time the control loops, print the table and ratios (or JSON), write the files; returns the payload."""
+    _check(config)
+    config = dataclasses.replace(config, device=resolve_device(config.device))
+    with torch_threads(config.threads):
+        return _run(config, progress=progress)
+
+
+def _check(config: BenchControlConfig) -> None:
+    small = [f"{k}={getattr(config, k)}" for k in ("batch", "particles", "gd_steps", "gd_window", "steps")
+             if getattr(config, k) < 1]
+    if config.warmup < 0:
+        small.append(f"warmup={config.warmup} (>= 0)")
+    if not config.model and (not config.hidden or min(config.hidden) < 1):
+        small.append(f"hidden={list(config.hidden)}")
+    if small:
+        raise ValueError(f"sizes and counts must be >= 1: {', '.join(small)}")
+    if not 0.0 <= config.dropout < 1.0 or config.noise_std <= 0 or config.gd_lr <= 0:
+        raise ValueError(f"need 0 <= dropout < 1, noise_std > 0 and gd_lr > 0, got {config.dropout}, "
+                         f"{config.noise_std}, {config.gd_lr}")
+    if config.model and not Path(config.model).is_file():
+        raise FileNotFoundError(f"--model {config.model}: no such file; train one with `smcd-rl panda` or leave it empty")
+
+
+def _run(config: BenchControlConfig, *, progress: bool) -> dict[str, Any]:
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = torch.device(config.device)
+
+    # --- seed, the network and the world it is timed on -----------------------------------------
+    generator = seed_everything(config.seed)
+    tools = sample_tool_lengths(config.batch, generator=generator)
+    goals = sample_goals(tools, generator=generator).to(device)
+    tools = tools.to(device)
+    model, world = _model_and_world(config, tools, generator, device)
+
+    # --- the contenders: one control step each, every one with its own arms ----------------------
+    def strategy(name: str) -> smcd_rl.Adaptation:
+        if name == "M+S":
+            return smcd_rl.SMCD(num_particles=config.particles, flip_prob=config.flip_prob, noise_std=config.noise_std,
+                                generator=torch.Generator(device=device).manual_seed(config.seed + 1))
+        if name == "M+G":
+            return smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
+        return smcd_rl.NoAdaptation()
+
+    contenders: dict[str, Callable[[], None]] = {}
+    for name in CONTENDERS:
+        if name == "analytic":
+            contenders[name] = _control_step(lambda q: panda_fk(q, tools), None, lambda q: panda_fk(q, tools), goals)
+        else:
+            adapted = model.with_adaptation(strategy(name))
+            adapted.reset(batch_shape=(config.batch,))
+            observe = None if name == "M+N" else adapted
+            contenders[name] = _control_step(adapted.predict, observe, world, goals)
+    times = _time(contenders, config, device, progress=progress)
+
+    # --- results ------------------------------------------------------------------------------
+    rows = []
+    for name, samples in times.items():
+        mean = statistics.fmean(samples)
+        rows.append({"loop": name, "steps_per_s": 1.0 / mean, "mean_ms": mean * 1e3,
+                     "median_ms": statistics.median(samples) * 1e3, "min_ms": min(samples) * 1e3, "steps": len(samples)})
+    rate = {row["loop"]: row["steps_per_s"] for row in rows}
+    ratios = {
+        "analytic_over_smcd": rate["analytic"] / rate["M+S"],
+        "smcd_over_gd": rate["M+S"] / rate["M+G"],
+        "no_adaptation_over_smcd": rate["M+N"] / rate["M+S"],
+        "analytic_over_gd": rate["analytic"] / rate["M+G"],
+    }
+    net = model.net
+    payload = {
+        "benchmark": "Panda reaching control steps per second: observe + Jacobian + PD + joint update, batch of arms",
+        "config": config_dict(config),
+        "device": str(device),
+        "machine": machine_info(),
+        "network": {"in": net.in_features, "hidden": [lin.out_features for lin in net.linears[:-1]],
+                    "out": net.out_features, "mask_dim": net.mask_dim, "trained": bool(config.model)},
+        "results": rows,
+        "ratios": ratios,
+    }
+    write_json(out / "results.json", payload)
+    write_csv(out / "results.csv", rows)
+    print(json.dumps(payload, indent=2, default=str) if config.json else _report(payload))
+    return payload
+
+
+def _model_and_world(
+    config: BenchControlConfig, tools: Tensor, generator: torch.Generator, device: torch.device
+) -> tuple[smcd_rl.AdaptiveModel, Callable[[Tensor], Tensor]]:
+    """The timed model, and the world's end effector ``q -> x`` that the measurements come from."""
+    if config.model:
+        model = smcd_rl.load(config.model).to(device)
+        if model.net.in_features != 7 or model.net.out_features != 3:
+            raise ValueError(f"--model must map 7 joint angles to a 3-d position, got {model.net.in_features} -> "
+                             f"{model.net.out_features}")
+        return model, lambda q: panda_fk(q, tools)
+    net = smcd_rl.MaskedMLP(7, 3, hidden=config.hidden, dropout=config.dropout, device=device).eval()
+    model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+    # Zero epochs only fit the normalisers: inputs in radians, outputs in metres as for a trained model.
+    smcd_rl.fit(model, panda_kinematics_data(4096, generator=generator).to(device), epochs=0, progress=False)
+    with torch.no_grad():  # random-mask predictions with unit spread, as after training on normalised targets
+        probe = torch.randn(256, 7, generator=generator).to(device)
+        masks = (torch.rand(256, net.mask_dim, generator=generator) < net.keep_prob).to(device)
+        scale = 1.0 / net(probe, mask=masks).std()
+        net.linears[-1].weight.mul_(scale)
+        net.linears[-1].bias.mul_(scale)
+    true_mask = (torch.rand(config.batch, net.mask_dim, generator=generator) < net.keep_prob).to(device)
+
+    def world(q: Tensor) -> Tensor:
+        return model.predict(q, mask=true_mask)
+
+    model.reset()
+    return model, world
+
+
+def _control_step(
+    kinematics: Callable[[Tensor], Tensor],
+    model: smcd_rl.AdaptiveModel | None,
+    world: Callable[[Tensor], Tensor],
+    goals: Tensor,
+) -> Callable[[], None]:
+    """One step of the reaching loop with a measurement: [observe] + Jacobian + PD + joint update."""
+    pd = JacobianPD(kinematics, k1=20.0, k2=5.0)
+    q = torch.tensor(READY_POSE, device=goals.device, dtype=goals.dtype).expand(goals.shape[0], -1).clone()
+    state = {"q": q, "q_dot": torch.zeros_like(q)}
+
+    def step() -> None:
+        q, q_dot = state["q"], state["q_dot"]
+        measured = world(q)
+        if model is not None:
+            model.observe(TensorDict({"q": q, "ee": measured}, [q.shape[0]]))
+        u = pd(q, q_dot, goals, measured)
+        state["q"], state["q_dot"] = integrate_panda(q, q_dot, u, DEFAULT_DT)
+
+    return step
+
+
+def _time(
+    contenders: dict[str, Callable[[], None]], config: BenchControlConfig, device: torch.device, *, progress: bool
+) -> dict[str, list[float]]:
+    """Wall seconds of each contender per step, interleaved (the order rotates every step)."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    names = list(contenders)
+    times: dict[str, list[float]] = {name: [] for name in names}
+    with torch.no_grad():
+        for i in tqdm(range(config.warmup + config.steps), desc="bench control", unit="step", disable=not progress):
+            for name in names[i % len(names):] + names[: i % len(names)]:
+                sync()
+                started = time.perf_counter()
+                contenders[name]()
+                sync()
+                if i >= config.warmup:
+                    times[name].append(time.perf_counter() - started)
+    return times
+
+
+def _report(payload: dict[str, Any]) -> str:
+    config, ratios, net = payload["config"], payload["ratios"], payload["network"]
+    lines = ["machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"]
+    lines.append(
+        f"network: MaskedMLP {net['in']} -> {' -> '.join(map(str, net['hidden']))} -> {net['out']} "
+        f"({'trained' if net['trained'] else 'random weights'}), {net['mask_dim']} mask bits; {config['batch']} arm(s) "
+        f"per contender; SMCD N={config['particles']}; gradient descent {config['gd_steps']} steps on the last "
+        f"{config['gd_window']}; a measurement every step"
+    )
+    lines.append("")
+    body = [[r["loop"], f"{r['steps_per_s']:.1f}", r["mean_ms"], r["median_ms"], r["min_ms"], r["steps"]]
+            for r in payload["results"]]
+    lines.append(format_table(body, ["control loop", "steps/s", "mean ms", "median ms", "min ms", "steps"]))
+    lines.append("")
+    lines.append(f"analytic / M+S = {ratios['analytic_over_smcd']:.1f}x the steps per second")
+    lines.append(f"M+S / M+G      = {ratios['smcd_over_gd']:.2f}x the steps per second (> 1: SMCD's loop is faster)")
+    lines.append(f"M+N / M+S      = {ratios['no_adaptation_over_smcd']:.2f}x (the network without adaptation against SMCD)")
+    return "\n".join(lines)

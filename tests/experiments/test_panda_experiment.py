@@ -1,0 +1,101 @@
+"""``smcd-rl panda`` at a tiny scale (files, table, resume, errors) and the reaching loop's semantics."""
+
+import csv
+import json
+
+import pytest
+import torch
+
+from smcd_rl import cli
+from smcd_rl.envs.panda_reach import panda_fk, sample_goals, sample_tool_lengths
+from smcd_rl.experiments import panda
+from smcd_rl.experiments.common import torch_threads
+
+TINY = [
+    "--samples", "2000", "--hidden", "32", "--depth", "2", "--epochs", "2", "--tasks", "4", "--seeds", "2",
+    "--intervals", "2", "5", "--steps", "25", "--particles", "20", "--gd-steps", "1", "--gd-window", "3",
+]
+
+
+def _table(printed: str) -> list[str]:
+    return [line for line in printed.splitlines() if line.startswith("|")]
+
+
+def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, capsys, monkeypatch) -> None:
+    out = tmp_path / "run"
+    assert cli.main(["panda", "--out", str(out), *TINY]) == 0
+    printed = capsys.readouterr().out
+    table = _table(printed)
+    assert [cell.strip() for cell in table[0].split("|")[1:-1]] == ["method", "n=2", "n=5"]
+    assert [line.split("|")[1].strip() for line in table[2:]] == ["FK", "M+N", "M+G", "M+S (N=20)"]
+    for name in ("results.csv", "trials.csv", "results.json", "panda.png", "model.pt"):
+        assert (out / name).is_file(), name
+    rows = list(csv.DictReader(open(out / "results.csv")))
+    # FK also runs at n = 1 (the reference line of Fig. 3) although 1 is not among the intervals.
+    assert {(r["method"], int(r["interval"])) for r in rows} == {
+        ("FK", 1), ("FK", 2), ("FK", 5), *((m, n) for m in ("M+N", "M+G", "M+S (N=20)") for n in (2, 5))
+    }
+    assert all(0.0 <= float(r["success_mean"]) <= 1.0 and int(r["seeds"]) == 2 for r in rows)
+    assert len(list(csv.DictReader(open(out / "trials.csv")))) == len(rows) * 2 * 4
+    payload = json.loads((out / "results.json").read_text())
+    assert payload["config"]["tasks"] == 4 and payload["machine"]["torch_threads"] >= 1
+    assert payload["held_out_rmse_m"] > 0 and len(payload["train_loss"]) == 2
+
+    # A rerun finds every (method, n, seed) run done: it must not control a single arm again.
+    def no_reaching(*args, **kwargs):
+        raise AssertionError("a finished run was redone")
+
+    monkeypatch.setattr(panda, "reach", no_reaching)
+    assert cli.main(["panda", "--out", str(out), *TINY]) == 0
+    assert _table(capsys.readouterr().out) == table
+    monkeypatch.undo()
+
+    # Interrupted after the FK runs: the resumed run redoes only the rest and prints the same table.
+    resumed = tmp_path / "resumed"
+    assert cli.main(["panda", "--out", str(resumed), *TINY, "--methods", "FK"]) == 0
+    capsys.readouterr()
+    assert cli.main(["panda", "--out", str(resumed), *TINY]) == 0
+    assert _table(capsys.readouterr().out) == table
+
+
+def test_help_full_preset_and_bad_options(capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["panda", "--help"])
+    assert exit_info.value.code == 0 and "--intervals" in capsys.readouterr().out
+    config = cli.make_config("panda", {"full": True, "tasks": 7})
+    assert config.tasks == 7 and config.hidden == 1024 and config.samples == 100_000 and config.seeds == 5
+    assert cli.main(["panda", "--methods", "FK", "X+Y", "--out", "/tmp/never"]) == 2
+    assert "unknown method(s) ['X+Y']" in capsys.readouterr().err
+    assert cli.main(["panda", "--intervals", "0", "--out", "/tmp/never"]) == 2
+    assert "measurement intervals must be >= 1" in capsys.readouterr().err
+    assert cli.main(["panda", "--particles", "0", "--out", "/tmp/never"]) == 2
+    assert "particle counts" in capsys.readouterr().err
+
+
+def test_measurements_arrive_every_nth_step_and_model_reference_control_needs_a_true_model() -> None:
+    config = panda.PandaConfig(steps=120)
+    generator = torch.Generator().manual_seed(0)
+    tools = sample_tool_lengths(12, generator=generator)
+    goals = sample_goals(tools, generator=generator)
+    seen: list[int] = []
+    calls = iter(range(10**6))
+
+    def observe(q: torch.Tensor, measured: torch.Tensor) -> None:
+        torch.testing.assert_close(measured, panda_fk(q, tools))  # exact, noise-free measurements
+        seen.append(next(calls))
+
+    # The last goal lies out of reach, so the loop runs all 120 steps (it stops once all arrive).
+    far_goals = torch.cat([goals[:-1], torch.tensor([[3.0, 0.0, 0.0]])])
+    with torch_threads(1):
+        # The true kinematics needs no measurements: model-reference control alone reaches the goals.
+        true = panda.reach(lambda q: panda_fk(q, tools), observe, tools, far_goals, interval=7, config=config)
+        # The chain without the tool, measured once at the start: it settles where its own
+        # prediction meets the goal, so the true end effector ends |l| away (the tool's length).
+        blind = panda.reach(lambda q: panda_fk(q, 0.0), None, tools, goals, interval=10**6, config=config)
+    assert len(seen) == len(range(0, 120, 7))
+    assert int(true["reached"][:-1].sum()) >= 10 and not true["reached"][-1]
+    # Measured: 10 of 12 end within 1 cm of |l|; two never bring their own prediction onto the goal
+    # (one is held by a joint limit, one stalls). A final distance that matches the tool's own
+    # length to 1 cm by accident is rare, and 8 leaves room for such arms.
+    settled = (blind["final_distance"] - tools.abs()).abs() < 0.01
+    assert int(settled.sum()) >= 8
