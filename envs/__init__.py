@@ -17,6 +17,9 @@ import gymnasium
 TASKS: tuple[tuple[str, str, int], ...] = (
     ("smcd_rl/TwoLinkArm-v0", "smcd_rl.envs.two_link_arm:TwoLinkArmEnv", 100),
     ("smcd_rl/CrippledAnt-v0", "smcd_rl.envs.crippled_ant:CrippledAntEnv", 1000),
+    ("smcd_rl/PandaReach-v0", "smcd_rl.envs.panda_reach:PandaReachEnv", 200),
+    ("smcd_rl/TwoLinkTelescoping-v0", "smcd_rl.envs.two_link_telescoping:TwoLinkTelescopingEnv", 100),
+    ("smcd_rl/DroneLanding-v0", "smcd_rl.envs.drone_landing:DroneLandingEnv", 300),
 )
 
 

@@ -25,6 +25,26 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "TwoLinkConfig",
         "two-link arm look-ahead prediction after T burn-in steps (paper Fig. 2)",
     ),
+    "panda": (
+        "smcd_rl.experiments.panda",
+        "PandaConfig",
+        "7-DOF Panda reaching with an unknown tool, measured every n-th step: FK, M+N, M+G, M+S (paper Fig. 3)",
+    ),
+    "telescoping": (
+        "smcd_rl.experiments.telescoping",
+        "TelescopingConfig",
+        "PD tracking of a circling target with a telescoping link, adapted Jacobians (paper appendix A.4, Fig. 8)",
+    ),
+    "interpret": (
+        "smcd_rl.experiments.interpret",
+        "InterpretConfig",
+        "mask interpretability: link lengths (Fig. 9), drone skill/strategy/phase/success (Figs. 4, 13), drone look-ahead (Fig. 14)",
+    ),
+    "sweep": (
+        "smcd_rl.experiments.sweep",
+        "SweepConfig",
+        "hyper-parameter ablations on Ray: training loss (Figs. 5, 12) and SMCD look-ahead error (Fig. 6)",
+    ),
     "ant": (
         "smcd_rl.experiments.ant",
         "AntConfig",
@@ -39,6 +59,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "smcd_rl.experiments.bench_filter",
         "BenchFilterConfig",
         "time one SMCD update against a dense matmul and a naive update, realistic and worst case; peak memory",
+    ),
+    "bench control": (
+        "smcd_rl.experiments.bench_control",
+        "BenchControlConfig",
+        "time the Panda reaching loop (observe + Jacobian + PD) with SMCD against gradient descent and the analytic chain",
     ),
 }
 
@@ -99,7 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     module = importlib.import_module(COMMANDS[args._command][0])
     try:
         module.run(config)
-    except (ValueError, KeyError, FileNotFoundError) as err:
+    except (ValueError, KeyError, FileNotFoundError, ImportError) as err:  # ImportError: a missing extra
         print(f"smcd-rl {args._command}: error: {err}", file=sys.stderr)
         return 2
     return 0
