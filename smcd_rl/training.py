@@ -88,17 +88,11 @@ def fit(
     n = x.shape[0]
 
     def one_epoch(generator: torch.Generator) -> float:
-        order = torch.randperm(n, generator=generator, device=device)
-        total = 0.0
-        for begin in range(0, n, batch_size):
-            idx = order[begin : begin + batch_size]
+        def batch_loss(idx: Tensor) -> Tensor:
             mask = torch.rand(idx.shape[0], net.mask_dim, generator=generator, device=device) < net.keep_prob
-            loss = (net(x[idx], mask=mask) - y[idx]).square().mean()
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            total += float(loss.detach()) * idx.shape[0]
-        return total / n
+            return (net(x[idx], mask=mask) - y[idx]).square().mean()
+
+        return _shuffled_epoch(n, batch_size, optimizer, generator, batch_loss)
 
     return _train(
         model, one_epoch, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=optimizer,
@@ -255,6 +249,30 @@ def fit_reptile(
         model, one_epoch, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=None,
         checkpoint=checkpoint, desc="fit_reptile", progress=progress, callback=callback,
     )
+
+
+def _shuffled_epoch(
+    n: int,
+    batch_size: int,
+    optimizer: torch.optim.Optimizer,
+    generator: torch.Generator,
+    batch_loss: Callable[[Tensor], Tensor],
+) -> float:
+    """One pass over ``n`` samples in shuffled mini-batches; returns the mean of ``batch_loss(indices)``.
+
+    The shuffle is drawn first and ``batch_loss`` may draw from ``generator`` after it, so an
+    epoch is a function of the generator's seed alone.
+    """
+    order = torch.randperm(n, generator=generator, device=generator.device)
+    total = 0.0
+    for begin in range(0, n, batch_size):
+        idx = order[begin : begin + batch_size]
+        loss = batch_loss(idx)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        total += float(loss.detach()) * idx.shape[0]
+    return total / n
 
 
 def _require_samples(data: TensorDictBase, what: str) -> None:

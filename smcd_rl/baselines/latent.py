@@ -23,7 +23,7 @@ from torch.nn import functional as F
 
 from smcd_rl.model import CheckpointMismatchError
 from smcd_rl.normalization import Normalizer
-from smcd_rl.training import _normalised_pairs, _require_samples, _train
+from smcd_rl.training import _normalised_pairs, _require_samples, _shuffled_epoch, _train
 
 __all__ = ["LatentVariableModel", "fit_latent"]
 
@@ -315,16 +315,7 @@ def fit_latent(
     n = x.shape[0]
 
     def one_epoch(generator: torch.Generator) -> float:
-        order = torch.randperm(n, generator=generator, device=device)
-        total = 0.0
-        for begin in range(0, n, batch_size):
-            idx = order[begin : begin + batch_size]
-            loss = model.negative_elbo(x[idx], y[idx], generator).mean()
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            total += float(loss.detach()) * idx.shape[0]
-        return total / n
+        return _shuffled_epoch(n, batch_size, optimizer, generator, lambda idx: model.negative_elbo(x[idx], y[idx], generator).mean())
 
     return _train(
         model, one_epoch, trained=model, epochs=epochs, seed=seed, settings=settings, optimizer=optimizer,

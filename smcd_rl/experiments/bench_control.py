@@ -39,7 +39,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import statistics
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +47,6 @@ from typing import Any
 import torch
 from tensordict import TensorDict
 from torch import Tensor
-from tqdm.auto import tqdm
 
 import smcd_rl
 from smcd_rl.agents.pd import JacobianPD
@@ -64,6 +62,7 @@ from smcd_rl.envs.panda_reach import (
 from smcd_rl.experiments.common import (
     config_dict,
     format_table,
+    interleaved_times,
     machine_info,
     option,
     resolve_device,
@@ -161,7 +160,9 @@ def _run(config: BenchControlConfig, *, progress: bool) -> dict[str, Any]:
             adapted.reset(batch_shape=(config.batch,))
             observe = None if name == "M+N" else adapted
             contenders[name] = _control_step(adapted.predict, observe, world, goals)
-    times = _time(contenders, config, device, progress=progress)
+    times = interleaved_times(
+        contenders, config.steps, warmup=config.warmup, device=device, desc="bench control", progress=progress
+    )
 
     # --- results ------------------------------------------------------------------------------
     rows = []
@@ -243,24 +244,6 @@ def _control_step(
 
     return step
 
-
-def _time(
-    contenders: dict[str, Callable[[], None]], config: BenchControlConfig, device: torch.device, *, progress: bool
-) -> dict[str, list[float]]:
-    """Wall seconds of each contender per step, interleaved (the order rotates every step)."""
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    names = list(contenders)
-    times: dict[str, list[float]] = {name: [] for name in names}
-    with torch.no_grad():
-        for i in tqdm(range(config.warmup + config.steps), desc="bench control", unit="step", disable=not progress):
-            for name in names[i % len(names):] + names[: i % len(names)]:
-                sync()
-                started = time.perf_counter()
-                contenders[name]()
-                sync()
-                if i >= config.warmup:
-                    times[name].append(time.perf_counter() - started)
-    return times
 
 
 def _report(payload: dict[str, Any]) -> str:

@@ -33,21 +33,29 @@ from __future__ import annotations
 import dataclasses
 import json
 import statistics
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDict
 from torch import Tensor
-from tqdm.auto import tqdm
 
 import smcd_rl
 from smcd_rl.agents.mpc import model_reward_objective
 from smcd_rl.agents.planners import CEM
-from smcd_rl.experiments.common import config_dict, format_table, machine_info, option, resolve_device, seed_everything, torch_threads, write_csv, write_json
+from smcd_rl.experiments.common import (
+    config_dict,
+    format_table,
+    interleaved_times,
+    machine_info,
+    option,
+    resolve_device,
+    seed_everything,
+    torch_threads,
+    write_csv,
+    write_json,
+)
 
 __all__ = ["BenchPlannersConfig", "FULL", "GOAL_SPEEDUP", "GOAL_FLOOR", "run", "bench_reward"]
 
@@ -171,7 +179,9 @@ def _run(config: BenchPlannersConfig, *, progress: bool) -> dict[str, Any]:
         "ours: CEM + plain objective": run_plain,
         "floor: bare forwards": run_floor,
     }
-    times = _time(contenders, config, device, progress=progress)
+    times = interleaved_times(
+        contenders, config.repeats, warmup=config.warmup, device=device, desc="bench planners", progress=progress
+    )
 
     # --- results ------------------------------------------------------------------------------
     rows = []
@@ -257,25 +267,6 @@ def _plain_objective(model: smcd_rl.AdaptiveDynamicsModel, obs: Tensor) -> Calla
 
     return objective
 
-
-def _time(
-    contenders: dict[str, Callable[[], None]], config: BenchPlannersConfig, device: torch.device, *, progress: bool
-) -> dict[str, list[float]]:
-    """Wall seconds of each contender per repeat, interleaved (the order rotates every repeat)."""
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    names = list(contenders)
-    times: dict[str, list[float]] = {name: [] for name in names}
-    total = config.warmup + config.repeats
-    with torch.no_grad():
-        for i in tqdm(range(total), desc="bench planners", unit="round", disable=not progress):
-            for name in names[i % len(names) :] + names[: i % len(names)]:
-                sync()
-                started = time.perf_counter()
-                contenders[name]()
-                sync()
-                if i >= config.warmup:
-                    times[name].append(time.perf_counter() - started)
-    return times
 
 
 def _report(payload: dict[str, Any]) -> str:

@@ -9,11 +9,13 @@ import hashlib
 import json
 import os
 import platform
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
+from tqdm.auto import tqdm
 
 __all__ = [
     "option",
@@ -26,6 +28,7 @@ __all__ = [
     "seed_everything",
     "resolve_device",
     "torch_threads",
+    "interleaved_times",
 ]
 
 
@@ -172,3 +175,38 @@ def format_table(rows: Iterable[Sequence[Any]], header: Sequence[str]) -> str:
 
 def _cell(value: Any) -> str:
     return f"{value:.3f}" if isinstance(value, float) else str(value)
+
+
+def interleaved_times(
+    contenders: Mapping[str, Callable[[], object]],
+    rounds: int,
+    *,
+    warmup: int = 0,
+    device: torch.device | str = "cpu",
+    desc: str = "bench",
+    progress: bool = True,
+) -> dict[str, list[float]]:
+    """Wall seconds of every call of each contender, measured side by side.
+
+    Each round calls every contender once, in an order that rotates from round to round, so slow
+    drifts of the machine (other jobs, clock changes) fall on all contenders alike. The first
+    ``warmup`` rounds are not recorded. CUDA work is synchronised around every call.
+
+    Example:
+        >>> times = interleaved_times({"a": lambda: None, "b": lambda: None}, rounds=3, progress=False)
+        >>> {name: len(t) for name, t in times.items()}
+        {'a': 3, 'b': 3}
+    """
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+    names = list(contenders)
+    times: dict[str, list[float]] = {name: [] for name in names}
+    with torch.no_grad():
+        for i in tqdm(range(warmup + rounds), desc=desc, unit="round", disable=not progress):
+            for name in names[i % len(names) :] + names[: i % len(names)]:
+                sync()
+                started = time.perf_counter()
+                contenders[name]()
+                sync()
+                if i >= warmup:
+                    times[name].append(time.perf_counter() - started)
+    return times
