@@ -51,14 +51,21 @@ def batch_jacobian(kinematics: Kinematics, q: Tensor) -> Tensor:
         >>> batch_jacobian(lambda q: torch.stack([q[..., 0] * q[..., 1]], -1), torch.tensor([[2.0, 3.0]]))
         tensor([[[3., 2.]]])
     """
+    return _jacobian_and_position(kinematics, q)[0]
+
+
+def _jacobian_and_position(kinematics: Kinematics, q: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`batch_jacobian` and the kinematics' value at ``q``, from the same forward pass."""
     batch_dims = tuple(range(q.dim() - 1))
 
-    def summed(angles: Tensor) -> Tensor:
+    def summed(angles: Tensor) -> tuple[Tensor, Tensor]:
         # Rows are independent, so d(sum over rows of x_row)/dq_row = dx_row/dq_row.
         x = kinematics(angles)
-        return x.sum(dim=batch_dims) if batch_dims else x
+        return (x.sum(dim=batch_dims) if batch_dims else x), x
 
-    return torch.func.jacrev(summed)(q).movedim(0, -2)
+    with torch.enable_grad():
+        jacobian, position = torch.func.jacrev(summed, has_aux=True)(q.detach())
+    return jacobian.movedim(0, -2), position.detach()
 
 
 class JacobianPD:
@@ -104,12 +111,11 @@ class JacobianPD:
         """
         if q.shape != q_dot.shape:
             raise ValueError(f"q and q_dot must have the same shape, got {list(q.shape)} and {list(q_dot.shape)}")
-        jacobian = self.jacobian(q)
+        jacobian, predicted = _jacobian_and_position(self.kinematics, q)
         if goal.shape != jacobian.shape[:-1]:
             raise ValueError(f"goal must have shape {list(jacobian.shape[:-1])} (batch, end-effector), got {list(goal.shape)}")
         if position is None:
-            with torch.no_grad():
-                position = self.kinematics(q)
+            position = predicted
         elif position.shape != goal.shape:
             raise ValueError(f"position must have the goal's shape {list(goal.shape)}, got {list(position.shape)}")
         error = (position - goal).unsqueeze(-1)
@@ -118,8 +124,7 @@ class JacobianPD:
 
     def jacobian(self, q: Tensor) -> Tensor:
         """``dx/dq`` of the controller's kinematics, ``[*batch, m, n]``."""
-        with torch.enable_grad():
-            return batch_jacobian(self.kinematics, q.detach())
+        return batch_jacobian(self.kinematics, q)
 
     def _inverse(self, jacobian: Tensor) -> Tensor:
         if self.damping == 0:

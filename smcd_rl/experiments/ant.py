@@ -48,9 +48,7 @@ Example:
 from __future__ import annotations
 
 import functools
-import hashlib
 import itertools
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -73,6 +71,7 @@ from smcd_rl.experiments.common import (
     machine_info,
     option,
     seed_everything,
+    settings_fingerprint,
     torch_threads,
     write_csv,
     write_json,
@@ -201,7 +200,7 @@ def _run(config: AntConfig, out: Path, device: torch.device, *, progress: bool) 
     model = smcd_rl.AdaptiveDynamicsModel(net)
     train_settings = {**data_settings, **{k: getattr(config, k) for k in (
         "hidden", "depth", "dropout", "epochs", "batch_size", "lr", "validation", "device")}}
-    fingerprint = hashlib.sha256(json.dumps(train_settings, sort_keys=True).encode()).hexdigest()[:12]
+    fingerprint = settings_fingerprint(train_settings)[:12]
     started = time.perf_counter()
     losses = smcd_rl.fit_dynamics(
         model,

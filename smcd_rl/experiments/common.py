@@ -29,6 +29,7 @@ __all__ = [
     "resolve_device",
     "torch_threads",
     "interleaved_times",
+    "settings_fingerprint",
 ]
 
 
@@ -112,6 +113,16 @@ def seed_everything(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 
 
+def settings_fingerprint(settings: Mapping[str, Any]) -> str:
+    """A hex digest that changes whenever a setting does: names caches and checkpoints by their settings.
+
+    Example:
+        >>> settings_fingerprint({"seed": 0}) == settings_fingerprint({"seed": 0}) != settings_fingerprint({"seed": 1})
+        True
+    """
+    return hashlib.sha256(json.dumps(dict(settings), sort_keys=True, default=str).encode()).hexdigest()
+
+
 class ResultCache:
     """Finished pieces of an experiment, saved as they complete so a rerun skips them.
 
@@ -130,7 +141,7 @@ class ResultCache:
 
     def __init__(self, path: str | os.PathLike[str], settings: Mapping[str, Any]) -> None:
         self.path = Path(path)
-        self.fingerprint = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
+        self.fingerprint = settings_fingerprint(settings)
         self._entries: dict[str, Any] = {}
         if self.path.is_file():
             saved = torch.load(self.path, map_location="cpu", weights_only=False)

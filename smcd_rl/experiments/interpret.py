@@ -257,8 +257,6 @@ def _check(config: InterpretConfig) -> None:
     unknown = set(config.methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown method(s) {sorted(unknown)}; choose from {list(METHODS)}")
-    if "lookahead" in config.parts and any(m.startswith("R+") for m in config.methods) and not hasattr(smcd_rl, "fit_reptile"):
-        raise ValueError("the R+ methods need smcd_rl.fit_reptile, which this version lacks; pass --methods M+N M+G M+S")
     if config.k < 1:
         raise ValueError(f"k must be >= 1, got {config.k}")
     if not config.steps or min(config.steps) < 1:
@@ -611,7 +609,7 @@ def _train_reptile(config: InterpretConfig, train: TrajectoryDataset, out: Path,
                     list(index.shape), device=device)
     seed_everything(config.seed)
     model = _make_model(config, train, device)
-    losses = smcd_rl.fit_reptile(  # type: ignore[attr-defined]
+    losses = smcd_rl.fit_reptile(
         model, td, epochs=config.reptile_epochs, batch_size=config.reptile_batch_size, lr=config.reptile_lr,
         inner_lr=config.reptile_inner_lr, inner_epochs=1, tasks_per_batch=config.reptile_tasks_per_batch,
         seed=config.seed, checkpoint=out / "reptile.ckpt", progress=progress,

@@ -43,9 +43,7 @@ Example:
 
 from __future__ import annotations
 
-import hashlib
 import itertools
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -79,6 +77,7 @@ from smcd_rl.experiments.common import (
     option,
     resolve_device,
     seed_everything,
+    settings_fingerprint,
     torch_threads,
     write_csv,
     write_json,
@@ -189,9 +188,7 @@ def _run(config: PandaConfig, *, progress: bool) -> dict[str, Any]:
     net = smcd_rl.MaskedMLP(7, 3, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
     model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
     train_keys = ("seed", "samples", "hidden", "depth", "dropout", "epochs", "batch_size", "lr", "tool_range", "device")
-    fingerprint = hashlib.sha256(
-        json.dumps({k: getattr(config, k) for k in train_keys}, sort_keys=True).encode()
-    ).hexdigest()[:12]
+    fingerprint = settings_fingerprint({k: getattr(config, k) for k in train_keys})[:12]
     started = time.perf_counter()
     losses = smcd_rl.fit(
         model,
