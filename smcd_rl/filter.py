@@ -251,6 +251,8 @@ class ParticleFilter:
                 f"log_likelihood must have shape [*batch, N] = {list(log_weights.shape)}, "
                 f"got {list(log_likelihood.shape)}"
             )
+        if bool(torch.isfinite(log_likelihood).all()):  # one pass for the common case
+            return log_likelihood.to(log_weights.dtype)
         if torch.isnan(log_likelihood).any():
             raise ValueError("log_likelihood contains NaN; check the observation and the model's prediction")
         if torch.isposinf(log_likelihood).any():
@@ -274,7 +276,7 @@ class ParticleFilter:
     def _resample_if_needed(self) -> None:
         particles, log_weights, _ = self._state()
         n = self._num_particles
-        need = self.ess < self.ess_threshold * n
+        need = self.last_ess < self.ess_threshold * n  # set by _apply for these weights
         if not bool(need.any()):
             return
         idx = resample_indices(log_weights, self.resampling, generator=self.generator)
@@ -294,6 +296,8 @@ def flat_particle_index(idx: Tensor, num_particles: int) -> Tensor:
         tensor([0, 2, 4, 4])
     """
     batch = idx.shape[:-1]
+    if math.prod(batch) == 1:
+        return idx.reshape(-1)
     offsets = (torch.arange(math.prod(batch), device=idx.device) * num_particles).reshape(*batch, 1)
     return (idx + offsets).reshape(-1)
 
@@ -340,15 +344,17 @@ def sample_flip_positions(
     pieces: list[Tensor] = []
     start = 0
     while True:
-        u = 1.0 - torch.rand(chunk, generator=generator, device=device, dtype=torch.float64)  # (0, 1]
-        gaps = torch.floor(torch.log(u) / log_stay).clamp_(max=numel).long()
-        positions = start + torch.cumsum(gaps + 1, dim=0) - 1
-        if int(positions[-1]) >= numel:
-            pieces.append(positions[positions < numel])
+        # In place, op for op the arithmetic of floor(log(1 - u) / log(1 - p)): 1 - u is in (0, 1].
+        u = torch.rand(chunk, generator=generator, device=device, dtype=torch.float64)
+        gaps = u.neg_().add_(1.0).log_().div_(log_stay).floor_().clamp_(max=numel).long()
+        positions = gaps.add_(1).cumsum_(0).add_(start - 1)
+        inside = int(torch.searchsorted(positions, numel))  # positions are increasing
+        if inside < chunk:
+            pieces.append(positions[:inside])
             break
         pieces.append(positions)
         start = int(positions[-1]) + 1
-    return torch.cat(pieces)
+    return pieces[0] if len(pieces) == 1 else torch.cat(pieces)
 
 
 class SMCDFilter(ParticleFilter):

@@ -10,10 +10,11 @@ shared by every particle (no mask acts before them), so for particle ``i``::
 
 with ``+`` where the flip turned the bit on. After resampling many particles are copies of one
 parent, and a transition flips only a few bits, so :class:`ParticleForward` computes the
-pre-activations once per distinct parent (each batch element's first parent in full, the others as
-its row plus their differing columns) and adds every child's flipped columns with one sparse
-matmul of a few nonzeros per row. Later layers are computed per particle as
-usual. The result equals :meth:`MaskedMLP.forward_particles` up to float rounding.
+pre-activations once per distinct parent (each batch element's first parent from its kept live
+units, the others as that row plus their differing columns) and every child's as its parent's row
+plus its flipped columns: one weighted ``embedding_bag`` over the rows of ``W.t()``, a few rows per
+particle. Later layers are computed per particle as usual. The result equals
+:meth:`MaskedMLP.forward_particles` up to float rounding.
 
 Which path an update takes (``ParticleForward(net, path="auto")``, what :class:`smcd_rl.SMCD` uses):
 
@@ -37,7 +38,6 @@ for every layer after it.
 
 from __future__ import annotations
 
-import warnings
 from typing import Literal, NamedTuple
 
 import torch
@@ -50,9 +50,10 @@ __all__ = ["Lineage", "ParticlePath", "ParticleForward", "SPARSE_COST", "check_p
 
 ParticlePath = Literal["auto", "incremental", "dense"]
 
-#: Cost of one sparse multiply-add relative to one multiply-add of a dense matmul. Measured on a
-#: 2-core x86 CPU: about 5.4 (5k nonzeros x 1024 columns in 0.27 ms, a dense 1000 x 1024 x 1024
-#: matmul in 10.3 ms); rounded up so that borderline cases keep the simpler dense path.
+#: Cost of one sparse multiply-add (a weighted row of an embedding bag) relative to one multiply-add
+#: of a dense matmul. Measured on a 2-core x86 CPU: 2.4 to 4.6 (5k rows of 1024 in 0.12 ms with warm
+#: caches, 0.23 ms with cold ones; a dense 1000 x 1024 x 1024 matmul in 10.6 ms); rounded up so that
+#: borderline cases keep the simpler dense path.
 SPARSE_COST = 8.0
 
 
@@ -108,7 +109,7 @@ class ParticleForward:
         #: Distinct parents of the last call's particle set (``None`` after a dense call without lineage).
         self.last_distinct_parents: int | None = None
         self._layer = min(net.masked_layers)
-        self._transposed: tuple[tuple[int, int], Tensor] | None = None
+        self._table_cache: tuple[tuple[int, int], Tensor] | None = None
         self._buffers: dict[int, Tensor] = {}
 
     def __call__(self, x: Tensor, masks: Tensor, lineage: Lineage | None = None) -> Tensor:
@@ -127,7 +128,7 @@ class ParticleForward:
         self._check(x, masks, lineage)
         n = masks.shape[-2]
         total = masks[..., 0].numel()
-        groups, child_group = torch.unique(flat_particle_index(lineage.ancestors, n), return_inverse=True)
+        groups, child_group = _groups(flat_particle_index(lineage.ancestors, n))
         self.last_distinct_parents = groups.numel()
         if self.path == "auto" and not self._pays(groups.numel(), total, lineage.flips.numel()):
             return self.net.forward_particles(x, masks)
@@ -159,32 +160,29 @@ class ParticleForward:
         # Once per distinct parent: ``representative`` is any member of each group (all are equal).
         representative = torch.empty(groups.numel(), dtype=torch.long, device=masks.device)
         representative.scatter_(0, child_group, torch.arange(total, device=masks.device))
-        parent_bits = lineage.parents.reshape(total, dim)[representative, sl]
-        parent_pre = self._parent_pre(parent_bits, groups // n, h, following)
+        parent_bits = lineage.parents.reshape(total, dim).index_select(0, representative)[:, sl]
+        table = self._table(following.weight, parent_bits.shape[0])
+        table[width:width + groups.numel()] = self._parent_pre(parent_bits, groups // n, h, following, table)
 
-        # Every child: its parent's row plus its flipped columns, as one sparse matmul. The first
-        # masked layer's bits come first in a mask (columns < width); padding ``h`` with zeros past
-        # them lets one test drop both the other layers' flips and flips of units the activation
-        # zeroed (they change nothing).
+        # Every child: its parent's row plus its flipped columns, as one weighted sum of table rows
+        # per child (an embedding bag: the parent's row in the table's tail, then the flipped
+        # columns of the weight). The first masked layer's bits come first in a mask (columns <
+        # width); a gain table of ``h`` padded with zeros past them drops, in one lookup, both the
+        # other layers' flips and flips of units the activation zeroed (they change nothing).
         flips = lineage.flips
-        rows = flips // dim
-        padded = torch.nn.functional.pad(h, (0, dim - width)).reshape(-1)  # [B * dim]
-        gain = padded[flips - (rows - rows // n) * dim]  # h[batch of the row, column]
-        live = (gain != 0).nonzero().squeeze(-1)
-        flips, rows, gain = flips[live], rows[live], gain[live]
-        values = torch.where(masks.reshape(-1)[flips], gain, -gain)  # + where the flip turned the bit on
-        delta = _sparse_rows(rows, flips - rows * dim, values, (total, width))
-
-        # The per-particle buffers are kept between calls: fresh multi-MB tensors cost a page fault
-        # per 4 kB on first touch, as much as the arithmetic on them. Not when ``pre`` is already the
-        # network's output (masks on the last hidden layer only): the caller keeps that.
-        last = len(net.hidden) - 1
-        buffer = self._buffer(0, (total, parent_pre.shape[1]), parent_pre) if layer < last else None
-        pre = torch.index_select(parent_pre, 0, child_group, out=buffer)
-        pre.addmm_(delta, self._weight_t(following.weight))
+        rows = _floor_div(flips, dim, masks.numel())
+        cols = flips - rows * dim
+        gains = torch.nn.functional.pad(h, (0, dim - width)).reshape(-1)  # [B * dim]
+        gain = gains.index_select(0, cols if h.shape[0] == 1 else _floor_div(rows, n, total) * dim + cols)
+        live = gain.nonzero().squeeze(-1)
+        rows, cols, gain = rows.index_select(0, live), cols.index_select(0, live), gain.index_select(0, live)
+        turned_on = masks.reshape(-1).index_select(0, flips.index_select(0, live))
+        values = torch.where(turned_on, gain, -gain)  # + where the flip turned the bit on
+        pre = _bags(table, rows, cols, values, total, head=width + child_group)
 
         # Every later layer: per particle, the dense way, in place; 1 / keep_prob goes into the matmul.
         h = pre
+        last = len(net.hidden) - 1
         flat_masks = masks.reshape(total, dim)
         for i in range(layer + 1, last + 1):
             h = h.relu_() if net.activation == "relu" else net.act(h)
@@ -200,22 +198,26 @@ class ParticleForward:
             h = torch.addmm(linear.bias, h, linear.weight.t(), alpha=scale, out=out)
         return h.reshape(*batch, n, h.shape[-1])
 
-    def _parent_pre(self, bits: Tensor, element: Tensor, h: Tensor, following: torch.nn.Linear) -> Tensor:
+    def _parent_pre(self, bits: Tensor, element: Tensor, h: Tensor, following: torch.nn.Linear, table: Tensor) -> Tensor:
         """Pre-activations ``[U, fan_out]`` of the distinct parents ``bits [U, width]`` of batch elements ``element``.
 
-        Parents descend from a few common ancestors and differ in few bits, so each batch
-        element's first parent is computed in full and the others as its row plus their differing
-        columns, unless they differ in so many bits that the dense matmul is cheaper.
+        Each batch element's first parent (the reference) is summed over its kept live units only,
+        the others as the reference's row plus their differing columns (parents descend from a few
+        common ancestors and differ in few bits), unless they differ in so many bits that the
+        dense matmul is cheaper.
         """
+        width = bits.shape[1]
         first = torch.searchsorted(element, torch.arange(h.shape[0], device=element.device))  # groups are sorted
-        reference = bits[first]  # [B, width]
-        rows, cols = (bits ^ reference[element]).nonzero(as_tuple=True)
-        if SPARSE_COST * rows.numel() + h.shape[0] * bits.shape[1] >= bits.numel():
-            return following(bits.view(torch.uint8) * h[element])
+        reference = bits.index_select(0, first)  # [B, width]
+        rows, cols = (bits ^ reference.index_select(0, element)).nonzero(as_tuple=True)
+        if SPARSE_COST * rows.numel() + h.shape[0] * width >= bits.numel():
+            return following(bits.view(torch.uint8) * h.index_select(0, element))
+        live_rows, live_cols = (reference & (h != 0)).nonzero(as_tuple=True)
+        weights = h[live_rows, live_cols]
+        reference_pre = _bags(table, live_rows, live_cols, weights, h.shape[0]).add_(following.bias)
         gain = h[element[rows], cols]
         values = torch.where(bits[rows, cols], gain, -gain)
-        delta = _sparse_rows(rows, cols, values, tuple(bits.shape))  # type: ignore[arg-type]
-        return torch.addmm(following(reference.view(torch.uint8) * h)[element], delta, self._weight_t(following.weight))
+        return _bags(table, rows, cols, values, bits.shape[0]).add_(reference_pre.index_select(0, element))
 
     def _buffer(self, slot: int, shape: tuple[int, int], like: Tensor) -> Tensor:
         """Workspace ``slot`` of ``shape``, reused while shape, dtype and device stay the same."""
@@ -224,15 +226,21 @@ class ParticleForward:
             buffer = self._buffers[slot] = torch.empty(shape, dtype=like.dtype, device=like.device)
         return buffer
 
-    def _weight_t(self, weight: Tensor) -> Tensor:
-        """``weight.t()`` as a contiguous copy, cached until the weight changes.
+    def _table(self, weight: Tensor, parents: int) -> Tensor:
+        """``weight.t()`` as contiguous rows, then room for ``parents`` rows; cached until the weight changes.
 
-        The sparse matmul reads the dense operand row by row: 4.5x faster on a contiguous transpose.
+        Each bag reads weight columns: a contiguous transpose makes each one row. The room grows
+        geometrically, so a growing number of parents rarely copies the weight again.
         """
         key = (weight.data_ptr(), weight._version)
-        if self._transposed is None or self._transposed[0] != key:
-            self._transposed = (key, weight.detach().t().contiguous())
-        return self._transposed[1]
+        width = weight.shape[1]
+        cached = self._table_cache
+        if cached is None or cached[0] != key or cached[1].shape[0] < width + parents:
+            room = max(parents, 64, 2 * (cached[1].shape[0] - width) if cached is not None else 0)
+            table = torch.empty(width + room, weight.shape[0], dtype=weight.dtype, device=weight.device)
+            table[:width] = weight.detach().t()
+            self._table_cache = cached = (key, table)
+        return cached[1]
 
     def _check(self, x: Tensor, masks: Tensor, lineage: Lineage) -> None:
         net = self.net
@@ -249,9 +257,42 @@ class ParticleForward:
             )
 
 
-def _sparse_rows(rows: Tensor, cols: Tensor, values: Tensor, shape: tuple[int, int]) -> Tensor:
-    """A CSR matrix from entries whose ``rows`` are sorted."""
-    crow = torch.searchsorted(rows, torch.arange(shape[0] + 1, device=rows.device))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # "sparse CSR support is in beta": we use only CSR @ dense
-        return torch.sparse_csr_tensor(crow, cols, values, shape)
+def _groups(index: Tensor) -> tuple[Tensor, Tensor]:
+    """The sorted distinct values of ``index`` and each entry's group; cheaper when ``index`` is sorted.
+
+    Every resampling scheme returns sorted ancestors, so the sort is almost never needed.
+    """
+    if index.numel() < 2 or bool((index[1:] >= index[:-1]).all()):
+        groups, inverse = torch.unique_consecutive(index, return_inverse=True)
+    else:
+        groups, inverse = torch.unique(index, return_inverse=True)
+    return groups, inverse
+
+
+def _floor_div(index: Tensor, divisor: int, bound: int) -> Tensor:
+    """``index // divisor`` for int64 ``0 <= index < bound``, twice as fast as integer division.
+
+    Exact: ``index + 0.5`` is at least ``0.5 / divisor`` from any multiple of ``divisor``, far more
+    than the float64 rounding error while ``bound <= 2**40``.
+    """
+    if bound > 2**40:
+        return index // divisor
+    return index.to(torch.float64).add_(0.5).mul_(1.0 / divisor).long()
+
+
+def _bags(table: Tensor, rows: Tensor, cols: Tensor, values: Tensor, num_rows: int, head: Tensor | None = None) -> Tensor:
+    """``out[r] = table[head[r]] + sum over k with rows[k] == r of values[k] * table[cols[k]]``.
+
+    ``rows`` must be sorted. One ``embedding_bag`` call: each output row is a bag of table rows,
+    weighted, so nothing of size ``num_rows x fan_out`` is read before it is written.
+    """
+    offsets = torch.searchsorted(rows, torch.arange(num_rows, device=rows.device))
+    if head is not None:  # put row r's head entry first in its bag
+        starts = offsets + torch.arange(num_rows, device=rows.device)
+        index = torch.empty(num_rows + cols.numel(), dtype=torch.long, device=cols.device)
+        weight = torch.empty(index.shape, dtype=values.dtype, device=values.device)
+        index[starts], weight[starts] = head, 1.0
+        after = torch.arange(1, cols.numel() + 1, device=rows.device).add_(rows)
+        index[after], weight[after] = cols, values
+        cols, values, offsets = index, weight, starts
+    return torch.nn.functional.embedding_bag(cols, table, offsets, mode="sum", per_sample_weights=values)

@@ -107,6 +107,30 @@ def test_flip_positions_have_the_bernoulli_rate_and_spread() -> None:
     assert float(per_col.var()) == pytest.approx(rows * p * (1 - p), rel=0.2)
 
 
+@pytest.mark.parametrize("numel", [1, 37, 500, 100_000])
+def test_flip_positions_are_the_textbook_geometric_gaps(numel: int) -> None:
+    """The in-place sampler draws exactly what floor(log(1 - u) / log(1 - p)) gaps give.
+
+    Pins the random stream: every seeded SMCD result depends on it. Small ``numel`` needs several
+    chunks of gaps before one passes the end.
+    """
+    p = 0.01
+    for seed in range(20):
+        generator = _gen(seed)
+        expected: list[int] = []
+        position = -1
+        while True:
+            u = torch.rand(int(numel * p + 6 * math.sqrt(numel * p) + 16), generator=generator, dtype=torch.float64)
+            for gap in torch.floor(torch.log(1.0 - u) / math.log1p(-p)).clamp(max=numel).long().tolist():
+                position += gap + 1
+                if position >= numel:
+                    break
+                expected.append(position)
+            if position >= numel:
+                break
+        assert sample_flip_positions(numel, p, generator=_gen(seed)).tolist() == expected
+
+
 @pytest.mark.parametrize("p", [0.001, 0.02, 0.2])
 def test_propagate_flips_bits_at_flip_prob(p: float) -> None:
     filt = smcd_rl.SMCDFilter(256, num_particles=500, flip_prob=p, generator=_gen(8))
