@@ -251,17 +251,16 @@ class ParticleFilter:
                 f"log_likelihood must have shape [*batch, N] = {list(log_weights.shape)}, "
                 f"got {list(log_likelihood.shape)}"
             )
-        if bool(torch.isfinite(log_likelihood).all()):  # one pass for the common case
-            return log_likelihood.to(log_weights.dtype)
-        if torch.isnan(log_likelihood).any():
-            raise ValueError("log_likelihood contains NaN; check the observation and the model's prediction")
-        if torch.isposinf(log_likelihood).any():
-            raise ValueError("log_likelihood contains +inf; check the likelihood's noise scale (it must be > 0)")
-        if (log_likelihood == -math.inf).all(dim=-1).any():
-            raise ValueError(
-                "every particle of a batch element has zero likelihood (all -inf): "
-                "the observation is impossible under the model; increase the likelihood's noise scale"
-            )
+        if not bool(torch.isfinite(log_likelihood).all()):  # one pass; the checks below name the problem
+            if torch.isnan(log_likelihood).any():
+                raise ValueError("log_likelihood contains NaN; check the observation and the model's prediction")
+            if torch.isposinf(log_likelihood).any():
+                raise ValueError("log_likelihood contains +inf; check the likelihood's noise scale (it must be > 0)")
+            if (log_likelihood == -math.inf).all(dim=-1).any():
+                raise ValueError(
+                    "every particle of a batch element has zero likelihood (all -inf): "
+                    "the observation is impossible under the model; increase the likelihood's noise scale"
+                )
         return log_likelihood.to(log_weights.dtype)
 
     def _apply(self, log_likelihood: Tensor) -> None:
