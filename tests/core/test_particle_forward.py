@@ -170,10 +170,11 @@ def test_a_later_call_does_not_overwrite_an_earlier_result(hidden, masked) -> No
 
 
 def test_float_floor_division_is_exact_at_multiples() -> None:
-    """The float shortcut for ``index // divisor`` must not round k * divisor - 1 up or k * divisor down."""
+    """The shortcuts for ``index // divisor`` (float, or a shift for powers of two) must not round
+    k * divisor - 1 up or k * divisor down."""
     from smcd_rl.particle_forward import _floor_div
 
-    for divisor in (1, 3, 2048, 1000, 12_345):
+    for divisor in (1, 2, 3, 2048, 1000, 12_345):
         k = torch.tensor([0, 1, 7, 1000, 2**20, 2**27 // divisor + 1])
         index = torch.cat([k * divisor, (k * divisor - 1).clamp(min=0), k * divisor + divisor - 1]).sort().values
         assert torch.equal(_floor_div(index, divisor, 2**40), index // divisor)
