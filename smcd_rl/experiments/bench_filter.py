@@ -21,9 +21,9 @@ that the weights are uniform and every particle stays distinct; and under two sc
 :data:`SCHEDULES`): *interleaved*, every contender once per step, so all see the same machine load
 but each update finds caches the others have just filled, and *back to back*, each contender's
 whole run in one block, so each finds its own data in cache. Ratios against the matmul and the
-naive update are checked against the goals of issue 4, per schedule. Finally the extra peak memory of one
-update at ``memory_particles`` particles on a ``memory_hidden`` network is measured in a fresh
-process (peak resident memory during the updates minus the memory before them; on CUDA the
+naive update are checked against the goals of issue 4, per schedule. Finally the extra peak memory
+of one update at ``memory_particles`` particles on a ``memory_hidden`` network is measured in a
+fresh process (peak resident memory during the updates minus the memory before them; on CUDA the
 allocator's peak). Writes ``results.json`` and ``results.csv``; ``--json`` prints the JSON.
 Timings are never asserted by the tests.
 
