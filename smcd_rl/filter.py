@@ -279,10 +279,12 @@ class ParticleFilter:
         if not bool(need.any()):
             return
         idx = resample_indices(log_weights, self.resampling, generator=self.generator)
-        if not bool(need.all()):
+        new_log_weights = torch.full_like(log_weights, -math.log(n))  # uniform after resampling
+        if not bool(need.all()):  # only some batch elements resample
             idx = torch.where(need.unsqueeze(-1), idx, torch.arange(n, device=self.device))
+            new_log_weights = torch.where(need.unsqueeze(-1), new_log_weights, log_weights)
         self.particles = _gather_particles(particles, idx)
-        self.log_weights = torch.where(need.unsqueeze(-1), torch.full_like(log_weights, -math.log(n)), log_weights)
+        self.log_weights = new_log_weights
         self.ancestors = idx
 
 
@@ -299,6 +301,23 @@ def flat_particle_index(idx: Tensor, num_particles: int) -> Tensor:
         return idx.reshape(-1)
     offsets = (torch.arange(math.prod(batch), device=idx.device) * num_particles).reshape(*batch, 1)
     return (idx + offsets).reshape(-1)
+
+
+def group_copies(index: Tensor) -> tuple[Tensor, Tensor]:
+    """The sorted distinct values of ``index`` and each entry's group; cheaper when ``index`` is sorted.
+
+    Every resampling scheme returns sorted ancestors, so the sort is almost never needed.
+
+    Example:
+        >>> import torch
+        >>> group_copies(torch.tensor([0, 0, 3, 3, 3]))
+        (tensor([0, 3]), tensor([0, 0, 1, 1, 1]))
+    """
+    if index.numel() < 2 or bool((index[1:] >= index[:-1]).all()):
+        groups, inverse = torch.unique_consecutive(index, return_inverse=True)
+    else:
+        groups, inverse = torch.unique(index, return_inverse=True)
+    return groups, inverse
 
 
 def _gather_particles(particles: Tensor, idx: Tensor) -> Tensor:
@@ -343,9 +362,10 @@ def sample_flip_positions(
     pieces: list[Tensor] = []
     start = 0
     while True:
-        # In place, op for op the arithmetic of floor(log(1 - u) / log(1 - p)): 1 - u is in (0, 1].
+        # floor(log(1 - u) / log(1 - p)), op for op: 1 - u is in (0, 1], so the quotient is
+        # >= 0 (or +inf, clamped) and the truncating cast to int64 is the floor.
         u = torch.rand(chunk, generator=generator, device=device, dtype=torch.float64)
-        gaps = u.neg_().add_(1.0).log_().div_(log_stay).floor_().clamp_(max=numel).long()
+        gaps = (1.0 - u).log_().div_(log_stay).clamp_(max=numel).long()
         positions = gaps.add_(1).cumsum_(0).add_(start - 1)
         inside = int(torch.searchsorted(positions, numel))  # positions are increasing
         if inside < chunk:
@@ -443,15 +463,15 @@ class SMCDFilter(ParticleFilter):
         n, dim = particles.shape[-2], particles.shape[-1]
         if self.ancestors is not None:
             total = weights.numel()
-            group = flat_particle_index(self.ancestors, n)
-            group_weight = torch.zeros(total, dtype=dtype, device=self.device).index_add_(0, group, weights.reshape(-1))
-            present = group_weight.nonzero().squeeze(-1)
-            if 2 * present.numel() <= total:
-                member = torch.empty(total, dtype=torch.long, device=self.device)
-                member.scatter_(0, group, torch.arange(total, device=self.device))  # any copy will do
-                rows = particles.reshape(total, dim).index_select(0, member[present]).view(torch.uint8).to(dtype)
+            groups, inverse = group_copies(flat_particle_index(self.ancestors, n))
+            if 2 * groups.numel() <= total:
+                group_weight = torch.zeros(groups.numel(), dtype=dtype, device=self.device)
+                group_weight.index_add_(0, inverse, weights.reshape(-1))
+                member = torch.empty(groups.numel(), dtype=torch.long, device=self.device)
+                member.scatter_(0, inverse, torch.arange(total, device=self.device))  # any copy will do
+                rows = particles.reshape(total, dim).index_select(0, member).view(torch.uint8).to(dtype)
                 mean = torch.zeros(total // n, dim, dtype=dtype, device=self.device)
-                mean.index_add_(0, present // n, rows * group_weight[present].unsqueeze(-1))
+                mean.index_add_(0, groups // n, rows.mul_(group_weight.unsqueeze(-1)))
                 return mean.reshape(*weights.shape[:-1], dim)
         # Via uint8: converting bool to float directly is several times slower.
         bits = particles.view(torch.uint8).to(dtype)

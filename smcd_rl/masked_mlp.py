@@ -147,7 +147,8 @@ class MaskedMLP(nn.Module):
             )
         shared = x.dim() < masks.dim()
         h = x
-        for i, linear in enumerate(self.linears[:-1]):
+        # list(...)[:-1], not self.linears[:-1]: slicing a ModuleList builds a new Module every call.
+        for i, linear in enumerate(list(self.linears)[:-1]):
             h = self.act(linear(h))
             if shared:
                 # Everything before the first mask is the same for all particles: add the
@@ -171,7 +172,7 @@ class MaskedMLP(nn.Module):
 
     def _run(self, x: Tensor, scaled: Tensor | None) -> Tensor:
         h = x
-        for i, linear in enumerate(self.linears[:-1]):
+        for i, linear in enumerate(list(self.linears)[:-1]):  # see forward_particles
             h = self.act(linear(h))
             sl = self.mask_slices[i]
             if scaled is not None and sl is not None:

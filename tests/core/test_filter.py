@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import smcd_rl
-from smcd_rl.filter import sample_flip_positions
+from smcd_rl.filter import flat_particle_index, sample_flip_positions
 from smcd_rl.resampling import RESAMPLING_SCHEMES, resample_indices
 
 
@@ -37,6 +37,27 @@ def test_posterior_concentrates_on_the_true_mask() -> None:
     assert torch.equal(filt.mean_mask > 0.5, true_mask)
     assert float((filt.mean_mask - true_mask.float()).abs().max()) < 0.3
 
+
+
+@pytest.mark.parametrize("sorted_ancestors", [True, False])
+def test_mean_mask_sums_copies_to_the_weighted_mean(sorted_ancestors: bool) -> None:
+    """The MMSE mask sums copies of one ancestor first; it must equal the plain weighted mean,
+    with weights left non-uniform after resampling and ancestors in any order."""
+    filt = smcd_rl.SMCDFilter(16, num_particles=40, generator=_gen(3))
+    filt.reset((2,))
+    filt.propagate()
+    filt.reweight(-((filt.particles.float().sum(-1) - 12) ** 2))  # peaked: few ancestors survive
+    ancestors = filt.ancestors
+    assert ancestors is not None
+    assert 2 * torch.unique(flat_particle_index(ancestors, 40)).numel() <= 80, "the grouped path must run"
+    if not sorted_ancestors:
+        perm = torch.randperm(40, generator=_gen(4))
+        filt.particles = filt.particles[:, perm]
+        filt.ancestors = ancestors[:, perm]
+    filt.ess_threshold = 0.0  # reweight without resampling: copies keep their ancestors, weights differ
+    filt.reweight(torch.randn(2, 40, generator=_gen(5)))
+    expected = (filt.weights.unsqueeze(-2) @ filt.particles.float()).squeeze(-2)
+    torch.testing.assert_close(filt.mean_mask, expected)
 
 def test_log_evidence_and_weights_match_hand_computation() -> None:
     filt = smcd_rl.SMCDFilter(4, num_particles=3, ess_threshold=0.0, generator=_gen())
