@@ -320,6 +320,19 @@ def group_copies(index: Tensor) -> tuple[Tensor, Tensor]:
     return groups, inverse
 
 
+def group_members(inverse: Tensor, num_groups: int) -> Tensor:
+    """One member of each group, by its position in ``inverse`` (any will do: they are equal copies).
+
+    Example:
+        >>> import torch
+        >>> inverse = torch.tensor([0, 0, 1, 1, 1])
+        >>> inverse[group_members(inverse, 2)]  # each member belongs to its group
+        tensor([0, 1])
+    """
+    member = torch.empty(num_groups, dtype=torch.long, device=inverse.device)
+    return member.scatter_(0, inverse, torch.arange(inverse.numel(), device=inverse.device))
+
+
 def _gather_particles(particles: Tensor, idx: Tensor) -> Tensor:
     """``particles[..., idx, :]`` per batch element, as one row copy (``gather`` is ~50x slower here)."""
     n, dim = particles.shape[-2], particles.shape[-1]
@@ -467,8 +480,7 @@ class SMCDFilter(ParticleFilter):
             if 2 * groups.numel() <= total:
                 group_weight = torch.zeros(groups.numel(), dtype=dtype, device=self.device)
                 group_weight.index_add_(0, inverse, weights.reshape(-1))
-                member = torch.empty(groups.numel(), dtype=torch.long, device=self.device)
-                member.scatter_(0, inverse, torch.arange(total, device=self.device))  # any copy will do
+                member = group_members(inverse, groups.numel())
                 rows = particles.reshape(total, dim).index_select(0, member).view(torch.uint8).to(dtype)
                 mean = torch.zeros(total // n, dim, dtype=dtype, device=self.device)
                 mean.index_add_(0, groups // n, rows.mul_(group_weight.unsqueeze(-1)))

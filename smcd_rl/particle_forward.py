@@ -43,7 +43,7 @@ from typing import Literal, NamedTuple
 import torch
 from torch import Tensor
 
-from smcd_rl.filter import flat_particle_index, group_copies
+from smcd_rl.filter import flat_particle_index, group_copies, group_members
 from smcd_rl.masked_mlp import MaskedMLP
 
 __all__ = ["Lineage", "ParticlePath", "ParticleForward", "SPARSE_COST", "check_path"]
@@ -158,8 +158,7 @@ class ParticleForward:
         following = net.linears[layer + 1]
 
         # Once per distinct parent: ``representative`` is any member of each group (all are equal).
-        representative = torch.empty(groups.numel(), dtype=torch.long, device=masks.device)
-        representative.scatter_(0, child_group, torch.arange(total, device=masks.device))
+        representative = group_members(child_group, groups.numel())
         parent_bits = lineage.parents.reshape(total, dim).index_select(0, representative)[:, sl]
         table = self._table(following.weight, parent_bits.shape[0])
         table[width:width + groups.numel()] = self._parent_pre(parent_bits, groups // n, h, following, table)
