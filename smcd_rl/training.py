@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
 import os
 from collections.abc import Callable
@@ -95,7 +96,7 @@ def fit(
         return _shuffled_epoch(n, batch_size, optimizer, generator, batch_loss)
 
     return _train(
-        model, one_epoch, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=optimizer,
+        model, one_epoch, data, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=optimizer,
         checkpoint=checkpoint, desc="fit", progress=progress, callback=callback,
     )
 
@@ -246,7 +247,7 @@ def fit_reptile(
         return total / (num_tasks * n * inner_epochs)
 
     return _train(
-        model, one_epoch, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=None,
+        model, one_epoch, data, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=None,
         checkpoint=checkpoint, desc="fit_reptile", progress=progress, callback=callback,
     )
 
@@ -296,6 +297,7 @@ def _normalised_pairs(model: Any, data: TensorDictBase, device: torch.device) ->
 def _train(
     model: _Checkpointable,
     one_epoch: Callable[[torch.Generator], float],
+    data: TensorDictBase,
     *,
     trained: nn.Module,
     epochs: int,
@@ -312,15 +314,17 @@ def _train(
     ``one_epoch(generator)`` trains one epoch and returns its mean loss; the generator is
     reseeded from (seed, epoch) before each epoch, which is what makes a resumed run identical
     to an uninterrupted one. ``trained`` is the module put in train mode meanwhile (and in
-    eval mode after); ``model`` is what the checkpoint saves and restores.
+    eval mode after); ``model`` is what the checkpoint saves and restores. The checkpoint records
+    a digest of ``data``, so that a run on other data never resumes it.
     """
     net = trained
     device = next(net.parameters()).device
     history: list[float] = []
     start = 0
     path = Path(checkpoint) if checkpoint is not None else None
+    digest = _data_digest(data) if path is not None else ""
     if path is not None and path.is_file():
-        start, history = _resume(path, model, optimizer, settings)
+        start, history = _resume(path, model, optimizer, settings, digest)
     generator = torch.Generator(device=device)
     bar = tqdm(range(start, epochs), desc=desc, unit="epoch", disable=not progress, initial=start, total=epochs)
     for epoch in bar:
@@ -329,7 +333,7 @@ def _train(
         history.append(one_epoch(generator))
         bar.set_postfix(loss=f"{history[-1]:.4g}")
         if path is not None:
-            _save(path, model, optimizer, epoch + 1, history, settings)
+            _save(path, model, optimizer, epoch + 1, history, settings, digest)
         if callback is not None:
             callback(epoch, history[-1])
     net.eval()
@@ -343,6 +347,7 @@ def _save(
     epoch: int,
     history: list[float],
     settings: dict,
+    digest: str,
 ) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
@@ -353,13 +358,14 @@ def _save(
         "epoch": epoch,
         "history": history,
         "settings": settings,
+        "data": digest,
     }
     torch.save(state, tmp)
     os.replace(tmp, path)  # atomic: an interruption never leaves a half-written checkpoint
 
 
 def _resume(
-    path: Path, model: _Checkpointable, optimizer: torch.optim.Optimizer | None, settings: dict
+    path: Path, model: _Checkpointable, optimizer: torch.optim.Optimizer | None, settings: dict, digest: str
 ) -> tuple[int, list[float]]:
     state = torch.load(path, map_location="cpu", weights_only=False)
     if not isinstance(state, dict) or state.get("format") != _FORMAT:
@@ -369,7 +375,26 @@ def _resume(
             f"{path} was written with training settings {state['settings']}, not {settings}; "
             "resume with the same settings or use a new checkpoint path"
         )
+    if state.get("data") != digest:
+        raise CheckpointMismatchError(
+            f"{path} was trained on other data (or written before checkpoints recorded their data); "
+            "resume with the same data, delete it to train afresh, or use another checkpoint path"
+        )
     model.load_checkpoint(state["model"])
     if optimizer is not None:
         optimizer.load_state_dict(state["optimizer"])
     return int(state["epoch"]), list(state["history"])
+
+
+def _data_digest(data: TensorDictBase) -> str:
+    """A digest of every entry of ``data`` (keys, dtypes, shapes and values): equal only for the same data."""
+    digest = hashlib.sha256(repr(tuple(data.batch_size)).encode())
+    for key in sorted(data.keys(include_nested=True, leaves_only=True), key=repr):
+        value = data.get(key)
+        if not isinstance(value, Tensor):  # non-tensor data: its repr
+            digest.update(f"{key!r}{value!r}".encode())
+            continue
+        value = value.detach().cpu().contiguous()
+        digest.update(f"{key!r}{value.dtype}{tuple(value.shape)}".encode())
+        digest.update(value.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()

@@ -318,6 +318,6 @@ def fit_latent(
         return _shuffled_epoch(n, batch_size, optimizer, generator, lambda idx: model.negative_elbo(x[idx], y[idx], generator).mean())
 
     return _train(
-        model, one_epoch, trained=model, epochs=epochs, seed=seed, settings=settings, optimizer=optimizer,
+        model, one_epoch, data, trained=model, epochs=epochs, seed=seed, settings=settings, optimizer=optimizer,
         checkpoint=checkpoint, desc="fit_latent", progress=progress, callback=callback,
     )

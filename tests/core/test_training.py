@@ -49,12 +49,17 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path) -> None:
         assert torch.equal(a, b)
 
 
-def test_resume_refuses_another_model_or_other_settings(tmp_path) -> None:
+def test_resume_refuses_another_model_other_settings_or_other_data(tmp_path) -> None:
     smcd_rl.fit(_model(), _data(), epochs=1, checkpoint=tmp_path / "c.pt", progress=False)
     with pytest.raises(smcd_rl.CheckpointMismatchError, match="architecture"):
         smcd_rl.fit(_model(hidden=32), _data(), epochs=2, checkpoint=tmp_path / "c.pt", progress=False)
     with pytest.raises(smcd_rl.CheckpointMismatchError, match="settings"):
         smcd_rl.fit(_model(), _data(), epochs=2, lr=0.5, checkpoint=tmp_path / "c.pt", progress=False)
+    other = _data()
+    other["ee"] = other["ee"] * 2  # same keys and shapes, other values
+    for data in (other, _data(256)):
+        with pytest.raises(smcd_rl.CheckpointMismatchError, match="other data"):
+            smcd_rl.fit(_model(), data, epochs=2, checkpoint=tmp_path / "c.pt", progress=False)
 
 
 def test_empty_or_incomplete_data_is_refused() -> None:
