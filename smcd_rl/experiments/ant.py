@@ -71,8 +71,8 @@ from smcd_rl.experiments.common import (
     machine_info,
     option,
     seed_everything,
-    settings_fingerprint,
     torch_threads,
+    training_checkpoint,
     write_csv,
     write_json,
 )
@@ -200,7 +200,6 @@ def _run(config: AntConfig, out: Path, device: torch.device, *, progress: bool) 
     model = smcd_rl.AdaptiveDynamicsModel(net)
     train_settings = {**data_settings, **{k: getattr(config, k) for k in (
         "hidden", "depth", "dropout", "epochs", "batch_size", "lr", "validation", "device")}}
-    fingerprint = settings_fingerprint(train_settings)[:12]
     started = time.perf_counter()
     losses = smcd_rl.fit_dynamics(
         model,
@@ -209,7 +208,7 @@ def _run(config: AntConfig, out: Path, device: torch.device, *, progress: bool) 
         batch_size=config.batch_size,
         lr=config.lr,
         seed=config.seed,
-        checkpoint=out / f"train-{fingerprint}.ckpt",  # named by its settings: never resumes another run
+        checkpoint=training_checkpoint(out, "train", train_settings),
         progress=progress,
     )
     train_seconds = time.perf_counter() - started

@@ -30,6 +30,7 @@ __all__ = [
     "torch_threads",
     "interleaved_times",
     "settings_fingerprint",
+    "training_checkpoint",
 ]
 
 
@@ -121,6 +122,19 @@ def settings_fingerprint(settings: Mapping[str, Any]) -> str:
         True
     """
     return hashlib.sha256(json.dumps(dict(settings), sort_keys=True, default=str).encode()).hexdigest()
+
+
+def training_checkpoint(out: Path, name: str, settings: Mapping[str, Any]) -> Path:
+    """``out / "{name}-{fingerprint}.ckpt"``: a training checkpoint named by the settings the training depends on.
+
+    A rerun with the same settings resumes it; one with other settings (other data, another network)
+    starts its own instead of resuming, or being refused by, the other run's.
+
+    Example:
+        >>> training_checkpoint(Path("runs"), "train", {"seed": 0}).name
+        'train-de7d7744ccd7.ckpt'
+    """
+    return Path(out) / f"{name}-{settings_fingerprint(settings)[:12]}.ckpt"
 
 
 class ResultCache:

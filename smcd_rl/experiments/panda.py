@@ -77,8 +77,8 @@ from smcd_rl.experiments.common import (
     option,
     resolve_device,
     seed_everything,
-    settings_fingerprint,
     torch_threads,
+    training_checkpoint,
     write_csv,
     write_json,
 )
@@ -188,7 +188,6 @@ def _run(config: PandaConfig, *, progress: bool) -> dict[str, Any]:
     net = smcd_rl.MaskedMLP(7, 3, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
     model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
     train_keys = ("seed", "samples", "hidden", "depth", "dropout", "epochs", "batch_size", "lr", "tool_range", "device")
-    fingerprint = settings_fingerprint({k: getattr(config, k) for k in train_keys})[:12]
     started = time.perf_counter()
     losses = smcd_rl.fit(
         model,
@@ -197,7 +196,7 @@ def _run(config: PandaConfig, *, progress: bool) -> dict[str, Any]:
         batch_size=config.batch_size,
         lr=config.lr,
         seed=config.seed,
-        checkpoint=out / f"train-{fingerprint}.ckpt",  # named by its settings: never resumes another run
+        checkpoint=training_checkpoint(out, "train", {k: getattr(config, k) for k in train_keys}),
         progress=progress,
     )
     train_seconds = time.perf_counter() - started
