@@ -258,9 +258,7 @@ class MPCAgent:
                 f"observation batch {list(batch)} does not match the model's batch_shape {list(model_batch)}; "
                 f"pass one observation per adaptation state, or reset the model with batch_shape={list(batch)}"
             )
-        objective = model_reward_objective(
-            self.model, obs, self.reward_fn, self.termination_fn, ensemble=self.ensemble
-        )
+        objective = model_reward_objective(self.model, obs, self.reward_fn, self.termination_fn, ensemble=self.ensemble)
         return self.planner.plan(objective, batch_shape=batch)
 
     def act(self, observation: np.ndarray | Tensor) -> np.ndarray:
@@ -272,8 +270,6 @@ class MPCAgent:
             f"MPCAgent(planner={type(self.planner).__name__}(horizon={self.planner.horizon}), "
             f"adaptation={type(self.model.adaptation).__name__}, ensemble={self.ensemble!r})"
         )
-
-
 
 
 def _check_shape(value: Tensor, expected: tuple[int, ...], what: str) -> None:

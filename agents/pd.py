@@ -113,7 +113,9 @@ class JacobianPD:
             raise ValueError(f"q and q_dot must have the same shape, got {list(q.shape)} and {list(q_dot.shape)}")
         jacobian, predicted = _jacobian_and_position(self.kinematics, q)
         if goal.shape != jacobian.shape[:-1]:
-            raise ValueError(f"goal must have shape {list(jacobian.shape[:-1])} (batch, end-effector), got {list(goal.shape)}")
+            raise ValueError(
+                f"goal must have shape {list(jacobian.shape[:-1])} (batch, end-effector), got {list(goal.shape)}"
+            )
         if position is None:
             position = predicted
         elif position.shape != goal.shape:

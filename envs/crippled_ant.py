@@ -150,9 +150,7 @@ def leg_indices(model: mujoco.MjModel) -> tuple[Leg, ...]:
     return tuple(legs)
 
 
-def ant_termination(
-    next_obs: Tensor, *, healthy_z_range: tuple[float, float] = (0.2, 1.0)
-) -> Tensor:
+def ant_termination(next_obs: Tensor, *, healthy_z_range: tuple[float, float] = (0.2, 1.0)) -> Tensor:
     """Whether the Ant is unhealthy, hence the episode terminated, in ``next_obs`` (Ant-v5 rule).
 
     Unhealthy means the torso height ``next_obs[..., 2]`` lies outside the closed interval
@@ -447,9 +445,7 @@ class CrippledAntEnv(AntEnv):
         mujoco.mj_forward(self.model, self.data)
         mujoco.mj_rnePostConstraint(self.model, self.data)
 
-    def step(
-        self, action: NDArray[np.floating]
-    ) -> tuple[NDArray[np.float64], np.float64, bool, bool, dict[str, Any]]:
+    def step(self, action: NDArray[np.floating]) -> tuple[NDArray[np.float64], np.float64, bool, bool, dict[str, Any]]:
         observation, reward, terminated, truncated, info = super().step(action)
         info["crippled_leg"] = self._leg_info()
         return observation, reward, terminated, truncated, info

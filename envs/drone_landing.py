@@ -107,7 +107,9 @@ def platform_index(xy: Tensor) -> Tensor:
     table = platform_tensor(dtype=xy.dtype, device=xy.device)
     inside = ((xy.unsqueeze(-2) - table[:, :2]).abs() <= table[:, 3:4]).all(-1)  # [..., 5]
     # Platforms do not overlap, so at most one is True; argmax picks it.
-    return torch.where(inside.any(-1), inside.to(torch.int8).argmax(-1), torch.full_like(inside[..., 0], -1, dtype=torch.long))
+    return torch.where(
+        inside.any(-1), inside.to(torch.int8).argmax(-1), torch.full_like(inside[..., 0], -1, dtype=torch.long)
+    )
 
 
 def surface_height(xy: Tensor) -> Tensor:
@@ -335,7 +337,9 @@ class DroneLandingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
 
     metadata: dict[str, Any] = {"render_modes": []}
 
-    def __init__(self, dt: float = DT, tau: float = TAU, max_speed: float = MAX_SPEED, render_mode: None = None) -> None:
+    def __init__(
+        self, dt: float = DT, tau: float = TAU, max_speed: float = MAX_SPEED, render_mode: None = None
+    ) -> None:
         if render_mode is not None:
             raise ValueError(f"render_mode must be None (no rendering), got {render_mode!r}.")
         for name, value in (("dt", dt), ("tau", tau), ("max_speed", max_speed)):
@@ -352,7 +356,9 @@ class DroneLandingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self._velocity = np.zeros(3)
         self._target = 0
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
         """Start hovering at rest, with a random (or given) target platform.
 
         Args:
@@ -408,8 +414,12 @@ class DroneLandingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"action must have shape ({ACTION_DIM},), got {command.shape}.")
         before = torch.as_tensor(self._position)
         position, velocity, down = drone_transition(
-            before, torch.as_tensor(self._velocity), torch.as_tensor(command),
-            dt=self.dt, tau=self.tau, max_speed=self.max_speed,
+            before,
+            torch.as_tensor(self._velocity),
+            torch.as_tensor(command),
+            dt=self.dt,
+            tau=self.tau,
+            max_speed=self.max_speed,
         )
         reward = float(drone_reward(before, position, self._target, down))
         self._position, self._velocity = position.numpy(), velocity.numpy()

@@ -151,7 +151,9 @@ class TrajectoryDataset:
         if steps == 0:
             raise ValueError("the dataset has no steps")
         if self.action.shape[0] != steps:
-            raise ValueError(f"state has {steps} steps but action has {self.action.shape[0]}; they must match row by row")
+            raise ValueError(
+                f"state has {steps} steps but action has {self.action.shape[0]}; they must match row by row"
+            )
         if not (np.isfinite(self.state).all() and np.isfinite(self.action).all()):
             raise ValueError("state and action must be finite (no NaN or inf); drop or repair those steps")
         self.trajectory = _integers("trajectory", self.trajectory, steps, "one id per step")
@@ -164,7 +166,9 @@ class TrajectoryDataset:
                 "each trajectory's steps contiguous; sort the steps by trajectory and renumber the ids"
             )
         self.step_labels = {k: _label(k, v, steps, "per-step") for k, v in dict(self.step_labels).items()}
-        self.trajectory_labels = {k: _label(k, v, count, "per-trajectory") for k, v in dict(self.trajectory_labels).items()}
+        self.trajectory_labels = {
+            k: _label(k, v, count, "per-trajectory") for k, v in dict(self.trajectory_labels).items()
+        }
         clash = set(self.step_labels) & set(self.trajectory_labels)
         if clash:
             raise ValueError(f"label(s) {sorted(clash)} are both per-step and per-trajectory; rename one")
@@ -174,7 +178,9 @@ class TrajectoryDataset:
             if values is None:
                 raise ValueError(f"label_names has {name!r} but there is no such label; labels: {sorted(self.labels)}")
             if values.size and values.max() >= len(names):
-                raise ValueError(f"label {name!r} takes value {values.max()} but label_names lists only {len(names)} names")
+                raise ValueError(
+                    f"label {name!r} takes value {values.max()} but label_names lists only {len(names)} names"
+                )
 
     @property
     def num_trajectories(self) -> int:
@@ -306,7 +312,9 @@ def load_dataset(path: str | os.PathLike[str]) -> TrajectoryDataset:
             )
         unknown = [k for k in keys if k not in _REQUIRED and k.split("/")[0] not in ("step", "traj", "names")]
         if unknown:
-            raise KeyError(f"dataset {path} has unknown key(s) {sorted(unknown)}; labels go under step/NAME or traj/NAME")
+            raise KeyError(
+                f"dataset {path} has unknown key(s) {sorted(unknown)}; labels go under step/NAME or traj/NAME"
+            )
 
         def group(prefix: str) -> dict[str, np.ndarray]:
             return {k.split("/", 1)[1]: archive[k] for k in keys if k.startswith(prefix + "/")}
@@ -354,7 +362,9 @@ def split_dataset(
     is_unknown = np.isin(dataset.operator, unknown_ops)
     candidates = np.flatnonzero(~is_unknown)
     n_known = max(1, round(known_fraction * dataset.num_trajectories))
-    remaining = {int(op): int(n) for op, n in zip(*np.unique(dataset.operator[candidates], return_counts=True))}
+    remaining = {
+        int(op): int(n) for op, n in zip(*np.unique(dataset.operator[candidates], return_counts=True), strict=True)
+    }
     known: list[int] = []
     for index in rng.permutation(candidates):
         if len(known) == n_known:
@@ -426,7 +436,11 @@ def simulate_operators(
         >>> data.class_name("skill", int(data.trajectory_labels["skill"][0])) in SKILLS
         True
     """
-    counts = {"num_operators": num_operators, "trajectories_per_operator": trajectories_per_operator, "max_steps": max_steps}
+    counts = {
+        "num_operators": num_operators,
+        "trajectories_per_operator": trajectories_per_operator,
+        "max_steps": max_steps,
+    }
     for name, value in counts.items():
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
@@ -467,7 +481,9 @@ def simulate_operators(
         horizontal = gain * error[:, :2]
         horizontal = horizontal * (speed / horizontal.norm(dim=-1).clamp(min=1e-9)).clamp(max=1.0).unsqueeze(-1)
         # Cruise height for orthogonal landings; a glide path to just above the platform for diagonal ones.
-        glide = goal[:, 2] + _CLEARANCE + (START[2] - goal[:, 2] - _CLEARANCE) * (distance_xy / initial_xy).clamp(max=1.0)
+        glide = (
+            goal[:, 2] + _CLEARANCE + (START[2] - goal[:, 2] - _CLEARANCE) * (distance_xy / initial_xy).clamp(max=1.0)
+        )
         height_goal = torch.where(diagonal, glide, torch.full_like(glide, START[2]))
         vertical = gain[:, 0] * (height_goal - seen[:, 2])
         sink = -(0.8 * (seen[:, 2] - goal[:, 2]) + 0.15).clamp(min=0.15).minimum(descent)
@@ -517,7 +533,9 @@ def simulate_operators(
     )
 
 
-def _skill_labels(operator: torch.Tensor, success: torch.Tensor, final_distance: torch.Tensor, num_operators: int) -> np.ndarray:
+def _skill_labels(
+    operator: torch.Tensor, success: torch.Tensor, final_distance: torch.Tensor, num_operators: int
+) -> np.ndarray:
     """Appendix B.1: rank operators by successful landings; bottom 10% novice, top 10% expert."""
     wins = torch.zeros(num_operators).index_add_(0, operator, success.float())
     miss = torch.zeros(num_operators, dtype=final_distance.dtype).index_add_(0, operator, final_distance)

@@ -237,9 +237,7 @@ def sample_joint_configurations(
     return lower + (upper - lower) * torch.rand(*size, _N_JOINTS, generator=generator, device=device)
 
 
-def sample_goals(
-    tool_length: Tensor, *, generator: torch.Generator | None = None
-) -> Tensor:
+def sample_goals(tool_length: Tensor, *, generator: torch.Generator | None = None) -> Tensor:
     """Kinematically feasible goals: the end effector at random joint angles within the limits.
 
     Args:
@@ -395,8 +393,14 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     ) -> None:
         if render_mode is not None:
             raise ValueError(f"render_mode must be None (no rendering), got {render_mode!r}")
-        if isinstance(measurement_interval, bool) or not isinstance(measurement_interval, int) or measurement_interval < 1:
-            raise ValueError(f"measurement_interval must be an int >= 1, got {measurement_interval!r}; 1 measures every step")
+        if (
+            isinstance(measurement_interval, bool)
+            or not isinstance(measurement_interval, int)
+            or measurement_interval < 1
+        ):
+            raise ValueError(
+                f"measurement_interval must be an int >= 1, got {measurement_interval!r}; 1 measures every step"
+            )
         for name, value in (("dt", dt), ("goal_tolerance", goal_tolerance)):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
@@ -510,7 +514,9 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     def _observation(self, *, fresh: bool) -> np.ndarray:
         assert self._q is not None
         parts = [self._q.numpy(), self._q_dot.numpy(), self._goal, self._measured, [float(fresh)]]
-        return np.clip(np.concatenate(parts), self.observation_space.low, self.observation_space.high).astype(np.float32)
+        return np.clip(np.concatenate(parts), self.observation_space.low, self.observation_space.high).astype(
+            np.float32
+        )
 
     def _info(self, ee: np.ndarray, *, fresh: bool) -> dict[str, Any]:
         distance = float(np.linalg.norm(ee - self._goal))

@@ -256,9 +256,7 @@ def motor_babbling(
 
     shape = (num_tasks, episodes_per_task)
     q0 = (2 * torch.rand(*shape, 2, generator=generator, device=device, dtype=dtype) - 1) * math.pi
-    actions = action_std * torch.randn(
-        *shape, steps, 2, generator=generator, device=device, dtype=dtype
-    )
+    actions = action_std * torch.randn(*shape, steps, 2, generator=generator, device=device, dtype=dtype)
     qs = [q0]
     for t in range(steps):
         qs.append(integrate_joints(qs[-1], actions[..., t, :], dt))
@@ -439,13 +437,17 @@ class TwoLinkArmEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             # Share sample_link_lengths with the data generator; its torch generator is seeded
             # from self.np_random so gymnasium seeding still controls every draw.
             torch_gen = torch.Generator().manual_seed(int(self.np_random.integers(2**63 - 1)))
-            lengths = sample_link_lengths(
-                (),
-                mean=self.link_length_mean,
-                std=self.link_length_std,
-                min_length=self.min_link_length,
-                generator=torch_gen,
-            ).double().numpy()
+            lengths = (
+                sample_link_lengths(
+                    (),
+                    mean=self.link_length_mean,
+                    std=self.link_length_std,
+                    min_length=self.min_link_length,
+                    generator=torch_gen,
+                )
+                .double()
+                .numpy()
+            )
         self._link_lengths = lengths
 
         if "q" in options:
@@ -455,9 +457,7 @@ class TwoLinkArmEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self._q = q
         return self._observe()
 
-    def step(
-        self, action: np.ndarray
-    ) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
         """Apply joint velocities for ``dt`` seconds.
 
         Args:
@@ -507,4 +507,3 @@ def _pair(name: str, value: object) -> np.ndarray:
     if arr.shape != (2,) or not np.isfinite(arr).all():
         raise ValueError(f"options[{name!r}] must be two finite numbers, got {value!r}.")
     return arr
-

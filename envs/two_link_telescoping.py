@@ -208,7 +208,12 @@ def sample_initial_state(
         raise ValueError(f"radius_range must be (low, high) with 0 < low <= high, got {radius_range}; e.g. (0.3, 1.5).")
     shape = tuple(shape)
     l1 = sample_link_lengths(
-        shape, mean=link_length_mean, std=link_length_std, min_length=min_link_length, generator=generator, device=device
+        shape,
+        mean=link_length_mean,
+        std=link_length_std,
+        min_length=min_link_length,
+        generator=generator,
+        device=device,
     )[..., 0]
     q = (2 * torch.rand(*shape, 2, generator=generator, device=device) - 1) * math.pi
     radius = low + (high - low) * torch.rand(shape, generator=generator, device=device)
@@ -328,7 +333,9 @@ class TwoLinkTelescopingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be finite and > 0, got {dt!r}; pass e.g. dt={TELESCOPING_DT}.")
         if not math.isfinite(angular_speed):
-            raise ValueError(f"angular_speed must be finite, got {angular_speed!r}; pass e.g. {TARGET_ANGULAR_SPEED:.4f}.")
+            raise ValueError(
+                f"angular_speed must be finite, got {angular_speed!r}; pass e.g. {TARGET_ANGULAR_SPEED:.4f}."
+            )
         if not (math.isfinite(max_acceleration) and max_acceleration > 0):
             raise ValueError(f"max_acceleration must be finite and > 0, got {max_acceleration!r}; pass e.g. 100.0.")
         _check_non_negative("measurement_noise", measurement_noise)
@@ -427,7 +434,9 @@ class TwoLinkTelescopingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         if u.shape != (2,):
             raise ValueError(f"action must have shape (2,), got {u.shape}.")
         u = np.clip(u, -self.max_acceleration, self.max_acceleration)
-        self._state["q"], self._q_dot = integrate_acceleration(self._state["q"], self._q_dot, torch.as_tensor(u), self.dt)
+        self._state["q"], self._q_dot = integrate_acceleration(
+            self._state["q"], self._q_dot, torch.as_tensor(u), self.dt
+        )
         self._k += 1
         obs, info = self._observe()
         reward = float(tracking_reward(torch.as_tensor(info["ee_true"], dtype=torch.float64), self._target()))

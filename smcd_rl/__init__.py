@@ -14,11 +14,11 @@ Example:
 from __future__ import annotations
 
 from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation, make_adaptation
+from smcd_rl.envs import register_all as _register_envs
 from smcd_rl.filter import ParticleFilter, SMCDFilter
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel, CheckpointMismatchError, load
 from smcd_rl.training import fit, fit_dynamics, fit_reptile
-from smcd_rl.envs import register_all as _register_envs
 
 _register_envs()
 

@@ -67,7 +67,7 @@ class Adaptation(ABC):
         """A copy of the adaptation state; :meth:`restore_rows` puts rows of it back."""
         return {}
 
-    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:  # noqa: B027 - stateless default
         """Put back ``state``'s batch elements where ``rows [*B]`` is True, leave the others.
 
         With :meth:`state_dict` this resets or updates part of a batch: save the state, act on
@@ -207,9 +207,7 @@ class SMCD(Adaptation):
         super().bind(net, output_scale)
         noise = torch.as_tensor(self.noise_std, dtype=output_scale.dtype, device=output_scale.device)
         if noise.dim() == 1 and noise.shape[0] not in (1, net.out_features):
-            raise ValueError(
-                f"noise_std has {noise.shape[0]} values but the model predicts {net.out_features} outputs"
-            )
+            raise ValueError(f"noise_std has {noise.shape[0]} values but the model predicts {net.out_features} outputs")
         noise = noise.expand(net.out_features)
         self._sigma = noise / output_scale  # the same noise, in normalised units
         # Normalising constant in the target's own units, so log evidence is a true log density.
@@ -365,8 +363,12 @@ class GradientDescent(Adaptation):
 
     def state_dict(self) -> dict[str, Any]:
         assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
-        return {"params": {k: v.clone() for k, v in self._params.items()}, "inputs": self._inputs.clone(),
-                "targets": self._targets.clone(), "count": self._count.clone()}
+        return {
+            "params": {k: v.clone() for k, v in self._params.items()},
+            "inputs": self._inputs.clone(),
+            "targets": self._targets.clone(),
+            "count": self._count.clone(),
+        }
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"

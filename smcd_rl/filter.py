@@ -29,6 +29,7 @@ def check_transition(transition: str) -> Transition:
         raise ValueError(f"transition must be 'keep_rate' or 'symmetric', got {transition!r}")
     return transition  # type: ignore[return-value]
 
+
 #: Above this flip probability drawing one uniform per bit is as cheap as the sparse sampler.
 _DENSE_FLIP_PROB = 0.05
 

@@ -101,7 +101,9 @@ def confidence_score(
     query, single = _check_masks(query_masks, train_masks)
     labels = torch.as_tensor(train_labels, device=train_masks.device)
     if labels.dim() != 1 or labels.shape[0] != train_masks.shape[0]:
-        raise ValueError(f"train_labels must be [{train_masks.shape[0]}] (one per stored mask), got {list(labels.shape)}")
+        raise ValueError(
+            f"train_labels must be [{train_masks.shape[0]}] (one per stored mask), got {list(labels.shape)}"
+        )
     if labels.is_floating_point() or labels.dtype == torch.bool:
         raise ValueError(f"train_labels must be integer class indices, got dtype {labels.dtype}")
     distances, indices = nearest_masks(query, train_masks, k)
@@ -150,7 +152,9 @@ def top_k_neighbour_accuracy(masks: Tensor, properties: Tensor, ks: Sequence[int
         tensor([1., 1.])
     """
     if masks.dim() != 2 or properties.dim() != 2:
-        raise ValueError(f"masks and properties must be 2-d [n, features], got {list(masks.shape)} and {list(properties.shape)}")
+        raise ValueError(
+            f"masks and properties must be 2-d [n, features], got {list(masks.shape)} and {list(properties.shape)}"
+        )
     n = masks.shape[0]
     if properties.shape[0] != n:
         raise ValueError(f"masks has {n} items but properties has {properties.shape[0]}; one row per item in both")
@@ -168,7 +172,9 @@ def top_k_neighbour_accuracy(masks: Tensor, properties: Tensor, ks: Sequence[int
     # Rank of the property neighbour among the mask neighbours: how many others are strictly closer.
     reference = mask_distance.gather(1, nearest.unsqueeze(-1))
     rank = (mask_distance < reference).sum(-1)
-    return torch.stack([(rank < k).double().mean() for k in ks]).to(masks.dtype if masks.is_floating_point() else torch.float32)
+    return torch.stack([(rank < k).double().mean() for k in ks]).to(
+        masks.dtype if masks.is_floating_point() else torch.float32
+    )
 
 
 def _check_masks(query_masks: Tensor, train_masks: Tensor) -> tuple[Tensor, bool]:

@@ -90,7 +90,7 @@ class MaskedMLP(nn.Module):
         self.masked_layers = layers
         widths = (self.in_features, *hidden, self.out_features)
         self.linears = nn.ModuleList(
-            nn.Linear(a, b, device=device, dtype=dtype) for a, b in zip(widths[:-1], widths[1:])
+            nn.Linear(a, b, device=device, dtype=dtype) for a, b in zip(widths[:-1], widths[1:], strict=True)
         )
         self.act = _ACTIVATIONS[activation]()
         # Where each hidden layer's bits sit in the flat mask (None: the layer is not masked).

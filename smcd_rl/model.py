@@ -326,10 +326,10 @@ class AdaptiveModel(TensorDictModuleBase):
         try:
             x = torch.cat(parts, dim=-1) if len(parts) > 1 else parts[0]
         except RuntimeError as err:
-            shapes = {str(k): list(p.shape) for k, p in zip(self.in_keys, parts)}
+            shapes = {str(k): list(p.shape) for k, p in zip(self.in_keys, parts, strict=True)}
             raise ValueError(f"{what}: cannot concatenate inputs {shapes} along the last dim") from err
         if x.shape[-1] != self.net.in_features:
-            shapes = {str(k): list(p.shape) for k, p in zip(self.in_keys, parts)}
+            shapes = {str(k): list(p.shape) for k, p in zip(self.in_keys, parts, strict=True)}
             raise ValueError(
                 f"{what}: inputs {shapes} give {x.shape[-1]} features but the network takes {self.net.in_features}"
             )
@@ -386,7 +386,6 @@ class AdaptiveDynamicsModel(AdaptiveModel):
             adaptation=adaptation,
         )
 
-
     def step(self, observation: Tensor, action: Tensor, *, mask: Tensor | None = None) -> Tensor:
         """The predicted next observation, from tensors: ``model(td)["next", "observation"]`` without the TensorDict.
 
@@ -429,7 +428,10 @@ class AdaptiveDynamicsModel(AdaptiveModel):
         return self.net.in_features - self.net.out_features
 
 
-_CLASSES: dict[str, type[AdaptiveModel]] = {"AdaptiveModel": AdaptiveModel, "AdaptiveDynamicsModel": AdaptiveDynamicsModel}
+_CLASSES: dict[str, type[AdaptiveModel]] = {
+    "AdaptiveModel": AdaptiveModel,
+    "AdaptiveDynamicsModel": AdaptiveDynamicsModel,
+}
 
 
 def _read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:

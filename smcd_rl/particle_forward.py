@@ -161,7 +161,7 @@ class ParticleForward:
         representative = group_members(child_group, groups.numel())
         parent_bits = lineage.parents.reshape(total, dim).index_select(0, representative)[:, sl]
         table = self._table(following.weight, parent_bits.shape[0])
-        table[width:width + groups.numel()] = self._parent_pre(parent_bits, groups // n, h, following, table)
+        table[width : width + groups.numel()] = self._parent_pre(parent_bits, groups // n, h, following, table)
 
         # Every child: its parent's row plus its flipped columns, as one weighted sum of table rows
         # per child (an embedding bag: the parent's row in the table's tail, then the flipped
@@ -198,7 +198,9 @@ class ParticleForward:
             h = torch.addmm(linear.bias, h, linear.weight.t(), alpha=scale, out=out)
         return h.reshape(*batch, n, h.shape[-1])
 
-    def _parent_pre(self, bits: Tensor, element: Tensor, h: Tensor, following: torch.nn.Linear, table: Tensor) -> Tensor:
+    def _parent_pre(
+        self, bits: Tensor, element: Tensor, h: Tensor, following: torch.nn.Linear, table: Tensor
+    ) -> Tensor:
         """Pre-activations ``[U, fan_out]`` of the distinct parents ``bits [U, width]`` of batch elements ``element``.
 
         Each batch element's first parent (the reference) is summed over its kept live units only,
@@ -271,7 +273,9 @@ def _floor_div(index: Tensor, divisor: int, bound: int) -> Tensor:
     return index.to(torch.float64).add_(0.5).mul_(1.0 / divisor).long()
 
 
-def _bags(table: Tensor, rows: Tensor, cols: Tensor, values: Tensor, num_rows: int, head: Tensor | None = None) -> Tensor:
+def _bags(
+    table: Tensor, rows: Tensor, cols: Tensor, values: Tensor, num_rows: int, head: Tensor | None = None
+) -> Tensor:
     """``out[r] = table[head[r]] + sum over k with rows[k] == r of values[k] * table[cols[k]]``.
 
     ``rows`` must be sorted. One ``embedding_bag`` call: each output row is a bag of table rows,

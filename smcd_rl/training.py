@@ -96,8 +96,18 @@ def fit(
         return _shuffled_epoch(n, batch_size, optimizer, generator, batch_loss)
 
     return _train(
-        model, one_epoch, data, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=optimizer,
-        checkpoint=checkpoint, desc="fit", progress=progress, callback=callback,
+        model,
+        one_epoch,
+        data,
+        trained=net,
+        epochs=epochs,
+        seed=seed,
+        settings=settings,
+        optimizer=optimizer,
+        checkpoint=checkpoint,
+        desc="fit",
+        progress=progress,
+        callback=callback,
     )
 
 
@@ -207,8 +217,13 @@ def fit_reptile(
     x, y = _normalised_pairs(model, data.reshape(num_tasks, -1), device)  # [tasks, n, features]
     n = x.shape[1]
     settings = {
-        "trainer": "reptile", "batch_size": batch_size, "lr": lr, "inner_lr": inner_lr,
-        "inner_epochs": inner_epochs, "tasks_per_batch": tasks_per_batch, "seed": seed,
+        "trainer": "reptile",
+        "batch_size": batch_size,
+        "lr": lr,
+        "inner_lr": inner_lr,
+        "inner_epochs": inner_epochs,
+        "tasks_per_batch": tasks_per_batch,
+        "seed": seed,
     }
 
     params = list(net.parameters())
@@ -224,7 +239,7 @@ def fit_reptile(
             summed = [torch.zeros_like(p) for p in params]
             for task in chosen:
                 with torch.no_grad():
-                    for w, p in zip(worker_params, params):
+                    for w, p in zip(worker_params, params, strict=True):
                         w.copy_(p)
                 for _ in range(inner_epochs):
                     order = torch.randperm(n, generator=generator, device=device)
@@ -235,20 +250,30 @@ def fit_reptile(
                         loss = (worker(x[task, idx], mask=mask) - y[task, idx]).square().mean()
                         grads = torch.autograd.grad(loss, worker_params)
                         with torch.no_grad():
-                            for w, g in zip(worker_params, grads):
+                            for w, g in zip(worker_params, grads, strict=True):
                                 w.add_(g, alpha=-inner_lr)
                         total += float(loss.detach()) * idx.shape[0]
                 with torch.no_grad():
-                    for total_w, w in zip(summed, worker_params):
+                    for total_w, w in zip(summed, worker_params, strict=True):
                         total_w.add_(w)
             with torch.no_grad():
-                for p, s in zip(params, summed):
+                for p, s in zip(params, summed, strict=True):
                     p.add_(s / len(chosen) - p, alpha=lr)
         return total / (num_tasks * n * inner_epochs)
 
     return _train(
-        model, one_epoch, data, trained=net, epochs=epochs, seed=seed, settings=settings, optimizer=None,
-        checkpoint=checkpoint, desc="fit_reptile", progress=progress, callback=callback,
+        model,
+        one_epoch,
+        data,
+        trained=net,
+        epochs=epochs,
+        seed=seed,
+        settings=settings,
+        optimizer=None,
+        checkpoint=checkpoint,
+        desc="fit_reptile",
+        progress=progress,
+        callback=callback,
     )
 
 

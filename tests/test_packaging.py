@@ -1,7 +1,8 @@
 """Every package directory is declared, so a regular (non-editable) install ships all modules."""
 
-import tomllib
 from pathlib import Path
+
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 

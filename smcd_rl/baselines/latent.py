@@ -34,7 +34,7 @@ _MIN_STD = 1e-3  # keeps the Gaussians' log-densities finite when a std collapse
 
 def _mlp(sizes: Sequence[int], device: torch.device | str | None) -> nn.Sequential:
     layers: list[nn.Module] = []
-    for a, b in zip(sizes[:-1], sizes[1:]):
+    for a, b in zip(sizes[:-1], sizes[1:], strict=True):
         layers += [nn.Linear(a, b, device=device), nn.ReLU()]
     return nn.Sequential(*layers[:-1])  # no activation on the output
 
@@ -96,8 +96,13 @@ class LatentVariableModel(TensorDictModuleBase):
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
-        sizes = {"in_features": in_features, "out_features": out_features, "state_dim": state_dim,
-                 "latent_dim": latent_dim, "width": width}
+        sizes = {
+            "in_features": in_features,
+            "out_features": out_features,
+            "state_dim": state_dim,
+            "latent_dim": latent_dim,
+            "width": width,
+        }
         bad = {k: v for k, v in sizes.items() if isinstance(v, bool) or not isinstance(v, int) or v < 1}
         if bad:
             raise ValueError(f"sizes must be positive ints, got {bad}")
@@ -122,8 +127,13 @@ class LatentVariableModel(TensorDictModuleBase):
     @property
     def config(self) -> dict[str, Any]:
         """The constructor's size arguments."""
-        return {"in_features": self.in_features, "out_features": self.out_features, "state_dim": self.state_dim,
-                "latent_dim": self.latent_dim, "width": self.width}
+        return {
+            "in_features": self.in_features,
+            "out_features": self.out_features,
+            "state_dim": self.state_dim,
+            "latent_dim": self.latent_dim,
+            "width": self.width,
+        }
 
     # ------------------------------------------------------------------ online use
     def reset(self, batch_shape: Sequence[int] = ()) -> None:
@@ -243,8 +253,10 @@ class LatentVariableModel(TensorDictModuleBase):
         parts = [self._read(td, key, None, what, check_finite=check_finite) for key in keys or self.in_keys]
         x = torch.cat(parts, -1) if len(parts) > 1 else parts[0]
         if x.shape[-1] != self.in_features:
-            raise ValueError(f"{what}: the inputs {keys or self.in_keys} give {x.shape[-1]} features, "
-                             f"the model takes {self.in_features}")
+            raise ValueError(
+                f"{what}: the inputs {keys or self.in_keys} give {x.shape[-1]} features, "
+                f"the model takes {self.in_features}"
+            )
         return x
 
     def _read(
@@ -315,9 +327,21 @@ def fit_latent(
     n = x.shape[0]
 
     def one_epoch(generator: torch.Generator) -> float:
-        return _shuffled_epoch(n, batch_size, optimizer, generator, lambda idx: model.negative_elbo(x[idx], y[idx], generator).mean())
+        return _shuffled_epoch(
+            n, batch_size, optimizer, generator, lambda idx: model.negative_elbo(x[idx], y[idx], generator).mean()
+        )
 
     return _train(
-        model, one_epoch, data, trained=model, epochs=epochs, seed=seed, settings=settings, optimizer=optimizer,
-        checkpoint=checkpoint, desc="fit_latent", progress=progress, callback=callback,
+        model,
+        one_epoch,
+        data,
+        trained=model,
+        epochs=epochs,
+        seed=seed,
+        settings=settings,
+        optimizer=optimizer,
+        checkpoint=checkpoint,
+        desc="fit_latent",
+        progress=progress,
+        callback=callback,
     )

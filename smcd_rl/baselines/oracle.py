@@ -123,9 +123,7 @@ class OracleModel(TensorDictModuleBase):
         self.out_keys = [out_key]
         self.predict_fn = predict
         self.noise_std = float(noise_std)
-        self.filter = ParameterFilter(
-            prior, num_particles, jitter_std=jitter_std, lower=lower, generator=generator
-        )
+        self.filter = ParameterFilter(prior, num_particles, jitter_std=jitter_std, lower=lower, generator=generator)
         self._batch_shape: tuple[int, ...] = ()
 
     def reset(self, batch_shape: Sequence[int] = ()) -> None:

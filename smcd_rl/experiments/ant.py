@@ -96,7 +96,12 @@ _X = 0  # torso x position in the observation (OBS_SLICES["qpos"].start)
 #: Per task: CrippledAntEnv arguments, the planners' reward weights, whether episodes end on a fall.
 TASKS: dict[str, tuple[dict[str, Any], dict[str, float], bool]] = {
     "l2a": (
-        {"ctrl_cost_weight": 0.0, "contact_cost_weight": 0.0, "healthy_reward": 0.05, "terminate_when_unhealthy": False},
+        {
+            "ctrl_cost_weight": 0.0,
+            "contact_cost_weight": 0.0,
+            "healthy_reward": 0.05,
+            "terminate_when_unhealthy": False,
+        },
         {"ctrl_cost_weight": 0.0, "healthy_reward": 0.05},
         False,
     ),
@@ -198,8 +203,13 @@ def _run(config: AntConfig, out: Path, device: torch.device, *, progress: bool) 
         _OBS_DIM + _ACTION_DIM, _OBS_DIM, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device
     )
     model = smcd_rl.AdaptiveDynamicsModel(net)
-    train_settings = {**data_settings, **{k: getattr(config, k) for k in (
-        "hidden", "depth", "dropout", "epochs", "batch_size", "lr", "validation", "device")}}
+    train_settings = {
+        **data_settings,
+        **{
+            k: getattr(config, k)
+            for k in ("hidden", "depth", "dropout", "epochs", "batch_size", "lr", "validation", "device")
+        },
+    }
     started = time.perf_counter()
     losses = smcd_rl.fit_dynamics(
         model,
@@ -321,8 +331,20 @@ def _check(config: AntConfig) -> None:
         raise ValueError(f"crippled legs must be a non-empty subset of 0..3, got {list(config.crippled_legs)}")
     if not 0.0 < config.validation < 1.0:
         raise ValueError(f"validation must be a fraction in (0, 1), got {config.validation}")
-    positive = ("transitions", "data_episode_steps", "episodes", "episode_steps", "horizon", "candidates",
-                "elites", "iterations", "particles", "gd_steps", "gd_window", "sac_steps")
+    positive = (
+        "transitions",
+        "data_episode_steps",
+        "episodes",
+        "episode_steps",
+        "horizon",
+        "candidates",
+        "elites",
+        "iterations",
+        "particles",
+        "gd_steps",
+        "gd_window",
+        "sac_steps",
+    )
     small = [f"{name}={getattr(config, name)}" for name in positive if getattr(config, name) < 1]
     if small:
         raise ValueError(f"these options must be >= 1: {', '.join(small)}")
@@ -336,7 +358,9 @@ def _env(task: str, legs: tuple[int, ...] | None, max_steps: int) -> gymnasium.E
     """The task's Ant, crippling a leg drawn from ``legs`` per episode (``None``: healthy)."""
     from smcd_rl.envs.crippled_ant import CrippledAntEnv
 
-    return gymnasium.wrappers.TimeLimit(CrippledAntEnv(crippled_legs=legs, **TASKS[task][0]), max_episode_steps=max_steps)
+    return gymnasium.wrappers.TimeLimit(
+        CrippledAntEnv(crippled_legs=legs, **TASKS[task][0]), max_episode_steps=max_steps
+    )
 
 
 def _collect(config: AntConfig, *, progress: bool) -> dict[str, Any]:
@@ -428,7 +452,9 @@ def _run_cell(
     legs = config.crippled_legs if condition == "crippled" else None
     env = AdaptationWrapper(_env(config.task, legs, config.episode_steps), adapted)
     # The same planner seed in every adaptation and condition: cells differ by what they vary only.
-    generator = torch.Generator(device=config.device).manual_seed(config.seed + 1000 * (1 + list(PLANNERS).index(planner_name)))
+    generator = torch.Generator(device=config.device).manual_seed(
+        config.seed + 1000 * (1 + list(PLANNERS).index(planner_name))
+    )
     _, weights, terminates = TASKS[config.task]
     agent = MPCAgent(
         adapted,
@@ -438,7 +464,11 @@ def _run_cell(
     )
     episodes = []
     bar = tqdm(
-        total=config.episodes * config.episode_steps, desc="/".join(cell), unit="step", leave=False, disable=not progress
+        total=config.episodes * config.episode_steps,
+        desc="/".join(cell),
+        unit="step",
+        leave=False,
+        disable=not progress,
     )
     for k in range(config.episodes):
         episode_seed = config.seed + 1_000_003 + k  # the same episodes (start state, leg) in every cell
@@ -481,7 +511,7 @@ def _plot(rows: list[dict[str, Any]], config: AntConfig, path: Path) -> None:
     lookup = {(r["planner"], r["adaptation"], r["condition"]): r for r in rows}
     width = 0.8 / len(planners)
     fig, axes = plt.subplots(1, len(conditions), figsize=(4.2 * len(conditions), 3.6), sharey=True, squeeze=False)
-    for ax, condition in zip(axes[0], conditions):
+    for ax, condition in zip(axes[0], conditions, strict=True):
         for i, planner in enumerate(planners):
             sel = [lookup.get((planner, a, condition)) for a in adaptations]
             xs = [j + (i - (len(planners) - 1) / 2) * width for j in range(len(adaptations))]

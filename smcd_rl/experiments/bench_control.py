@@ -115,8 +115,11 @@ def run(config: BenchControlConfig, *, progress: bool = True) -> dict[str, Any]:
 
 
 def _check(config: BenchControlConfig) -> None:
-    small = [f"{k}={getattr(config, k)}" for k in ("batch", "particles", "gd_steps", "gd_window", "steps")
-             if getattr(config, k) < 1]
+    small = [
+        f"{k}={getattr(config, k)}"
+        for k in ("batch", "particles", "gd_steps", "gd_window", "steps")
+        if getattr(config, k) < 1
+    ]
     if config.warmup < 0:
         small.append(f"warmup={config.warmup} (>= 0)")
     if not config.model and (not config.hidden or min(config.hidden) < 1):
@@ -124,10 +127,14 @@ def _check(config: BenchControlConfig) -> None:
     if small:
         raise ValueError(f"sizes and counts must be >= 1: {', '.join(small)}")
     if not 0.0 <= config.dropout < 1.0 or config.noise_std <= 0 or config.gd_lr <= 0:
-        raise ValueError(f"need 0 <= dropout < 1, noise_std > 0 and gd_lr > 0, got {config.dropout}, "
-                         f"{config.noise_std}, {config.gd_lr}")
+        raise ValueError(
+            f"need 0 <= dropout < 1, noise_std > 0 and gd_lr > 0, got {config.dropout}, "
+            f"{config.noise_std}, {config.gd_lr}"
+        )
     if config.model and not Path(config.model).is_file():
-        raise FileNotFoundError(f"--model {config.model}: no such file; train one with `smcd-rl panda` or leave it empty")
+        raise FileNotFoundError(
+            f"--model {config.model}: no such file; train one with `smcd-rl panda` or leave it empty"
+        )
 
 
 def _run(config: BenchControlConfig, *, progress: bool) -> dict[str, Any]:
@@ -145,8 +152,12 @@ def _run(config: BenchControlConfig, *, progress: bool) -> dict[str, Any]:
     # --- the contenders: one control step each, every one with its own arms ----------------------
     def strategy(name: str) -> smcd_rl.Adaptation:
         if name == "M+S":
-            return smcd_rl.SMCD(num_particles=config.particles, flip_prob=config.flip_prob, noise_std=config.noise_std,
-                                generator=torch.Generator(device=device).manual_seed(config.seed + 1))
+            return smcd_rl.SMCD(
+                num_particles=config.particles,
+                flip_prob=config.flip_prob,
+                noise_std=config.noise_std,
+                generator=torch.Generator(device=device).manual_seed(config.seed + 1),
+            )
         if name == "M+G":
             return smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
         return smcd_rl.NoAdaptation()
@@ -168,8 +179,16 @@ def _run(config: BenchControlConfig, *, progress: bool) -> dict[str, Any]:
     rows = []
     for name, samples in times.items():
         mean = statistics.fmean(samples)
-        rows.append({"loop": name, "steps_per_s": 1.0 / mean, "mean_ms": mean * 1e3,
-                     "median_ms": statistics.median(samples) * 1e3, "min_ms": min(samples) * 1e3, "steps": len(samples)})
+        rows.append(
+            {
+                "loop": name,
+                "steps_per_s": 1.0 / mean,
+                "mean_ms": mean * 1e3,
+                "median_ms": statistics.median(samples) * 1e3,
+                "min_ms": min(samples) * 1e3,
+                "steps": len(samples),
+            }
+        )
     rate = {row["loop"]: row["steps_per_s"] for row in rows}
     ratios = {
         "analytic_over_smcd": rate["analytic"] / rate["M+S"],
@@ -183,8 +202,13 @@ def _run(config: BenchControlConfig, *, progress: bool) -> dict[str, Any]:
         "config": config_dict(config),
         "device": str(device),
         "machine": machine_info(),
-        "network": {"in": net.in_features, "hidden": [lin.out_features for lin in net.linears[:-1]],
-                    "out": net.out_features, "mask_dim": net.mask_dim, "trained": bool(config.model)},
+        "network": {
+            "in": net.in_features,
+            "hidden": [lin.out_features for lin in net.linears[:-1]],
+            "out": net.out_features,
+            "mask_dim": net.mask_dim,
+            "trained": bool(config.model),
+        },
         "results": rows,
         "ratios": ratios,
     }
@@ -201,8 +225,10 @@ def _model_and_world(
     if config.model:
         model = smcd_rl.load(config.model).to(device)
         if model.net.in_features != 7 or model.net.out_features != 3:
-            raise ValueError(f"--model must map 7 joint angles to a 3-d position, got {model.net.in_features} -> "
-                             f"{model.net.out_features}")
+            raise ValueError(
+                f"--model must map 7 joint angles to a 3-d position, got {model.net.in_features} -> "
+                f"{model.net.out_features}"
+            )
         return model, lambda q: panda_fk(q, tools)
     net = smcd_rl.MaskedMLP(7, 3, hidden=config.hidden, dropout=config.dropout, device=device).eval()
     model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
@@ -245,10 +271,11 @@ def _control_step(
     return step
 
 
-
 def _report(payload: dict[str, Any]) -> str:
     config, ratios, net = payload["config"], payload["ratios"], payload["network"]
-    lines = ["machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"]
+    lines = [
+        "machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"
+    ]
     lines.append(
         f"network: MaskedMLP {net['in']} -> {' -> '.join(map(str, net['hidden']))} -> {net['out']} "
         f"({'trained' if net['trained'] else 'random weights'}), {net['mask_dim']} mask bits; {config['batch']} arm(s) "
@@ -256,11 +283,15 @@ def _report(payload: dict[str, Any]) -> str:
         f"{config['gd_window']}; a measurement every step"
     )
     lines.append("")
-    body = [[r["loop"], f"{r['steps_per_s']:.1f}", r["mean_ms"], r["median_ms"], r["min_ms"], r["steps"]]
-            for r in payload["results"]]
+    body = [
+        [r["loop"], f"{r['steps_per_s']:.1f}", r["mean_ms"], r["median_ms"], r["min_ms"], r["steps"]]
+        for r in payload["results"]
+    ]
     lines.append(format_table(body, ["control loop", "steps/s", "mean ms", "median ms", "min ms", "steps"]))
     lines.append("")
     lines.append(f"analytic / M+S = {ratios['analytic_over_smcd']:.1f}x the steps per second")
     lines.append(f"M+S / M+G      = {ratios['smcd_over_gd']:.2f}x the steps per second (> 1: SMCD's loop is faster)")
-    lines.append(f"M+N / M+S      = {ratios['no_adaptation_over_smcd']:.2f}x (the network without adaptation against SMCD)")
+    lines.append(
+        f"M+N / M+S      = {ratios['no_adaptation_over_smcd']:.2f}x (the network without adaptation against SMCD)"
+    )
     return "\n".join(lines)

@@ -53,7 +53,17 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 import smcd_rl
-from smcd_rl.experiments.common import config_dict, format_table, machine_info, option, resolve_device, seed_everything, torch_threads, write_csv, write_json
+from smcd_rl.experiments.common import (
+    config_dict,
+    format_table,
+    machine_info,
+    option,
+    resolve_device,
+    seed_everything,
+    torch_threads,
+    write_csv,
+    write_json,
+)
 
 __all__ = ["BenchFilterConfig", "FULL", "GOALS", "NaiveSMCD", "SCHEDULES", "run"]
 
@@ -77,8 +87,10 @@ class BenchFilterConfig:
     dropout: float = option(0.5, "dropout probability of the network (keep_prob = 1 - dropout)")
     flip_prob: float = option(0.01, "SMCD bit-flip probability per step")
     noise_std: float = option(
-        0.05, "observation noise of the realistic regime, in the network's output units (std 1, as after "
-        "training on normalised targets; the two-link arm's 5 cm is about 0.04 there)")
+        0.05,
+        "observation noise of the realistic regime, in the network's output units (std 1, as after "
+        "training on normalised targets; the two-link arm's 5 cm is about 0.04 there)",
+    )
     steps: int = option(100, "steps of the realistic adaptation run")
     repeats: int = option(20, "timed updates in the worst case")
     warmup: int = option(3, "untimed updates per contender first")
@@ -105,15 +117,24 @@ class NaiveSMCD:
     mask. The same algorithm as :class:`smcd_rl.SMCD`, none of its shortcuts.
     """
 
-    def __init__(self, net: smcd_rl.MaskedMLP, num_particles: int, flip_prob: float, noise_std: float,
-                 generator: torch.Generator) -> None:
-        self.net, self.n, self.flip_prob, self.noise_std, self.generator = net, num_particles, flip_prob, noise_std, generator
+    def __init__(
+        self, net: smcd_rl.MaskedMLP, num_particles: int, flip_prob: float, noise_std: float, generator: torch.Generator
+    ) -> None:
+        self.net, self.n, self.flip_prob, self.noise_std, self.generator = (
+            net,
+            num_particles,
+            flip_prob,
+            noise_std,
+            generator,
+        )
         self.device = next(net.parameters()).device
         self.masks = torch.empty(0)
         self.log_weights = torch.empty(0)
 
     def reset(self) -> None:
-        self.masks = torch.rand(self.n, self.net.mask_dim, generator=self.generator, device=self.device) < self.net.keep_prob
+        self.masks = (
+            torch.rand(self.n, self.net.mask_dim, generator=self.generator, device=self.device) < self.net.keep_prob
+        )
         self.log_weights = torch.full((self.n,), -math.log(self.n), device=self.device)
 
     def update(self, x: Tensor, z: Tensor) -> Tensor:
@@ -158,8 +179,13 @@ def _run(config: BenchFilterConfig, *, progress: bool) -> dict[str, Any]:
         "config": config_dict(config),
         "device": str(device),
         "machine": machine_info(),
-        "network": {"in": config.inputs, "hidden": list(config.hidden), "out": config.outputs,
-                    "mask_dim": net.mask_dim, "dropout": config.dropout},
+        "network": {
+            "in": config.inputs,
+            "hidden": list(config.hidden),
+            "out": config.outputs,
+            "mask_dim": net.mask_dim,
+            "dropout": config.dropout,
+        },
         "results": rows,
         "memory": memory,
         "goals": _goals(rows, memory),
@@ -187,8 +213,9 @@ def _check(config: BenchFilterConfig) -> None:
         )
 
 
-def _problem(config: BenchFilterConfig, hidden: tuple[int, ...], steps: int, device: torch.device
-             ) -> tuple[smcd_rl.MaskedMLP, list[tuple[Tensor, Tensor]]]:
+def _problem(
+    config: BenchFilterConfig, hidden: tuple[int, ...], steps: int, device: torch.device
+) -> tuple[smcd_rl.MaskedMLP, list[tuple[Tensor, Tensor]]]:
     """A random network with every hidden layer masked, and observations made with a known true mask.
 
     The output layer is scaled so that predictions under random masks have unit std, the scale of a
@@ -206,11 +233,12 @@ def _problem(config: BenchFilterConfig, hidden: tuple[int, ...], steps: int, dev
         net.linears[-1].weight.mul_(scale)
         net.linears[-1].bias.mul_(scale)
         zs = net(xs, mask=true_mask.expand(steps, -1)) + noise
-    return net, list(zip(xs, zs))
+    return net, list(zip(xs, zs, strict=True))
 
 
-def _contenders(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterConfig, device: torch.device
-                ) -> tuple[dict[str, Callable[[Tensor, Tensor], Any]], Callable[[], int]]:
+def _contenders(
+    net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterConfig, device: torch.device
+) -> tuple[dict[str, Callable[[Tensor, Tensor], Any]], Callable[[], int]]:
     """Fresh contenders for one run and a probe of ours' distinct parents before its next update."""
     ours, dense = _smcd(net, n, noise_std, config, device), _smcd(net, n, noise_std, config, device, path="dense")
     naive = _naive(net, n, noise_std, config, device)
@@ -230,11 +258,18 @@ def _contenders(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchF
     return contenders, distinct_parents
 
 
-def _smcd(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterConfig, device: torch.device,
-          path: str = "auto") -> smcd_rl.SMCD:
+def _smcd(
+    net: smcd_rl.MaskedMLP,
+    n: int,
+    noise_std: float,
+    config: BenchFilterConfig,
+    device: torch.device,
+    path: str = "auto",
+) -> smcd_rl.SMCD:
     generator = torch.Generator(device=device).manual_seed(config.seed + 1)
-    adaptation = smcd_rl.SMCD(num_particles=n, flip_prob=config.flip_prob, noise_std=noise_std, generator=generator,
-                              forward_path=path)  # type: ignore[arg-type]
+    adaptation = smcd_rl.SMCD(
+        num_particles=n, flip_prob=config.flip_prob, noise_std=noise_std, generator=generator, forward_path=path
+    )  # type: ignore[arg-type]
     adaptation.bind(net, torch.ones(config.outputs, device=device))
     adaptation.reset(())
     return adaptation
@@ -242,21 +277,31 @@ def _smcd(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterC
 
 def _update(adaptation: smcd_rl.SMCD) -> Callable[[Tensor, Tensor], Tensor]:
     """One full update: the filter step and the MMSE mask."""
+
     def step(x: Tensor, z: Tensor) -> Tensor:
         adaptation.observe(x, z)
         return adaptation.mask
+
     return step
 
 
-def _naive(net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterConfig, device: torch.device
-           ) -> NaiveSMCD:
+def _naive(
+    net: smcd_rl.MaskedMLP, n: int, noise_std: float, config: BenchFilterConfig, device: torch.device
+) -> NaiveSMCD:
     naive = NaiveSMCD(net, n, config.flip_prob, noise_std, torch.Generator(device=device).manual_seed(config.seed + 1))
     naive.reset()
     return naive
 
 
-def _time_regime(net: smcd_rl.MaskedMLP, observations: list[tuple[Tensor, Tensor]], n: int, regime: str,
-                 schedule: str, config: BenchFilterConfig, device: torch.device) -> dict[str, Any]:
+def _time_regime(
+    net: smcd_rl.MaskedMLP,
+    observations: list[tuple[Tensor, Tensor]],
+    n: int,
+    regime: str,
+    schedule: str,
+    config: BenchFilterConfig,
+    device: torch.device,
+) -> dict[str, Any]:
     """Mean and median ms per update of every contender, under one schedule.
 
     ``interleaved``: every contender once per step, who goes first rotating. ``back to back``: each
@@ -375,13 +420,17 @@ def _goals(rows: list[dict[str, Any]], memory: dict[str, Any] | None) -> dict[st
         at = {row["regime"]: row for row in rows if row["N"] == GOAL_PARTICLES and row["schedule"] == schedule}
         realistic, worst = at.get("realistic"), at.get("worst")
         goals[schedule] = {
-            "realistic_at_most_1.0x_matmul": None if realistic is None
+            "realistic_at_most_1.0x_matmul": None
+            if realistic is None
             else realistic["ours_over_matmul"] <= GOALS["realistic_over_matmul"],
-            "worst_at_most_1.5x_matmul": None if worst is None
+            "worst_at_most_1.5x_matmul": None
+            if worst is None
             else worst["ours_over_matmul"] <= GOALS["worst_over_matmul"],
-            "at_least_10x_faster_than_naive": None if realistic is None
+            "at_least_10x_faster_than_naive": None
+            if realistic is None
             else realistic["naive_over_ours"] >= GOALS["naive_over_ours"],
-            "peak_extra_under_200_mb": None if memory is None
+            "peak_extra_under_200_mb": None
+            if memory is None
             else memory["ours_peak_extra_mb"] < GOALS["peak_extra_mb"],
         }
     return goals
@@ -389,24 +438,48 @@ def _goals(rows: list[dict[str, Any]], memory: dict[str, Any] | None) -> dict[st
 
 def _report(payload: dict[str, Any]) -> str:
     net = payload["network"]
-    lines = ["machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"]
+    lines = [
+        "machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"
+    ]
     lines.append(
         f"network: MaskedMLP {net['in']} -> {' -> '.join(map(str, net['hidden']))} -> {net['out']}, "
         f"{net['mask_dim']} mask bits, dropout {net['dropout']}; flip prob {payload['config']['flip_prob']}"
     )
-    lines.append("ms per update: mean over the run (ours median in brackets); matmul: median of one "
-                 "(N x 1024) @ (1024 x 1024)")
-    lines.append("schedule: interleaved = every contender once per step (caches filled by the others), "
-                 "back to back = each contender's whole run in a block (its own data in cache)")
+    lines.append(
+        "ms per update: mean over the run (ours median in brackets); matmul: median of one (N x 1024) @ (1024 x 1024)"
+    )
+    lines.append(
+        "schedule: interleaved = every contender once per step (caches filled by the others), "
+        "back to back = each contender's whole run in a block (its own data in cache)"
+    )
     lines.append("")
     body = [
-        [r["N"], r["regime"], r["schedule"], f"{r['mean_distinct_parents']:.0f}",
-         f"{r['ours_ms']:.2f} ({r['ours_median_ms']:.2f})", f"{r['dense_path_ms']:.2f}", f"{r['naive_ms']:.2f}",
-         f"{r['matmul_ms']:.2f}", f"{r['ours_over_matmul']:.2f}x", f"{r['naive_over_ours']:.1f}x"]
+        [
+            r["N"],
+            r["regime"],
+            r["schedule"],
+            f"{r['mean_distinct_parents']:.0f}",
+            f"{r['ours_ms']:.2f} ({r['ours_median_ms']:.2f})",
+            f"{r['dense_path_ms']:.2f}",
+            f"{r['naive_ms']:.2f}",
+            f"{r['matmul_ms']:.2f}",
+            f"{r['ours_over_matmul']:.2f}x",
+            f"{r['naive_over_ours']:.1f}x",
+        ]
         for r in payload["results"]
     ]
-    header = ["N", "regime", "schedule", "distinct parents", "ours ms", "dense path ms", "naive ms", "matmul ms",
-              "ours / matmul", "naive / ours"]
+    header = [
+        "N",
+        "regime",
+        "schedule",
+        "distinct parents",
+        "ours ms",
+        "dense path ms",
+        "naive ms",
+        "matmul ms",
+        "ours / matmul",
+        "naive / ours",
+    ]
     lines.append(format_table(body, header))
     memory = payload["memory"]
     if memory is not None:
@@ -419,22 +492,36 @@ def _report(payload: dict[str, Any]) -> str:
     verdict = {True: "met", False: "NOT met", None: "not measured"}
     at = f"N={GOAL_PARTICLES}"
     targets = {
-        "realistic_at_most_1.0x_matmul": (f"goal {at}, realistic: ours <= {GOALS['realistic_over_matmul']}x matmul",
-                                          "realistic", "ours_over_matmul"),
-        "worst_at_most_1.5x_matmul": (f"goal {at}, worst case: ours <= {GOALS['worst_over_matmul']}x matmul",
-                                      "worst", "ours_over_matmul"),
-        "at_least_10x_faster_than_naive": (f"goal {at}, realistic: ours >= {GOALS['naive_over_ours']:.0f}x faster "
-                                           "than naive", "realistic", "naive_over_ours"),
+        "realistic_at_most_1.0x_matmul": (
+            f"goal {at}, realistic: ours <= {GOALS['realistic_over_matmul']}x matmul",
+            "realistic",
+            "ours_over_matmul",
+        ),
+        "worst_at_most_1.5x_matmul": (
+            f"goal {at}, worst case: ours <= {GOALS['worst_over_matmul']}x matmul",
+            "worst",
+            "ours_over_matmul",
+        ),
+        "at_least_10x_faster_than_naive": (
+            f"goal {at}, realistic: ours >= {GOALS['naive_over_ours']:.0f}x faster than naive",
+            "realistic",
+            "naive_over_ours",
+        ),
     }
     for goal, (text, regime, ratio) in targets.items():
         verdicts = []
         for schedule in SCHEDULES:
-            row = [r for r in payload["results"]
-                   if r["N"] == GOAL_PARTICLES and r["regime"] == regime and r["schedule"] == schedule]
+            row = [
+                r
+                for r in payload["results"]
+                if r["N"] == GOAL_PARTICLES and r["regime"] == regime and r["schedule"] == schedule
+            ]
             value = f" ({row[0][ratio]:.2f}x)" if row else ""
             verdicts.append(f"{verdict[payload['goals'][schedule][goal]]} {schedule}{value}")
         lines.append(f"{text}: {', '.join(verdicts)}")
     size = f"N={memory['particles']}" if memory is not None else "memory"
-    lines.append(f"goal {size}: extra peak memory < {GOALS['peak_extra_mb']:.0f} MB: "
-                 f"{verdict[payload['goals'][SCHEDULES[0]]['peak_extra_under_200_mb']]}")
+    lines.append(
+        f"goal {size}: extra peak memory < {GOALS['peak_extra_mb']:.0f} MB: "
+        f"{verdict[payload['goals'][SCHEDULES[0]]['peak_extra_under_200_mb']]}"
+    )
     return "\n".join(lines)

@@ -218,8 +218,13 @@ def _run(config: BenchPlannersConfig, *, progress: bool) -> dict[str, Any]:
         "config": config_dict(config),
         "device": str(device),
         "machine": machine_info(),
-        "model": {"in": obs_dim + action_dim, "hidden": list(config.hidden), "out": obs_dim,
-                  "adaptation": config.adaptation, "forwards_per_plan": config.horizon * config.steps},
+        "model": {
+            "in": obs_dim + action_dim,
+            "hidden": list(config.hidden),
+            "out": obs_dim,
+            "adaptation": config.adaptation,
+            "forwards_per_plan": config.horizon * config.steps,
+        },
         "results": rows,
         "ratios": ratios,
         "goals": goals,
@@ -268,10 +273,11 @@ def _plain_objective(model: smcd_rl.AdaptiveDynamicsModel, obs: Tensor) -> Calla
     return objective
 
 
-
 def _report(payload: dict[str, Any]) -> str:
     config, ratios, goals = payload["config"], payload["ratios"], payload["goals"]
-    lines = ["machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"]
+    lines = [
+        "machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"
+    ]
     model = payload["model"]
     lines.append(
         f"model: MaskedMLP {model['in']} -> {' -> '.join(map(str, model['hidden']))} -> {model['out']}, "
@@ -279,7 +285,9 @@ def _report(payload: dict[str, Any]) -> str:
         f"top {config['top_k']}, {config['steps']} steps = {model['forwards_per_plan']} forwards per plan"
     )
     lines.append("")
-    body = [[r["planner"], r["median_ms"], r["min_ms"], r["q25_ms"], r["q75_ms"], r["repeats"]] for r in payload["results"]]
+    body = [
+        [r["planner"], r["median_ms"], r["min_ms"], r["q25_ms"], r["q75_ms"], r["repeats"]] for r in payload["results"]
+    ]
     lines.append(format_table(body, ["planner (one plan)", "median ms", "min ms", "q25 ms", "q75 ms", "repeats"]))
     lines.append("")
     lines.append(

@@ -86,7 +86,9 @@ def resolve_device(name: str) -> str:
     except RuntimeError as err:
         raise ValueError(f"unknown device {name!r}: use auto, cpu, cuda or cuda:N") from err
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: this machine has no CUDA device (or torch is a CPU build); use --device cpu")
+        raise ValueError(
+            f"--device {name}: this machine has no CUDA device (or torch is a CPU build); use --device cpu"
+        )
     return name
 
 
@@ -193,7 +195,7 @@ def format_table(rows: Iterable[Sequence[Any]], header: Sequence[str]) -> str:
     """A Markdown table (it reads in a terminal and pastes into the README as is)."""
     cells = [[str(h) for h in header]] + [[_cell(v) for v in row] for row in rows]
     widths = [max(len(row[i]) for row in cells) for i in range(len(header))]
-    lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths)) + " |" for row in cells]
+    lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) + " |" for row in cells]
     lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
     return "\n".join(lines)
 

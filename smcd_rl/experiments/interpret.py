@@ -66,7 +66,13 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 import smcd_rl
-from smcd_rl.envs.drone_operators import TrajectoryDataset, load_dataset, save_dataset, simulate_operators, split_dataset
+from smcd_rl.envs.drone_operators import (
+    TrajectoryDataset,
+    load_dataset,
+    save_dataset,
+    simulate_operators,
+    split_dataset,
+)
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, motor_babbling, sample_link_lengths, two_link_fk
 from smcd_rl.experiments.common import (
     ResultCache,
@@ -106,10 +112,14 @@ class InterpretConfig:
     fig9_arms: int = option(200, "held-out arms whose masks are compared")
     fig9_burn_in: int = option(20, "motor-babbling steps observed before the masks are read")
     fig9_particles: int = option(500, "SMCD particles for the two-link masks")
-    fig9_own_paths: bool = option(False, "each held-out arm babbles along a joint path of its own (default: one shared path)")
+    fig9_own_paths: bool = option(
+        False, "each held-out arm babbles along a joint path of its own (default: one shared path)"
+    )
     fig9_ks: tuple[int, ...] = option((1, 2, 5, 10, 20, 50), "k of the top-k link-length accuracy")
     # --- drone data
-    dataset: str = option("", "a trajectory dataset (.npz, see smcd_rl.envs.drone_operators) instead of the simulated operators")
+    dataset: str = option(
+        "", "a trajectory dataset (.npz, see smcd_rl.envs.drone_operators) instead of the simulated operators"
+    )
     operators: int = option(33, "simulated operators")
     trajectories_per_operator: int = option(16, "landings per simulated operator")
     known_fraction: float = option(0.10, "share of all trajectories held out from training operators")
@@ -130,7 +140,9 @@ class InterpretConfig:
     )
     chunk: int = option(64, "trajectories filtered at once (bounds memory: chunk x particles x hidden)")
     # --- confidence (Fig. 4, Fig. 13)
-    labels: tuple[str, ...] = option(("skill", "strategy", "phase", "success"), "labels to score (per-step or per-trajectory)")
+    labels: tuple[str, ...] = option(
+        ("skill", "strategy", "phase", "success"), "labels to score (per-step or per-trajectory)"
+    )
     k: int = option(5, "nearest stored masks in eq. (9)")
     steps: tuple[int, ...] = option((1, 5, 10, 20, 30, 40, 60, 80), "observed steps n at which test masks are scored")
     phase_stride: int = option(5, "steps between stored masks for per-step labels")
@@ -146,7 +158,9 @@ class InterpretConfig:
     reptile_lr: float = option(0.1, "Reptile outer step size")
     reptile_inner_lr: float = option(0.02, "Reptile inner SGD learning rate (the paper's 0.02)")
     reptile_tasks_per_batch: int = option(1, "operators per Reptile meta step")
-    threads: int = option(1, "torch CPU threads (small networks run fastest on one, above all on a shared CPU; 0: default)")
+    threads: int = option(
+        1, "torch CPU threads (small networks run fastest on one, above all on a shared CPU; 0: default)"
+    )
     device: str = option("cpu", "torch device: cpu, cuda, cuda:N or auto")
     full: bool = option(False, "the paper's scale (B.2, A.5): hidden 1024, 1000 particles, 400/1000 epochs at lr 1e-4")
 
@@ -226,8 +240,10 @@ def _run(config: InterpretConfig, out: Path, progress: bool) -> dict[str, Any]:
         write_csv(out / "confidence.csv", rows)
         _plot_confidence(rows, ("skill", "strategy"), out / "fig4_skill_strategy.png", config)
         _plot_confidence(rows, ("phase", "success"), out / "fig13_phase_success.png", config)
-        tables.append(f"Fig. 4 / 13: eq. (9) confidence of the true label, k = {config.k} (mean±std over test trajectories)\n"
-                      + _confidence_table(rows, config))
+        tables.append(
+            f"Fig. 4 / 13: eq. (9) confidence of the true label, k = {config.k} (mean±std over test trajectories)\n"
+            + _confidence_table(rows, config)
+        )
         all_rows += [{"figure": "confidence", **r} for r in rows]
 
     if "lookahead" in config.parts:
@@ -239,8 +255,10 @@ def _run(config: InterpretConfig, out: Path, progress: bool) -> dict[str, Any]:
         payload["seconds"]["lookahead"] = time.perf_counter() - started
         write_csv(out / "lookahead.csv", rows)
         _plot_lookahead(rows, config, out / "fig14_lookahead.png")
-        tables.append("Fig. 14: look-ahead action RMSE (m/s), rows burn-in ratio, columns horizon ratio\n"
-                      + _lookahead_table(rows, config))
+        tables.append(
+            "Fig. 14: look-ahead action RMSE (m/s), rows burn-in ratio, columns horizon ratio\n"
+            + _lookahead_table(rows, config)
+        )
         all_rows += [{"figure": "lookahead", **r} for r in rows]
 
     write_csv(out / "results.csv", _long_format(all_rows))
@@ -331,7 +349,9 @@ def _prior(config: InterpretConfig, net: smcd_rl.MaskedMLP, particles: int, seed
 
 
 # ======================================================================== Fig. 9
-def _fig9(config: InterpretConfig, cache: ResultCache, out: Path, device: torch.device, progress: bool) -> list[dict[str, Any]]:
+def _fig9(
+    config: InterpretConfig, cache: ResultCache, out: Path, device: torch.device, progress: bool
+) -> list[dict[str, Any]]:
     generator = torch.Generator().manual_seed(config.seed + 9_000_009)  # held-out arms, shared by every latent size
     lengths = sample_link_lengths((config.fig9_arms,), generator=generator)
     paths = config.fig9_arms if config.fig9_own_paths else 1
@@ -351,19 +371,39 @@ def _fig9(config: InterpretConfig, cache: ResultCache, out: Path, device: torch.
         done = cache.get(f"fig9/{latent}")
         if done is None:
             seed_everything(config.seed)
-            data = motor_babbling(config.fig9_tasks, config.fig9_episodes, 10, measurement_noise=0.01,
-                                  generator=torch.Generator().manual_seed(config.seed))
+            data = motor_babbling(
+                config.fig9_tasks,
+                config.fig9_episodes,
+                10,
+                measurement_noise=0.01,
+                generator=torch.Generator().manual_seed(config.seed),
+            )
             net = smcd_rl.MaskedMLP(2, 2, hidden=(latent, latent), dropout=config.dropout, device=device)
             model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
-            smcd_rl.fit(model, data.to(device), epochs=config.fig9_epochs, batch_size=config.batch_size, lr=config.lr,
-                        seed=config.seed, checkpoint=out / f"fig9_ld{latent}.ckpt", progress=progress)
+            smcd_rl.fit(
+                model,
+                data.to(device),
+                epochs=config.fig9_epochs,
+                batch_size=config.batch_size,
+                lr=config.lr,
+                seed=config.seed,
+                checkpoint=out / f"fig9_ld{latent}.ckpt",
+                progress=progress,
+            )
             adaptive = model.with_adaptation(_smcd(config, config.seed + 19, config.fig9_particles, noise_std=0.05))
-            masks, _, _ = _masks(adaptive, sequence, record, prior=_prior(config, net, config.fig9_particles, config.seed + 23),
-                                 chunk=config.chunk, desc=f"fig9 ld={latent}", progress=progress)
+            masks, _, _ = _masks(
+                adaptive,
+                sequence,
+                record,
+                prior=_prior(config, net, config.fig9_particles, config.seed + 23),
+                chunk=config.chunk,
+                desc=f"fig9 ld={latent}",
+                progress=progress,
+            )
             accuracy = top_k_neighbour_accuracy(masks, lengths, config.fig9_ks)
             done = {"accuracy": accuracy.tolist()}
             cache.put(f"fig9/{latent}", done)
-        for k, value in zip(config.fig9_ks, done["accuracy"]):
+        for k, value in zip(config.fig9_ks, done["accuracy"], strict=True):
             rows.append({"latent": latent, "k": k, "accuracy": value, "chance": k / (config.fig9_arms - 1)})
     return rows
 
@@ -382,7 +422,9 @@ def _drone_data(config: InterpretConfig, out: Path) -> tuple[TrajectoryDataset, 
     else:
         data = simulate_operators(config.operators, config.trajectories_per_operator, seed=config.seed)
     save_dataset(data, out / "dataset.npz")
-    split = split_dataset(data, known_fraction=config.known_fraction, unknown_fraction=config.unknown_fraction, seed=config.seed)
+    split = split_dataset(
+        data, known_fraction=config.known_fraction, unknown_fraction=config.unknown_fraction, seed=config.seed
+    )
     return data, split
 
 
@@ -390,8 +432,10 @@ def _check_labels(config: InterpretConfig, data: TrajectoryDataset, split: dict[
     """Before any training: the labels to score exist and the stored set has k masks."""
     missing = [label for label in config.labels if label not in data.labels]
     if missing or not config.labels:
-        raise ValueError(f"the dataset has no label(s) {missing or '(none given)'}; it has {sorted(data.labels)}. "
-                         "Pass --labels with the ones to score")
+        raise ValueError(
+            f"the dataset has no label(s) {missing or '(none given)'}; it has {sorted(data.labels)}. "
+            "Pass --labels with the ones to score"
+        )
     if config.k > len(split["train"]):
         raise ValueError(f"k = {config.k} but only {len(split['train'])} training trajectories are stored; lower --k")
 
@@ -402,7 +446,10 @@ def _summary(data: TrajectoryDataset, split: dict[str, np.ndarray]) -> dict[str,
     for name, ids in split.items():
         part = data.select(ids)
         counts = {
-            label: {part.class_name(label, int(c)): int(n) for c, n in zip(*np.unique(values, return_counts=True))}
+            label: {
+                part.class_name(label, int(c)): int(n)
+                for c, n in zip(*np.unique(values, return_counts=True), strict=True)
+            }
             for label, values in part.labels.items()
         }
         summary[name] = {
@@ -416,7 +463,9 @@ def _summary(data: TrajectoryDataset, split: dict[str, np.ndarray]) -> dict[str,
 
 def _steps_td(data: TrajectoryDataset, device: torch.device) -> TensorDict:
     n = data.state.shape[0]
-    return TensorDict({"state": torch.from_numpy(data.state), "action": torch.from_numpy(data.action)}, [n], device=device)
+    return TensorDict(
+        {"state": torch.from_numpy(data.state), "action": torch.from_numpy(data.action)}, [n], device=device
+    )
 
 
 def _padded(data: TrajectoryDataset, device: torch.device) -> TensorDict:
@@ -432,17 +481,31 @@ def _padded(data: TrajectoryDataset, device: torch.device) -> TensorDict:
 
 
 def _make_model(config: InterpretConfig, data: TrajectoryDataset, device: torch.device) -> smcd_rl.AdaptiveModel:
-    net = smcd_rl.MaskedMLP(data.state.shape[1], data.action.shape[1], hidden=(config.hidden,) * config.depth,
-                            dropout=config.dropout, device=device)
+    net = smcd_rl.MaskedMLP(
+        data.state.shape[1],
+        data.action.shape[1],
+        hidden=(config.hidden,) * config.depth,
+        dropout=config.dropout,
+        device=device,
+    )
     return smcd_rl.AdaptiveModel(net, in_keys=["state"], out_key="action")
 
 
-def _train_bc(config: InterpretConfig, train: TrajectoryDataset, out: Path, device: torch.device, progress: bool
-              ) -> tuple[smcd_rl.AdaptiveModel, list[float]]:
+def _train_bc(
+    config: InterpretConfig, train: TrajectoryDataset, out: Path, device: torch.device, progress: bool
+) -> tuple[smcd_rl.AdaptiveModel, list[float]]:
     seed_everything(config.seed)
     model = _make_model(config, train, device)
-    losses = smcd_rl.fit(model, _steps_td(train, device), epochs=config.epochs, batch_size=config.batch_size, lr=config.lr,
-                         seed=config.seed, checkpoint=out / "bc.ckpt", progress=progress)
+    losses = smcd_rl.fit(
+        model,
+        _steps_td(train, device),
+        epochs=config.epochs,
+        batch_size=config.batch_size,
+        lr=config.lr,
+        seed=config.seed,
+        checkpoint=out / "bc.ckpt",
+        progress=progress,
+    )
     model.save(out / "bc_model.pt")
     return model, losses
 
@@ -462,8 +525,13 @@ def _noise_std(
 
 # ======================================================================== Fig. 4 / Fig. 13
 def _confidence(
-    config: InterpretConfig, cache: ResultCache, model: smcd_rl.AdaptiveModel, data: TrajectoryDataset,
-    split: dict[str, np.ndarray], device: torch.device, progress: bool,
+    config: InterpretConfig,
+    cache: ResultCache,
+    model: smcd_rl.AdaptiveModel,
+    data: TrajectoryDataset,
+    split: dict[str, np.ndarray],
+    device: torch.device,
+    progress: bool,
 ) -> list[dict[str, Any]]:
     train = data.select(split["train"])
     noise = _noise_std(model, train, config, device)
@@ -477,7 +545,9 @@ def _confidence(
         final = steps.unsqueeze(0) == (lengths.unsqueeze(1) - 1)
         strided = ((steps + 1) % config.phase_stride == 0).unsqueeze(0) & (steps.unsqueeze(0) < lengths.unsqueeze(1))
         adaptive = model.with_adaptation(_smcd(config, config.seed + 31, noise_std=noise))
-        masks, rows, observed = _sorted_masks(adaptive, train, final | strided, prior, config, device, "stored masks", progress)
+        masks, rows, observed = _sorted_masks(
+            adaptive, train, final | strided, prior, config, device, "stored masks", progress
+        )
         stored = {"masks": masks, "rows": rows, "observed": observed, "final": final[rows, observed - 1]}
         cache.put("stored_masks", stored)
 
@@ -491,7 +561,9 @@ def _confidence(
             scored = torch.isin(steps + 1, torch.tensor(config.steps)).unsqueeze(0)
             wanted = scored & (steps.unsqueeze(0) + 1 < lengths.unsqueeze(1))
             adaptive = model.with_adaptation(_smcd(config, config.seed + 37, noise_std=noise))
-            masks, rows, observed = _sorted_masks(adaptive, test, wanted, prior, config, device, f"{set_name} masks", progress)
+            masks, rows, observed = _sorted_masks(
+                adaptive, test, wanted, prior, config, device, f"{set_name} masks", progress
+            )
             queries = {"masks": masks, "rows": rows, "observed": observed}
             cache.put(f"query_masks/{set_name}", queries)
         for label in config.labels:
@@ -499,18 +571,34 @@ def _confidence(
     return results
 
 
-def _sorted_masks(model: smcd_rl.AdaptiveModel, data: TrajectoryDataset, record: torch.Tensor, prior: torch.Tensor | None,
-                  config: InterpretConfig, device: torch.device, desc: str, progress: bool
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _sorted_masks(
+    model: smcd_rl.AdaptiveModel,
+    data: TrajectoryDataset,
+    record: torch.Tensor,
+    prior: torch.Tensor | None,
+    config: InterpretConfig,
+    device: torch.device,
+    desc: str,
+    progress: bool,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`_masks` over trajectories sorted by length, so a chunk pads little; rows are dataset ids."""
     order = torch.from_numpy(np.argsort(data.lengths, kind="stable"))
     sequence = _padded(data, device)[order]
-    masks, rows, observed = _masks(model, sequence, record[order], prior=prior, chunk=config.chunk, desc=desc, progress=progress)
+    masks, rows, observed = _masks(
+        model, sequence, record[order], prior=prior, chunk=config.chunk, desc=desc, progress=progress
+    )
     return masks, order[rows], observed
 
 
-def _score(label: str, set_name: str, train: TrajectoryDataset, test: TrajectoryDataset, stored: dict[str, torch.Tensor],
-           queries: dict[str, torch.Tensor], config: InterpretConfig) -> list[dict[str, Any]]:
+def _score(
+    label: str,
+    set_name: str,
+    train: TrajectoryDataset,
+    test: TrajectoryDataset,
+    stored: dict[str, torch.Tensor],
+    queries: dict[str, torch.Tensor],
+    config: InterpretConfig,
+) -> list[dict[str, Any]]:
     """Eq. (9) for the true label of every query mask, summarised per observed step n (and per class)."""
     per_step = label in train.step_labels
     keep = torch.ones_like(stored["final"]) if per_step else stored["final"]
@@ -523,8 +611,9 @@ def _score(label: str, set_name: str, train: TrajectoryDataset, test: Trajectory
         true = test.trajectory_labels[label][queries["rows"].numpy()]
     if config.k > int(keep.sum()):
         raise ValueError(f"k = {config.k} but only {int(keep.sum())} masks are stored for {label!r}; lower --k")
-    score = confidence_score(queries["masks"], stored["masks"][keep], torch.from_numpy(stored_labels), config.k,
-                             label=torch.from_numpy(true)).numpy()
+    score = confidence_score(
+        queries["masks"], stored["masks"][keep], torch.from_numpy(stored_labels), config.k, label=torch.from_numpy(true)
+    ).numpy()
     share = np.bincount(stored_labels, minlength=int(max(stored_labels.max(), true.max())) + 1) / stored_labels.size
     chance = share[true]
     observed = queries["observed"].numpy()
@@ -534,11 +623,18 @@ def _score(label: str, set_name: str, train: TrajectoryDataset, test: Trajectory
             sel = (observed == n) & ((true == cls) if cls is not None else True)
             if not sel.any():
                 continue
-            rows.append({
-                "set": set_name, "label": label, "class": "all" if cls is None else test.class_name(label, int(cls)),
-                "steps": n, "mean": float(score[sel].mean()), "std": float(score[sel].std()),
-                "chance": float(chance[sel].mean()), "count": int(sel.sum()),
-            })
+            rows.append(
+                {
+                    "set": set_name,
+                    "label": label,
+                    "class": "all" if cls is None else test.class_name(label, int(cls)),
+                    "steps": n,
+                    "mean": float(score[sel].mean()),
+                    "std": float(score[sel].std()),
+                    "chance": float(chance[sel].mean()),
+                    "count": int(sel.sum()),
+                }
+            )
     return rows
 
 
@@ -549,15 +645,27 @@ def _confidence_table(rows: list[dict[str, Any]], config: InterpretConfig) -> st
         for set_name in _SETS:
             cells = [lookup.get((set_name, label, n)) for n in config.steps]
             chance = [c["chance"] for c in cells if c is not None]
-            body.append([label, set_name, *[f"{c['mean']:.2f}±{c['std']:.2f}" if c else "-" for c in cells],
-                         float(np.mean(chance)) if chance else "-"])
+            body.append(
+                [
+                    label,
+                    set_name,
+                    *[f"{c['mean']:.2f}±{c['std']:.2f}" if c else "-" for c in cells],
+                    float(np.mean(chance)) if chance else "-",
+                ]
+            )
     return format_table(body, ["label", "operators", *[f"n={n}" for n in config.steps], "chance"])
 
 
 # ======================================================================== Fig. 14
 def _lookahead(
-    config: InterpretConfig, cache: ResultCache, model: smcd_rl.AdaptiveModel, data: TrajectoryDataset,
-    split: dict[str, np.ndarray], out: Path, device: torch.device, progress: bool,
+    config: InterpretConfig,
+    cache: ResultCache,
+    model: smcd_rl.AdaptiveModel,
+    data: TrajectoryDataset,
+    split: dict[str, np.ndarray],
+    out: Path,
+    device: torch.device,
+    progress: bool,
 ) -> tuple[list[dict[str, Any]], list[float] | None]:
     train = data.select(split["train"])
     models = {"M": model}
@@ -571,7 +679,9 @@ def _lookahead(
             done = cache.get(f"lookahead/{name}/{set_name}")
             if done is None:
                 method = base.with_adaptation(_lookahead_adaptation(name, base, train, config, device))
-                done = _evaluate_lookahead(method, data.select(split[set_name]), config, device, f"{name} {set_name}", progress)
+                done = _evaluate_lookahead(
+                    method, data.select(split[set_name]), config, device, f"{name} {set_name}", progress
+                )
                 cache.put(f"lookahead/{name}/{set_name}", done)
             errors[name, set_name] = done
     rows = []
@@ -580,8 +690,14 @@ def _lookahead(
             for j, rh in enumerate(config.horizons):
                 rmse = done[:, i, j]
                 valid = ~torch.isnan(rmse)
-                row = {"set": set_name, "method": name, "burn_in": rb, "horizon": rh, **_mean_sem(rmse[valid], "rmse"),
-                       "count": int(valid.sum())}
+                row = {
+                    "set": set_name,
+                    "method": name,
+                    "burn_in": rb,
+                    "horizon": rh,
+                    **_mean_sem(rmse[valid], "rmse"),
+                    "count": int(valid.sum()),
+                }
                 if ("M+N", set_name) in errors:  # paired over the same trajectories: the spread between them cancels
                     row.update(_mean_sem((rmse - errors["M+N", set_name][:, i, j])[valid], "vs_mn"))
                 rows.append(row)
@@ -594,8 +710,9 @@ def _mean_sem(values: torch.Tensor, name: str) -> dict[str, float]:
     return {f"{name}_mean": float(values.mean()), f"{name}_std": std, f"{name}_sem": std / math.sqrt(max(count, 1))}
 
 
-def _train_reptile(config: InterpretConfig, train: TrajectoryDataset, out: Path, device: torch.device, progress: bool
-                   ) -> tuple[smcd_rl.AdaptiveModel, list[float]]:
+def _train_reptile(
+    config: InterpretConfig, train: TrajectoryDataset, out: Path, device: torch.device, progress: bool
+) -> tuple[smcd_rl.AdaptiveModel, list[float]]:
     """Reptile with operators as tasks: each operator's training steps, subsampled to the smallest operator's count."""
     operators = np.unique(train.operator)
     if operators.size < 2:
@@ -605,21 +722,33 @@ def _train_reptile(config: InterpretConfig, train: TrajectoryDataset, out: Path,
     size = min(len(g) for g in groups)
     rng = np.random.default_rng(config.seed)
     index = torch.from_numpy(np.stack([np.sort(rng.choice(g, size=size, replace=False)) for g in groups]))
-    td = TensorDict({"state": torch.from_numpy(train.state)[index], "action": torch.from_numpy(train.action)[index]},
-                    list(index.shape), device=device)
+    td = TensorDict(
+        {"state": torch.from_numpy(train.state)[index], "action": torch.from_numpy(train.action)[index]},
+        list(index.shape),
+        device=device,
+    )
     seed_everything(config.seed)
     model = _make_model(config, train, device)
     losses = smcd_rl.fit_reptile(
-        model, td, epochs=config.reptile_epochs, batch_size=config.reptile_batch_size, lr=config.reptile_lr,
-        inner_lr=config.reptile_inner_lr, inner_epochs=1, tasks_per_batch=config.reptile_tasks_per_batch,
-        seed=config.seed, checkpoint=out / "reptile.ckpt", progress=progress,
+        model,
+        td,
+        epochs=config.reptile_epochs,
+        batch_size=config.reptile_batch_size,
+        lr=config.reptile_lr,
+        inner_lr=config.reptile_inner_lr,
+        inner_epochs=1,
+        tasks_per_batch=config.reptile_tasks_per_batch,
+        seed=config.seed,
+        checkpoint=out / "reptile.ckpt",
+        progress=progress,
     )
     model.save(out / "reptile_model.pt")
     return model, losses
 
 
-def _lookahead_adaptation(name: str, model: smcd_rl.AdaptiveModel, train: TrajectoryDataset, config: InterpretConfig,
-                          device: torch.device) -> smcd_rl.Adaptation:
+def _lookahead_adaptation(
+    name: str, model: smcd_rl.AdaptiveModel, train: TrajectoryDataset, config: InterpretConfig, device: torch.device
+) -> smcd_rl.Adaptation:
     strategy = name[2]
     if strategy == "N":
         return smcd_rl.NoAdaptation()
@@ -629,8 +758,14 @@ def _lookahead_adaptation(name: str, model: smcd_rl.AdaptiveModel, train: Trajec
 
 
 @torch.no_grad()
-def _evaluate_lookahead(method: smcd_rl.AdaptiveModel, test: TrajectoryDataset, config: InterpretConfig,
-                        device: torch.device, desc: str, progress: bool) -> torch.Tensor:
+def _evaluate_lookahead(
+    method: smcd_rl.AdaptiveModel,
+    test: TrajectoryDataset,
+    config: InterpretConfig,
+    device: torch.device,
+    desc: str,
+    progress: bool,
+) -> torch.Tensor:
     """Per-trajectory RMSE ``[N, len(burn_in), len(horizons)]`` (NaN where a trajectory is too short)."""
     lengths = torch.from_numpy(test.lengths)
     burn = torch.stack([(rb * lengths).round().clamp(min=1).long() for rb in config.burn_in])  # [R, N]
@@ -668,7 +803,9 @@ def _lookahead_table(rows: list[dict[str, Any]], config: InterpretConfig) -> str
     lookup = {(r["set"], r["method"], r["burn_in"], r["horizon"]): r["rmse_mean"] for r in rows}
     body = [
         [set_name, method, rb, *[lookup[(set_name, method, rb, rh)] for rh in config.horizons]]
-        for set_name in _SETS for method in config.methods for rb in config.burn_in
+        for set_name in _SETS
+        for method in config.methods
+        for rb in config.burn_in
     ]
     return format_table(body, ["operators", "method", "burn-in", *[f"h={rh}" for rh in config.horizons]])
 
@@ -712,8 +849,8 @@ def _plot_confidence(rows: list[dict[str, Any]], labels: tuple[str, ...], path: 
         return
     plt = _pyplot()
     fig, axes = plt.subplots(1, len(labels), figsize=(4.5 * len(labels), 3.5), sharey=True, squeeze=False)
-    for ax, label in zip(axes[0], labels):
-        for color, set_name in zip(("C0", "C1"), _SETS):
+    for ax, label in zip(axes[0], labels, strict=True):
+        for color, set_name in zip(("C0", "C1"), _SETS, strict=True):
             sel = [r for r in rows if r["label"] == label and r["set"] == set_name and r["class"] == "all"]
             if not sel:
                 continue
@@ -735,14 +872,21 @@ def _plot_confidence(rows: list[dict[str, Any]], labels: tuple[str, ...], path: 
 
 def _plot_lookahead(rows: list[dict[str, Any]], config: InterpretConfig, path: Path) -> None:
     plt = _pyplot()
-    fig, axes = plt.subplots(len(_SETS), len(config.burn_in), figsize=(3.4 * len(config.burn_in), 6), sharey=True, squeeze=False)
+    fig, axes = plt.subplots(
+        len(_SETS), len(config.burn_in), figsize=(3.4 * len(config.burn_in), 6), sharey=True, squeeze=False
+    )
     for r_i, set_name in enumerate(_SETS):
         for c_i, rb in enumerate(config.burn_in):
             ax = axes[r_i][c_i]
             for method in config.methods:
                 sel = [r for r in rows if r["set"] == set_name and r["method"] == method and r["burn_in"] == rb]
-                ax.plot([r["horizon"] for r in sel], [r["rmse_mean"] for r in sel], marker="o", label=method,
-                        ls="-" if method.startswith("M") else "--")
+                ax.plot(
+                    [r["horizon"] for r in sel],
+                    [r["rmse_mean"] for r in sel],
+                    marker="o",
+                    label=method,
+                    ls="-" if method.startswith("M") else "--",
+                )
             ax.set_title(f"{set_name} operators, burn-in {rb:g} T", fontsize=9)
             ax.grid(alpha=0.3)
             if r_i == len(_SETS) - 1:

@@ -166,12 +166,16 @@ def _check(config: PandaConfig) -> None:
         raise ValueError(f"measurement intervals must be >= 1 (1: every step), got {list(config.intervals)}")
     if "M+S" in config.methods and (not config.particles or min(config.particles) < 1):
         raise ValueError(f"M+S needs particle counts >= 1, got {list(config.particles)}")
-    counts = {k: getattr(config, k) for k in ("samples", "hidden", "depth", "epochs", "batch_size", "tasks", "seeds", "steps")}
+    counts = {
+        k: getattr(config, k) for k in ("samples", "hidden", "depth", "epochs", "batch_size", "tasks", "seeds", "steps")
+    }
     small = [f"{k}={v}" for k, v in counts.items() if v < 1]
     if small:
         raise ValueError(f"sizes and counts must be >= 1: {', '.join(small)}")
     if config.noise_std <= 0 or config.tolerance <= 0 or config.dt <= 0:
-        raise ValueError(f"need noise_std, tolerance and dt > 0, got {config.noise_std}, {config.tolerance}, {config.dt}")
+        raise ValueError(
+            f"need noise_std, tolerance and dt > 0, got {config.noise_std}, {config.tolerance}, {config.dt}"
+        )
     resolve_device(config.device)
 
 
@@ -209,8 +213,12 @@ def _run(config: PandaConfig, *, progress: bool) -> dict[str, Any]:
     labels = method_labels(config)
     ignored = ("out", "full", "threads", "methods", "particles", "intervals")
     cache = ResultCache(out / "partial.pt", {k: v for k, v in config_dict(config).items() if k not in ignored})
-    runs = [(label, n, s) for label in labels for n in (intervals if label == "FK" else sorted(config.intervals))
-            for s in range(config.seeds)]
+    runs = [
+        (label, n, s)
+        for label in labels
+        for n in (intervals if label == "FK" else sorted(config.intervals))
+        for s in range(config.seeds)
+    ]
     results: dict[tuple[str, int, int], dict[str, Any]] = {}
     bar = tqdm(runs, desc="panda", unit="run", disable=not progress)
     for label, n, s in bar:
@@ -224,7 +232,11 @@ def _run(config: PandaConfig, *, progress: bool) -> dict[str, Any]:
             # Measurement noise (if any) from the seed alone: every method and n sees the same draws.
             noise = torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + 104_729 * (s + 1))
             outcome = reach(kinematics, observe, tools, goals, interval=n, config=config, generator=noise)
-            result = {**{k: v.cpu() for k, v in outcome.items()}, "tools": tools.cpu(), "seconds": time.perf_counter() - started}
+            result = {
+                **{k: v.cpu() for k, v in outcome.items()},
+                "tools": tools.cpu(),
+                "seconds": time.perf_counter() - started,
+            }
             cache.put(key, result)
         results[(label, n, s)] = result
 
@@ -251,9 +263,16 @@ def _run(config: PandaConfig, *, progress: bool) -> dict[str, Any]:
             )
             for s, r in enumerate(per_seed):
                 trial_rows += [
-                    {"method": label, "interval": n, "seed": s, "task": k, "reached": bool(r["reached"][k]),
-                     "steps": int(r["steps"][k]), "final_distance": float(r["final_distance"][k]),
-                     "tool_length": float(r["tools"][k])}
+                    {
+                        "method": label,
+                        "interval": n,
+                        "seed": s,
+                        "task": k,
+                        "reached": bool(r["reached"][k]),
+                        "steps": int(r["steps"][k]),
+                        "final_distance": float(r["final_distance"][k]),
+                        "tool_length": float(r["tools"][k]),
+                    }
                     for k in range(config.tasks)
                 ]
     write_csv(out / "results.csv", rows)
@@ -272,8 +291,10 @@ def _run(config: PandaConfig, *, progress: bool) -> dict[str, Any]:
     write_json(out / "results.json", payload)
     _plot(rows, config, out / "panda.png")
     print(table(rows, config))
-    print(f"\nnetwork held-out RMSE (mean mask): {held_out_rmse:.3f} m; wrote {out}/results.csv, trials.csv, "
-          "results.json, panda.png")
+    print(
+        f"\nnetwork held-out RMSE (mean mask): {held_out_rmse:.3f} m; wrote {out}/results.csv, trials.csv, "
+        "results.json, panda.png"
+    )
     return payload
 
 
@@ -420,12 +441,20 @@ def _plot(rows: list[dict[str, Any]], config: PandaConfig, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     intervals = sorted(set(config.intervals))
     # Orange is the reference line's, as in Fig. 3; the methods take the other colours.
-    colours = itertools.cycle(["tab:blue", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray",
-                               "tab:olive", "tab:cyan"])
+    colours = itertools.cycle(
+        ["tab:blue", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan"]
+    )
     for label in dict.fromkeys(r["method"] for r in rows):
         sel = [r for r in rows if r["method"] == label and r["interval"] in intervals]
-        ax.errorbar([r["interval"] for r in sel], [r["success_mean"] for r in sel], color=next(colours),
-                    yerr=[r["success_std"] for r in sel], marker="o", capsize=2, label=label)
+        ax.errorbar(
+            [r["interval"] for r in sel],
+            [r["success_mean"] for r in sel],
+            color=next(colours),
+            yerr=[r["success_std"] for r in sel],
+            marker="o",
+            capsize=2,
+            label=label,
+        )
     reference = [r for r in rows if r["method"] == "FK" and r["interval"] == 1]
     if reference:
         ax.axhline(reference[0]["success_mean"], color="tab:orange", linestyle="--", label="FK, measured every step")

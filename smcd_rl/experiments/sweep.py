@@ -217,17 +217,23 @@ class SweepConfig:
     burn_in: tuple[int, ...] = option((1, 10), "burn-in (adaptation) steps T (smcd study)")
     horizons: tuple[int, ...] = option((10,), "look-ahead horizons H (smcd study); one MSE per (T, H) pair")
     # Drone data (drone study).
-    dataset: str = option("", "drone study: a trajectory dataset (.npz, smcd_rl.envs.drone_operators format); empty: simulate")
+    dataset: str = option(
+        "", "drone study: a trajectory dataset (.npz, smcd_rl.envs.drone_operators format); empty: simulate"
+    )
     operators: int = option(33, "drone study: simulated operators (the paper had 33)")
     trajectories_per_operator: int = option(16, "drone study: landings per simulated operator (the paper had 16)")
     subset: int = option(192, "drone study: training trajectories used, drawn at random (the paper used 192; 0: all)")
     # Ray.
-    address: str = option("", "address of an existing Ray cluster (e.g. auto or ray://host:10001); empty: start a local Ray")
+    address: str = option(
+        "", "address of an existing Ray cluster (e.g. auto or ray://host:10001); empty: start a local Ray"
+    )
     cpus: int = option(0, "CPUs of the local Ray (0: all of this machine's); ignored with --address")
     cpus_per_trial: int = option(1, "CPUs reserved per Ray task, and its torch threads")
     gpus_per_trial: float = option(0.0, "GPUs reserved per Ray task (needs --device cuda)")
     device: str = option("cpu", "torch device of each trial (cuda needs --gpus-per-trial > 0)")
-    full: bool = option(False, "the paper's scale: the full factorial grids, 1000 arms x 150 episodes, 1000 held-out arms")
+    full: bool = option(
+        False, "the paper's scale: the full factorial grids, 1000 arms x 150 episodes, 1000 held-out arms"
+    )
 
 
 #: What ``--full`` changes besides the grid (options given explicitly still win).
@@ -272,7 +278,9 @@ def resolve_grid(config: SweepConfig) -> dict[str, tuple[Any, ...]]:
                 f"unknown parameter {name!r} for study {config.study!r}; its parameters: {', '.join(names)}"
             )
         if name in seen:
-            raise ValueError(f"parameter {name!r} is given twice in --grid; list all its values in one NAME=V1,V2 entry")
+            raise ValueError(
+                f"parameter {name!r} is given twice in --grid; list all its values in one NAME=V1,V2 entry"
+            )
         seen.add(name)
         kind = type(getattr(config, name))
         try:
@@ -329,7 +337,7 @@ def trial_configs(config: SweepConfig, grid: Mapping[str, Sequence[Any]] | None 
     base |= {"threads": config.cpus_per_trial, "device": config.device}
     names = list(grid)
     if config.design == "factorial":
-        combos = [dict(zip(names, values)) for values in itertools.product(*(grid[n] for n in names))]
+        combos = [dict(zip(names, values, strict=True)) for values in itertools.product(*(grid[n] for n in names))]
     else:
         combos = [{}] + [{name: value} for name in names for value in grid[name]]
     points: list[dict[str, Any]] = []
@@ -464,7 +472,9 @@ def _drone_data(dataset: str, operators: int, per_operator: int, subset: int, se
         data = drone_operators.simulate_operators(operators, per_operator, seed=seed)
     train_ids = drone_operators.split_dataset(data, seed=seed)["train"]
     if subset > len(train_ids):
-        raise ValueError(f"subset = {subset} but the dataset has only {len(train_ids)} training trajectories; lower --subset")
+        raise ValueError(
+            f"subset = {subset} but the dataset has only {len(train_ids)} training trajectories; lower --subset"
+        )
     if subset:
         train_ids = np.sort(np.random.default_rng(seed).choice(train_ids, size=subset, replace=False))
     chosen = data.select(train_ids)
@@ -477,7 +487,11 @@ def _model(config: Mapping[str, Any], data: TensorDict | None) -> smcd_rl.Adapti
     if config["study"] == "drone":
         assert data is not None
         net = smcd_rl.MaskedMLP(
-            data["state"].shape[-1], data["action"].shape[-1], hidden=hidden, dropout=float(config["dropout"]), device=device
+            data["state"].shape[-1],
+            data["action"].shape[-1],
+            hidden=hidden,
+            dropout=float(config["dropout"]),
+            device=device,
         )
         return smcd_rl.AdaptiveModel(net, in_keys=["state"], out_key="action")
     net = smcd_rl.MaskedMLP(2, 2, hidden=hidden, dropout=float(config["dropout"]), device=device)
@@ -548,11 +562,15 @@ def _check_config(config: SweepConfig) -> None:
             "no trial could ever be scheduled"
         )
     if torch.device(config.device).type != "cpu" and config.gpus_per_trial <= 0:
-        raise ValueError(f"--device {config.device} needs --gpus-per-trial > 0: Ray hides GPUs from tasks that reserve none")
+        raise ValueError(
+            f"--device {config.device} needs --gpus-per-trial > 0: Ray hides GPUs from tasks that reserve none"
+        )
     for name in ("depth", "tasks", "episodes", "steps", "arms", "chunk"):
         if getattr(config, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(config, name)}")
-    if config.study == "smcd" and (not config.burn_in or not config.horizons or min(config.burn_in + config.horizons) < 1):
+    if config.study == "smcd" and (
+        not config.burn_in or not config.horizons or min(config.burn_in + config.horizons) < 1
+    ):
         raise ValueError("--burn-in and --horizons need at least one value each, all >= 1")
     if config.study == "drone" and config.subset < 0:
         raise ValueError(f"--subset must be >= 0 (0: all training trajectories), got {config.subset}")
@@ -573,7 +591,9 @@ def _ray_session(config: SweepConfig) -> Iterator[Any]:
             ray.init(address=config.address, logging_level=logging.WARNING)
         else:
             # "local": always a fresh instance, never a cluster that `ray start` once left behind.
-            ray.init(address="local", num_cpus=config.cpus or None, include_dashboard=False, logging_level=logging.WARNING)
+            ray.init(
+                address="local", num_cpus=config.cpus or None, include_dashboard=False, logging_level=logging.WARNING
+            )
     try:
         available = ray.cluster_resources().get("CPU", 0)
         if config.cpus_per_trial > available:
@@ -689,7 +709,9 @@ def _timed_evaluate(config: Mapping[str, Any], trained: Mapping[str, Any]) -> tu
 
 
 # ---------------------------------------------------------------------------------- results
-def summarise(rows: Sequence[Mapping[str, Any]], parameters: Sequence[str], metrics: Sequence[str]) -> list[dict[str, Any]]:
+def summarise(
+    rows: Sequence[Mapping[str, Any]], parameters: Sequence[str], metrics: Sequence[str]
+) -> list[dict[str, Any]]:
     """Per metric, parameter and value: trials, mean, std (population) and min over the other parameters.
 
     Example:
@@ -726,7 +748,10 @@ def table(summary: Sequence[Mapping[str, Any]]) -> str:
         | loss   | lr        | 0.0001 | 2      | 2    | 1   | 1   |
     """
     header = ["metric", "parameter", "value", "trials", "mean", "std", "min"]
-    body = [[row["metric"], row["parameter"], _number(row["value"]), row["trials"]] + [_number(row[k]) for k in header[4:]] for row in summary]
+    body = [
+        [row["metric"], row["parameter"], _number(row["value"]), row["trials"]] + [_number(row[k]) for k in header[4:]]
+        for row in summary
+    ]
     return format_table(body, header)
 
 
@@ -748,11 +773,11 @@ def _plot(
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(parameters), figsize=(3.0 * len(parameters), 3.4), sharey=True, squeeze=False)
-    for ax, name in zip(axes[0], parameters):
+    for ax, name in zip(axes[0], parameters, strict=True):
         values = list(dict.fromkeys(row[name] for row in rows))
         positions = range(len(values))
         if len(metrics) == 1:  # every trial as a dot: the spread the paper's panels show
-            for x, value in zip(positions, values):
+            for x, value in zip(positions, values, strict=True):
                 ys = [row[metrics[0]] for row in rows if row[name] == value]
                 jitter = [x + 0.25 * ((k + 0.5) / len(ys) - 0.5) for k in range(len(ys))]
                 ax.scatter(jitter, ys, s=8, color="0.6", zorder=1)
@@ -774,7 +799,9 @@ def _plot(
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("training loss (normalised MSE)" if config.study != "smcd" else "look-ahead MSE (m$^2$)")
     axes[0][-1].legend(fontsize=7, title="dotted: min", title_fontsize=7)
-    fig.suptitle(f"Sweep, study {config.study} (cf. paper Fig. {_FIGURE[config.study]}): mean ± std and min over the other parameters")
+    fig.suptitle(
+        f"Sweep, study {config.study} (cf. paper Fig. {_FIGURE[config.study]}): mean ± std and min over the other parameters"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

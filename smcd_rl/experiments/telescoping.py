@@ -74,12 +74,15 @@ class TelescopingConfig:
     out: str = option("runs/telescoping", "output directory (results, plot, trained models)")
     seed: int = option(0, "seed of data, training and trials")
     model: str = option(
-        "", "use this trained M model (e.g. runs/two-link/model.pt) instead of training one; --hidden etc. then shape R only"
+        "",
+        "use this trained M model (e.g. runs/two-link/model.pt) instead of training one; --hidden etc. then shape R only",
     )
     tasks: int = option(200, "training arms (link-length draws)")
     episodes: int = option(50, "motor-babbling episodes per training arm")
     steps: int = option(10, "steps per motor-babbling episode")
-    hidden: int = option(256, "width of each hidden layer (the paper's latent dimension; 256 keeps the default run short)")
+    hidden: int = option(
+        256, "width of each hidden layer (the paper's latent dimension; 256 keeps the default run short)"
+    )
     depth: int = option(2, "number of hidden layers")
     dropout: float = option(0.5, "dropout probability p used in training")
     epochs: int = option(20, "training epochs of the multi-task (M) model")
@@ -227,17 +230,23 @@ def _check(config: TelescopingConfig) -> None:
     if bad:
         raise ValueError(f"report_steps {bad} lie outside 0..horizon={config.horizon}; pass steps within the episode")
     if not (config.dt > 0 and config.max_acceleration > 0 and config.damping >= 0):
-        raise ValueError(f"need dt > 0, max_acceleration > 0 and damping >= 0, got {config.dt}, "
-                         f"{config.max_acceleration}, {config.damping}")
+        raise ValueError(
+            f"need dt > 0, max_acceleration > 0 and damping >= 0, got {config.dt}, "
+            f"{config.max_acceleration}, {config.damping}"
+        )
     if config.model and not Path(config.model).is_file():
-        raise FileNotFoundError(f"--model {config.model}: no such file; train one with `smcd-rl two-link` or drop --model")
+        raise FileNotFoundError(
+            f"--model {config.model}: no such file; train one with `smcd-rl two-link` or drop --model"
+        )
 
 
 def _load_model(path: str, device: torch.device) -> smcd_rl.AdaptiveModel:
     try:
         model = smcd_rl.load(path).to(device)
     except (pickle.UnpicklingError, EOFError, RuntimeError) as err:  # torch.load's ways of saying "not a checkpoint"
-        raise ValueError(f"--model {path} is not a saved smcd_rl model ({err}); pass the model.pt of `smcd-rl two-link`") from err
+        raise ValueError(
+            f"--model {path} is not a saved smcd_rl model ({err}); pass the model.pt of `smcd-rl two-link`"
+        ) from err
     if model.in_keys != ["q"] or model.out_keys != ["ee"] or model.net.in_features != 2:
         raise ValueError(
             f"--model {path} maps {model.in_keys} -> {model.out_keys}; this experiment needs a two-link "
@@ -257,16 +266,30 @@ def _train(
     started = time.perf_counter()
     if family == "M":
         losses = smcd_rl.fit(
-            model, data, epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, seed=config.seed,
-            checkpoint=out / "train.ckpt", progress=progress,
+            model,
+            data,
+            epochs=config.epochs,
+            batch_size=config.batch_size,
+            lr=config.lr,
+            seed=config.seed,
+            checkpoint=out / "train.ckpt",
+            progress=progress,
         )
         model.save(out / "model.pt")
     else:
         # Reptile samples by task: motor_babbling's first batch dim is the task.
         losses = smcd_rl.fit_reptile(
-            model, data, epochs=config.reptile_epochs, batch_size=config.reptile_batch_size, lr=config.reptile_lr,
-            inner_lr=config.inner_lr, inner_epochs=config.inner_epochs, tasks_per_batch=config.tasks_per_batch,
-            seed=config.seed, checkpoint=out / "reptile.ckpt", progress=progress,
+            model,
+            data,
+            epochs=config.reptile_epochs,
+            batch_size=config.reptile_batch_size,
+            lr=config.reptile_lr,
+            inner_lr=config.inner_lr,
+            inner_epochs=config.inner_epochs,
+            tasks_per_batch=config.tasks_per_batch,
+            seed=config.seed,
+            checkpoint=out / "reptile.ckpt",
+            progress=progress,
         )
         model.save(out / "reptile.pt")
     return model, losses, time.perf_counter() - started

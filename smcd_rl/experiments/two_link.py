@@ -143,8 +143,10 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
 
     # --- held-out trials ----------------------------------------------------------------
     q, ee, ee_true, lengths = _trials(config, device)
-    methods = {name: _method(name, model, extra.get("reptile_model"), extra.get("latent_model"), config)
-               for name in config.methods}
+    methods = {
+        name: _method(name, model, extra.get("reptile_model"), extra.get("latent_model"), config)
+        for name in config.methods
+    }
     settings = {k: v for k, v in config_dict(config).items() if k not in ("out", "full")}
     cache = ResultCache(out / "partial.pt", settings)
     sq_errors: dict[str, torch.Tensor] = {}
@@ -234,9 +236,7 @@ def _train_baselines(
     if any(name.startswith("R+") for name in config.methods):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed + 17)
-            net = smcd_rl.MaskedMLP(
-                2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device
-            )
+            net = smcd_rl.MaskedMLP(2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
         reptile = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
         started = time.perf_counter()
         result["reptile_train_loss"] = smcd_rl.fit_reptile(
@@ -313,7 +313,14 @@ def _method(
 
 @torch.no_grad()
 def _evaluate(
-    method: Any, q: torch.Tensor, ee: torch.Tensor, ee_true: torch.Tensor, config: TwoLinkConfig, *, desc: str, progress: bool
+    method: Any,
+    q: torch.Tensor,
+    ee: torch.Tensor,
+    ee_true: torch.Tensor,
+    config: TwoLinkConfig,
+    *,
+    desc: str,
+    progress: bool,
 ) -> torch.Tensor:
     """Squared look-ahead errors ``[trials, len(burn_in), max H]`` of one method.
 
@@ -332,9 +339,7 @@ def _evaluate(
                 ahead = slice(t + 1, t + 1 + max_h)
                 predicted = method(TensorDict({"q": qc[:, ahead]}, [batch, max_h]))["ee"]
                 truth = ee_true[begin : begin + batch, ahead]
-                errors[begin : begin + batch, config.burn_in.index(t + 1)] = (
-                    (predicted - truth).square().sum(-1).cpu()
-                )
+                errors[begin : begin + batch, config.burn_in.index(t + 1)] = (predicted - truth).square().sum(-1).cpu()
     return errors
 
 
@@ -346,7 +351,7 @@ def _plot(rows: list[dict[str, Any]], config: TwoLinkConfig, path: Path) -> None
 
     fig, axes = plt.subplots(1, len(config.burn_in), figsize=(3.2 * len(config.burn_in) + 1.0, 3.2), sharey=True)
     axes = [axes] if len(config.burn_in) == 1 else list(axes)
-    for ax, t in zip(axes, config.burn_in):
+    for ax, t in zip(axes, config.burn_in, strict=True):
         for method in dict.fromkeys(r["method"] for r in rows):
             sel = [r for r in rows if r["method"] == method and r["burn_in"] == t]
             ax.errorbar(

@@ -388,8 +388,6 @@ def _check_model(model: object) -> None:
         raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel, got {type(model).__name__}")
 
 
-
-
 def _bound(value: _Bound | None, size: int, name: str, default: float) -> Tensor:
     if value is None:
         return torch.full((size,), default)
@@ -577,7 +575,7 @@ class AdaptationTransform(Transform):
         if not self.summary_keys:
             return td
         summary = self.model.summary()
-        for name, key in zip(self.summary_keys, self.out_keys):
+        for name, key in zip(self.summary_keys, self.out_keys, strict=True):
             if name not in summary:
                 raise KeyError(f"the model's summary has no {name!r}; it has {sorted(summary)}")
             td.set(key, summary[name].detach().to(torch.float32).reshape(*td.batch_size, 1).to(td.device))

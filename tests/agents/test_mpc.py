@@ -187,8 +187,16 @@ def test_batched_observations_plan_one_problem_per_row(trained: smcd_rl.Adaptive
 
 def test_reset_forgets_the_warm_start_only(trained: smcd_rl.AdaptiveDynamicsModel) -> None:
     model = smcd_copy(trained)
-    model.observe(TensorDict({"observation": torch.zeros(2), "action": torch.ones(1),
-                              ("next", "observation"): torch.tensor([0.01, 0.1])}, []))
+    model.observe(
+        TensorDict(
+            {
+                "observation": torch.zeros(2),
+                "action": torch.ones(1),
+                ("next", "observation"): torch.tensor([0.01, 0.1]),
+            },
+            [],
+        )
+    )
     particles = model.particles.clone()
     agent = MPCAgent(model, RandomShooting(action_low=-1.0, action_high=1.0, horizon=3, num_candidates=8), reward_fn)
     agent.act(np.zeros(2, np.float32))
@@ -221,8 +229,9 @@ def test_mismatches_with_the_model_are_named(trained: smcd_rl.AdaptiveDynamicsMo
     with pytest.raises(ValueError, match="ensemble must be one of"):
         MPCAgent(model, cem(), reward_fn, ensemble="mean")  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="AdaptiveDynamicsModel"):
-        MPCAgent(smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(3, 2, hidden=(8,)), in_keys=["q"], out_key="y"),
-                 cem(), reward_fn)  # type: ignore[arg-type]
+        MPCAgent(
+            smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(3, 2, hidden=(8,)), in_keys=["q"], out_key="y"), cem(), reward_fn
+        )  # type: ignore[arg-type]
 
 
 def test_action_sequences_of_the_wrong_shape_are_named() -> None:

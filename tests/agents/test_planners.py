@@ -146,7 +146,7 @@ def test_batched_planning_finds_each_target(name: str) -> None:
 
 
 def planner_candidates(planner: Planner) -> int:
-    return int(getattr(planner, "num_candidates"))
+    return int(planner.num_candidates)
 
 
 @pytest.mark.parametrize("name", list(CASES))
@@ -186,7 +186,7 @@ def test_warm_start_is_a_candidate(name: str) -> None:
         assert warm_start is not None
         seen: list[Tensor] = []
 
-        def recording(actions: Tensor) -> Tensor:
+        def recording(actions: Tensor, seen: list[Tensor] = seen) -> Tensor:
             seen.append(actions.clone())
             return objective(actions)
 

@@ -33,10 +33,9 @@ def test_posterior_concentrates_on_the_true_mask() -> None:
         x = torch.randn(3, generator=g)
         z = net(x, mask=true_mask) + 0.01 * torch.randn(8, generator=g)
         with torch.no_grad():
-            filt.update(lambda masks: -0.5 * ((net.forward_particles(x, masks) - z) / 0.05).square().sum(-1))
+            filt.update(lambda masks, x=x, z=z: -0.5 * ((net.forward_particles(x, masks) - z) / 0.05).square().sum(-1))
     assert torch.equal(filt.mean_mask > 0.5, true_mask)
     assert float((filt.mean_mask - true_mask.float()).abs().max()) < 0.3
-
 
 
 @pytest.mark.parametrize("sorted_ancestors", [True, False])
@@ -58,6 +57,7 @@ def test_mean_mask_sums_copies_to_the_weighted_mean(sorted_ancestors: bool) -> N
     filt.reweight(torch.randn(2, 40, generator=_gen(5)))
     expected = (filt.weights.unsqueeze(-2) @ filt.particles.float()).squeeze(-2)
     torch.testing.assert_close(filt.mean_mask, expected)
+
 
 def test_log_evidence_and_weights_match_hand_computation() -> None:
     filt = smcd_rl.SMCDFilter(4, num_particles=3, ess_threshold=0.0, generator=_gen())
@@ -172,8 +172,9 @@ def test_keep_rate_transition_keeps_the_training_distribution() -> None:
     """
     shares = {}
     for transition in ("keep_rate", "symmetric"):
-        filt = smcd_rl.SMCDFilter(256, num_particles=200, flip_prob=0.01, keep_prob=0.9,
-                                  transition=transition, generator=_gen(4))
+        filt = smcd_rl.SMCDFilter(
+            256, num_particles=200, flip_prob=0.01, keep_prob=0.9, transition=transition, generator=_gen(4)
+        )
         filt.reset()
         for _ in range(300):
             filt.propagate()
@@ -199,8 +200,9 @@ def test_keep_rate_flips_each_bit_at_its_own_rate() -> None:
 def test_keep_rate_is_the_papers_xor_at_half_dropout() -> None:
     particles = {}
     for transition in ("keep_rate", "symmetric"):
-        filt = smcd_rl.SMCDFilter(64, num_particles=50, flip_prob=0.03, keep_prob=0.5, transition=transition,
-                                  generator=_gen(6))
+        filt = smcd_rl.SMCDFilter(
+            64, num_particles=50, flip_prob=0.03, keep_prob=0.5, transition=transition, generator=_gen(6)
+        )
         filt.reset()
         for _ in range(5):
             filt.propagate()

@@ -103,17 +103,30 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path) -> None:
             raise Interrupt
 
     with pytest.raises(Interrupt):
-        fit_latent(_model(width=16), data, epochs=3, batch_size=32, seed=4, checkpoint=tmp_path / "lv.pt",
-                   callback=stop_after_one, progress=False)
+        fit_latent(
+            _model(width=16),
+            data,
+            epochs=3,
+            batch_size=32,
+            seed=4,
+            checkpoint=tmp_path / "lv.pt",
+            callback=stop_after_one,
+            progress=False,
+        )
     fresh = _model(width=16)
-    assert fit_latent(fresh, data, epochs=3, batch_size=32, seed=4, checkpoint=tmp_path / "lv.pt", progress=False) == full
-    for a, b in zip(straight.state_dict().values(), fresh.state_dict().values()):
+    assert (
+        fit_latent(fresh, data, epochs=3, batch_size=32, seed=4, checkpoint=tmp_path / "lv.pt", progress=False) == full
+    )
+    for a, b in zip(straight.state_dict().values(), fresh.state_dict().values(), strict=True):
         assert torch.equal(a, b)
     with pytest.raises(smcd_rl.CheckpointMismatchError, match="architecture"):
-        fit_latent(_model(width=8), data, epochs=4, batch_size=32, seed=4, checkpoint=tmp_path / "lv.pt", progress=False)
+        fit_latent(
+            _model(width=8), data, epochs=4, batch_size=32, seed=4, checkpoint=tmp_path / "lv.pt", progress=False
+        )
     with pytest.raises(smcd_rl.CheckpointMismatchError, match="settings"):
-        fit_latent(_model(width=16), data, epochs=4, batch_size=16, seed=4, checkpoint=tmp_path / "lv.pt",
-                   progress=False)
+        fit_latent(
+            _model(width=16), data, epochs=4, batch_size=16, seed=4, checkpoint=tmp_path / "lv.pt", progress=False
+        )
 
 
 def test_bad_input_is_refused() -> None:

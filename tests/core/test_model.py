@@ -81,8 +81,10 @@ def test_smcd_beats_no_adaptation_and_particles_give_the_posterior_predictive(
             model.observe(TensorDict({"q": q[t], "ee": ee[t]}, [20]))
     td = TensorDict({"q": q[10:].transpose(0, 1)}, [20, 10])  # extra batch dim: 10 future steps
     with torch.no_grad():
-        rmse = {k: float((m(td.clone())["ee"] - ee[10:].transpose(0, 1)).square().sum(-1).mean().sqrt())
-                for k, m in models.items()}
+        rmse = {
+            k: float((m(td.clone())["ee"] - ee[10:].transpose(0, 1)).square().sum(-1).mean().sqrt())
+            for k, m in models.items()
+        }
     assert rmse["smcd"] < 0.75 * rmse["none"], rmse
     samples = models["smcd"].predict_particles(td)
     assert samples.shape == (20, 10, 500, 2)
@@ -129,6 +131,7 @@ def test_reset_where_restarts_only_the_chosen_rows(two_link_model: smcd_rl.Adapt
     only that transition (GD: trained weights and an empty window; SMCD: with the same filter
     state, compared through the prior's log evidence of zero before it).
     """
+
     def make() -> smcd_rl.AdaptiveModel:
         if strategy == "gd":
             return two_link_model.with_adaptation(smcd_rl.GradientDescent(lr=0.05, steps=3, window=5))
@@ -175,12 +178,16 @@ def test_dynamics_model_predicts_the_change_of_observation() -> None:
     # step(): the same prediction from tensors, with the adapted mask or given masks.
     adapted = model.with_adaptation(smcd_rl.SMCD(num_particles=20, generator=torch.Generator().manual_seed(0)))
     adapted.reset()
-    adapted.observe(TensorDict({"observation": obs[:8], "action": act[:8], ("next", "observation"): obs[:8] + 5.2}, [8]))
+    adapted.observe(
+        TensorDict({"observation": obs[:8], "action": act[:8], ("next", "observation"): obs[:8] + 5.2}, [8])
+    )
     states, actions = torch.randn(6, 3), torch.randn(6, 1)
     td = TensorDict({"observation": states, "action": actions}, [6])
     torch.testing.assert_close(adapted.step(states, actions), adapted(td)["next", "observation"])
     masks = adapted.particles[:6]
-    torch.testing.assert_close(adapted.step(states, actions, mask=masks), adapted(td, mask=masks)["next", "observation"])
+    torch.testing.assert_close(
+        adapted.step(states, actions, mask=masks), adapted(td, mask=masks)["next", "observation"]
+    )
     with pytest.raises(ValueError, match=r"action \[..., 1\]"):
         adapted.step(states, torch.randn(6, 2))
 

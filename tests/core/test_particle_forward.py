@@ -24,8 +24,14 @@ def _run_pair(net, n, batch, flip_prob, steps=12, ess_threshold=1.0, noise=0.05)
     """Run the same SMCD twice, forced incremental and dense; yield both after every step."""
     pair = []
     for path in ("incremental", "dense"):
-        smcd = smcd_rl.SMCD(num_particles=n, flip_prob=flip_prob, noise_std=noise, ess_threshold=ess_threshold,
-                            generator=torch.Generator().manual_seed(7), forward_path=path)
+        smcd = smcd_rl.SMCD(
+            num_particles=n,
+            flip_prob=flip_prob,
+            noise_std=noise,
+            ess_threshold=ess_threshold,
+            generator=torch.Generator().manual_seed(7),
+            forward_path=path,
+        )
         smcd.bind(net, torch.ones(2))
         smcd.reset(batch)
         pair.append(smcd)
@@ -70,7 +76,7 @@ def test_partial_resampling_and_restored_rows_keep_the_paths_equal() -> None:
             saved = [smcd.filter.state_dict() for smcd in (fast, dense)]
         if step == 8:
             rows = torch.tensor([False, True, False])
-            for smcd, state in zip((fast, dense), saved):
+            for smcd, state in zip((fast, dense), saved, strict=True):
                 smcd.filter.restore_rows(state, rows)
             assert fast.filter.ancestors is None or bool((fast.filter.ancestors[1] == torch.arange(50)).all())
 
@@ -149,7 +155,11 @@ def test_bad_calls_name_the_problem() -> None:
     with pytest.raises(ValueError, match="needs a lineage"):
         forward(torch.randn(3), masks, None)
     with pytest.raises(ValueError, match="do not match"):
-        forward(torch.randn(3), masks, Lineage(masks[:4], torch.zeros(4, dtype=torch.long), torch.zeros(0, dtype=torch.long)))
+        forward(
+            torch.randn(3),
+            masks,
+            Lineage(masks[:4], torch.zeros(4, dtype=torch.long), torch.zeros(0, dtype=torch.long)),
+        )
     with pytest.raises(ValueError, match="path must be"):
         ParticleForward(net, path="fast")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="forward_path"):

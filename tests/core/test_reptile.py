@@ -51,7 +51,7 @@ def test_outer_step_size_is_the_fraction_of_the_way_to_the_adapted_weights() -> 
     smcd_rl.fit_reptile(full, data, epochs=1, batch_size=8, lr=1.0, tasks_per_batch=4, progress=False)
     smcd_rl.fit_reptile(half, data, epochs=1, batch_size=8, lr=0.5, tasks_per_batch=4, progress=False)
     moved = False
-    for w0, w1, wh in zip(start, _weights(full), _weights(half)):
+    for w0, w1, wh in zip(start, _weights(full), _weights(half), strict=True):
         torch.testing.assert_close(wh, w0 + 0.5 * (w1 - w0))
         moved |= not torch.equal(w1, w0)
     assert moved
@@ -76,7 +76,7 @@ def test_interrupted_reptile_resumes_to_the_same_result(tmp_path) -> None:
     fresh = _model()  # a new process: nothing but the checkpoint survives
     history = smcd_rl.fit_reptile(fresh, data, checkpoint=tmp_path / "r.pt", **kwargs)
     assert history == full
-    for a, b in zip(straight.state_dict().values(), fresh.state_dict().values()):
+    for a, b in zip(straight.state_dict().values(), fresh.state_dict().values(), strict=True):
         assert torch.equal(a, b)
     # Another seed shuffles and masks differently, so it is not the same run.
     other = _model()

@@ -14,7 +14,9 @@ def _data(n: int = 512) -> TensorDict:
 
 def _model(hidden: int = 64) -> smcd_rl.AdaptiveModel:
     torch.manual_seed(0)
-    return smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(hidden, hidden), dropout=0.2), in_keys=["q"], out_key="ee")
+    return smcd_rl.AdaptiveModel(
+        smcd_rl.MaskedMLP(2, 2, hidden=(hidden, hidden), dropout=0.2), in_keys=["q"], out_key="ee"
+    )
 
 
 def test_fit_learns() -> None:
@@ -40,12 +42,20 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path) -> None:
             raise Interrupt
 
     with pytest.raises(Interrupt):
-        smcd_rl.fit(resumed, data, epochs=4, batch_size=64, lr=1e-3, checkpoint=tmp_path / "c.pt",
-                    callback=stop_after_two, progress=False)
+        smcd_rl.fit(
+            resumed,
+            data,
+            epochs=4,
+            batch_size=64,
+            lr=1e-3,
+            checkpoint=tmp_path / "c.pt",
+            callback=stop_after_two,
+            progress=False,
+        )
     fresh = _model()  # a new process: nothing but the checkpoint survives
     history = smcd_rl.fit(fresh, data, epochs=4, batch_size=64, lr=1e-3, checkpoint=tmp_path / "c.pt", progress=False)
     assert history == full
-    for a, b in zip(straight.state_dict().values(), fresh.state_dict().values()):
+    for a, b in zip(straight.state_dict().values(), fresh.state_dict().values(), strict=True):
         assert torch.equal(a, b)
 
 
@@ -75,5 +85,5 @@ def test_seeded_training_is_repeatable() -> None:
     a, b = _model(), _model()
     smcd_rl.fit(a, _data(), epochs=2, seed=3, progress=False)
     smcd_rl.fit(b, _data(), epochs=2, seed=3, progress=False)
-    for x, y in zip(a.state_dict().values(), b.state_dict().values()):
+    for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
         assert torch.equal(x, y)

@@ -80,8 +80,7 @@ def test_check_env() -> None:
 
 def test_same_seed_same_rollout() -> None:
     first, second = (
-        rollout(gymnasium.make(ENV_ID, healthy_z_range=NARROW_Z).unwrapped, seed=0, n_steps=300)
-        for _ in range(2)
+        rollout(gymnasium.make(ENV_ID, healthy_z_range=NARROW_Z).unwrapped, seed=0, n_steps=300) for _ in range(2)
     )
     np.testing.assert_array_equal(np.stack(first[0]), np.stack(second[0]))
     assert first[3] == second[3] and first[4] == second[4]
@@ -93,9 +92,9 @@ def test_leg_table_matches_model_names() -> None:
     assert leg_indices(model) == LEGS
     for k, leg in enumerate(LEGS):
         assert (leg.hip_joint, leg.ankle_joint) == (f"hip_{k + 1}", f"ankle_{k + 1}")
-        for actuator, joint in zip(leg.actuators, (leg.hip_joint, leg.ankle_joint)):
+        for actuator, joint in zip(leg.actuators, (leg.hip_joint, leg.ankle_joint), strict=True):
             assert model.joint(model.actuator_trnid[actuator, 0]).name == joint
-        for geom, joint in zip(leg.geoms, (leg.hip_joint, leg.ankle_joint)):
+        for geom, joint in zip(leg.geoms, (leg.hip_joint, leg.ankle_joint), strict=True):
             assert model.geom_bodyid[geom] == model.joint(joint).bodyid
     assert [leg.actuators for leg in LEGS] == [(2, 3), (4, 5), (6, 7), (0, 1)]
     assert [leg.geoms for leg in LEGS] == [(3, 4), (6, 7), (9, 10), (12, 13)]
@@ -202,9 +201,7 @@ def test_observation_layout() -> None:
 
 def test_healthy_ant_moves_like_ant_v5() -> None:
     ours = CrippledAntEnv(crippled_legs=None)
-    ant = AntEnv(
-        include_cfrc_ext_in_observation=False, exclude_current_positions_from_observation=False
-    )
+    ant = AntEnv(include_cfrc_ext_in_observation=False, exclude_current_positions_from_observation=False)
     ours.reset(seed=5)
     ant.reset(seed=5)
     rng = np.random.default_rng(5)
@@ -227,9 +224,7 @@ def test_planner_reward_and_termination_match_the_env(contact_cost_weight: float
     action = torch.from_numpy(np.stack(actions))
     next_obs = torch.from_numpy(np.stack([info["next_obs"] for info in infos]))
 
-    expected = np.array(
-        [info["reward_forward"] + info["reward_survive"] + info["reward_ctrl"] for info in infos]
-    )
+    expected = np.array([info["reward_forward"] + info["reward_survive"] + info["reward_ctrl"] for info in infos])
     reward = ant_reward(obs, action, next_obs, dt=env.dt, healthy_z_range=NARROW_Z)
     assert reward.shape == (300,) and reward.dtype == torch.float64
     np.testing.assert_allclose(reward.numpy(), expected, rtol=0, atol=1e-9)

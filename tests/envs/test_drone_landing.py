@@ -70,7 +70,7 @@ def test_check_env_on_registered_id() -> None:
 def test_registered_env_truncates_after_300_steps_when_hovering() -> None:
     env = gymnasium.make(ENV_ID)
     env.reset(seed=0)
-    for step in range(1, 301):
+    for step in range(1, 301):  # noqa: B007 - read after the loop
         _, _, terminated, truncated, _ = env.step(np.zeros(3, dtype=np.float32))
         assert not terminated
         if truncated:
@@ -170,8 +170,16 @@ def test_geometry_functions_agree_with_the_platform_table() -> None:
 
 
 @pytest.mark.parametrize(
-    "options", [{"target": 5}, {"target": -1}, {"target": 1.5}, {"position": (0.0, 0.0)}, {"position": (0.0, 0.0, 9.0)},
-                {"position": (3.0, -1.5, 0.3)}, {"wind": 1}],
+    "options",
+    [
+        {"target": 5},
+        {"target": -1},
+        {"target": 1.5},
+        {"position": (0.0, 0.0)},
+        {"position": (0.0, 0.0, 9.0)},
+        {"position": (3.0, -1.5, 0.3)},
+        {"wind": 1},
+    ],
 )
 def test_invalid_reset_options_raise(options: dict) -> None:
     with pytest.raises(ValueError):
@@ -206,7 +214,9 @@ def test_simulation_is_repeatable_from_its_seed(population: TrajectoryDataset) -
     assert not np.array_equal(other.trajectory_labels["strategy"], population.trajectory_labels["strategy"])
 
 
-def test_recorded_actions_replayed_in_the_env_give_the_recorded_states_and_success(population: TrajectoryDataset) -> None:
+def test_recorded_actions_replayed_in_the_env_give_the_recorded_states_and_success(
+    population: TrajectoryDataset,
+) -> None:
     """The dataset is the env's dynamics: replaying a trajectory's commands reproduces it and its label."""
     env = DroneLandingEnv()
     offsets = population.offsets
@@ -238,8 +248,12 @@ def test_skill_is_recoverable_from_command_roughness_and_final_distance(populati
     on both, and the group means are ordered novice > intermediate > expert.
     """
     offsets, ops = population.offsets, population.operator
-    roughness = np.array([np.sqrt(np.mean(np.diff(population.action[offsets[i] : offsets[i + 1]], axis=0) ** 2))
-                          for i in range(population.num_trajectories)])
+    roughness = np.array(
+        [
+            np.sqrt(np.mean(np.diff(population.action[offsets[i] : offsets[i + 1]], axis=0) ** 2))
+            for i in range(population.num_trajectories)
+        ]
+    )
     final_distance = population.state[offsets[1:] - 1, 6]
     skill = population.trajectory_labels["skill"]
     for statistic in (roughness, final_distance):
@@ -301,14 +315,22 @@ def test_dataset_round_trips_through_npz(tmp_path, population: TrajectoryDataset
 def test_select_keeps_trajectories_and_labels(population: TrajectoryDataset) -> None:
     part = population.select([5, 2])
     offsets = population.offsets
-    assert np.array_equal(part.state, np.concatenate([population.state[offsets[5] : offsets[6]],
-                                                      population.state[offsets[2] : offsets[3]]]))
+    assert np.array_equal(
+        part.state,
+        np.concatenate([population.state[offsets[5] : offsets[6]], population.state[offsets[2] : offsets[3]]]),
+    )
     assert part.trajectory_labels["strategy"].tolist() == population.trajectory_labels["strategy"][[5, 2]].tolist()
 
 
 def _arrays(**changes: object) -> dict:
-    arrays = {"state": np.zeros((5, 7)), "action": np.zeros((5, 3)), "trajectory": np.array([0, 0, 0, 1, 1]),
-              "operator": np.array([0, 1]), "traj/skill": np.array([0, 2]), "step/phase": np.array([0, 0, 1, 0, 1])}
+    arrays = {
+        "state": np.zeros((5, 7)),
+        "action": np.zeros((5, 3)),
+        "trajectory": np.array([0, 0, 0, 1, 1]),
+        "operator": np.array([0, 1]),
+        "traj/skill": np.array([0, 2]),
+        "step/phase": np.array([0, 0, 1, 0, 1]),
+    }
     arrays.update(changes)
     return {k: v for k, v in arrays.items() if v is not None}
 

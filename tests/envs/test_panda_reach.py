@@ -244,8 +244,11 @@ def test_reset_options_and_arguments_are_checked() -> None:
             env.reset(options=options)
     with pytest.raises(ValueError, match="shape"):
         env.step(np.zeros(6, np.float32))
-    for kwargs, match in [({"measurement_interval": 0}, "measurement_interval"), ({"dt": 0.0}, "dt"),
-                          ({"measurement_noise": -1.0}, "measurement_noise")]:
+    for kwargs, match in [
+        ({"measurement_interval": 0}, "measurement_interval"),
+        ({"dt": 0.0}, "dt"),
+        ({"measurement_noise": -1.0}, "measurement_noise"),
+    ]:
         with pytest.raises(ValueError, match=match):
             PandaReachEnv(**kwargs)
     with pytest.raises(RuntimeError, match="reset"):
@@ -262,4 +265,4 @@ def test_env_pickles_mid_episode() -> None:
 
 
 def test_limits_constants_agree_with_the_ready_pose() -> None:
-    assert all(lo < q < hi for lo, q, hi in zip(JOINT_LOWER, READY_POSE, JOINT_UPPER))
+    assert all(lo < q < hi for lo, q, hi in zip(JOINT_LOWER, READY_POSE, JOINT_UPPER, strict=True))

@@ -48,11 +48,7 @@ def test_check_env_on_registered_id(measurement_noise: float) -> None:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         check_env(env.unwrapped)
-    unexpected = [
-        str(w.message)
-        for w in caught
-        if not any(s in str(w.message) for s in EXPECTED_CHECK_ENV_WARNINGS)
-    ]
+    unexpected = [str(w.message) for w in caught if not any(s in str(w.message) for s in EXPECTED_CHECK_ENV_WARNINGS)]
     assert unexpected == []
 
 
@@ -231,9 +227,7 @@ def test_sample_link_lengths_mean_matches_prior() -> None:
     # > 8 standard errors beyond the shift, and a wrong mean (e.g. 0.9 or 1.1) cannot pass.
     assert float(x.mean()) == pytest.approx(1.0, abs=0.01)
     assert float(x.std()) == pytest.approx(0.3, abs=0.01)
-    torch.testing.assert_close(
-        x, sample_link_lengths((50_000,), generator=torch.Generator().manual_seed(0))
-    )
+    torch.testing.assert_close(x, sample_link_lengths((50_000,), generator=torch.Generator().manual_seed(0)))
 
 
 def test_sample_link_lengths_rejects_bad_arguments() -> None:
@@ -252,12 +246,8 @@ def test_motor_babbling_shapes_and_consistency() -> None:
     assert data["task"].dtype == torch.int64
     torch.testing.assert_close(data["task"][:, 0, 0], torch.arange(6))
     assert bool((data["task"] == data["task"][:, :1, :1]).all())
-    torch.testing.assert_close(
-        data["next", "q"], integrate_joints(data["q"], data["action"], 0.3)
-    )
-    torch.testing.assert_close(
-        data["next", "ee"], two_link_fk(data["next", "q"], data["link_lengths"])
-    )
+    torch.testing.assert_close(data["next", "q"], integrate_joints(data["q"], data["action"], 0.3))
+    torch.testing.assert_close(data["next", "ee"], two_link_fk(data["next", "q"], data["link_lengths"]))
     torch.testing.assert_close(data["ee"], two_link_fk(data["q"], data["link_lengths"]))
     # Episodes chain: the next state of step t is the state of step t + 1.
     torch.testing.assert_close(data["next", "q"][..., :-1, :], data["q"][..., 1:, :])
@@ -271,9 +261,7 @@ def test_motor_babbling_shapes_and_consistency() -> None:
 
 def test_motor_babbling_action_std() -> None:
     for action_std in (0.5, 2.0):
-        data = motor_babbling(
-            10, 20, action_std=action_std, generator=torch.Generator().manual_seed(1)
-        )
+        data = motor_babbling(10, 20, action_std=action_std, generator=torch.Generator().manual_seed(1))
         # 4000 N(0, s^2) draws: the sample std is s +- ~1.1 % (1 sigma); +-10 % is ~9 sigma.
         assert float(data["action"].std()) == pytest.approx(action_std, rel=0.1)
         assert float(data["action"].mean()) == pytest.approx(0.0, abs=0.1 * action_std)

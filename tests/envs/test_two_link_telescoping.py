@@ -65,8 +65,9 @@ def test_target_moves_on_the_circle_of_radius_r() -> None:
     assert path.shape == (101, 2, 2)
     assert torch.allclose(path.norm(dim=-1), radius.expand(101, 2), atol=1e-6)
     angle = torch.atan2(path[..., 1], path[..., 0])
-    assert torch.allclose(torch.remainder(angle - start - 0.03 * k + math.pi, 2 * math.pi) - math.pi,
-                          torch.zeros(101, 2), atol=1e-5)
+    assert torch.allclose(
+        torch.remainder(angle - start - 0.03 * k + math.pi, 2 * math.pi) - math.pi, torch.zeros(101, 2), atol=1e-5
+    )
 
     env = TwoLinkTelescopingEnv()
     obs, info = env.reset(seed=0)
@@ -86,7 +87,9 @@ def test_reward_is_minus_the_true_distance_to_the_target() -> None:
     env.reset(seed=1)
     obs, reward, *_, info = env.step(np.array([3.0, -2.0], dtype=np.float32))
     assert reward == pytest.approx(-np.linalg.norm(info["ee_true"] - obs[6:]), abs=1e-5)
-    assert reward == pytest.approx(float(tracking_reward(torch.as_tensor(info["ee_true"]), torch.as_tensor(obs[6:]))), abs=1e-5)
+    assert reward == pytest.approx(
+        float(tracking_reward(torch.as_tensor(info["ee_true"]), torch.as_tensor(obs[6:]))), abs=1e-5
+    )
 
 
 def test_double_integrator_and_action_clipping() -> None:

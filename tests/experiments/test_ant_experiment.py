@@ -3,15 +3,32 @@
 import csv
 import json
 
-import pytest
-
 from smcd_rl import cli
 from smcd_rl.experiments import ant
 
 TINY = [
-    "--transitions", "400", "--data-episode-steps", "100", "--hidden", "16", "--epochs", "2",
-    "--episodes", "2", "--episode-steps", "4", "--horizon", "3", "--candidates", "12", "--elites", "3",
-    "--iterations", "2", "--particles", "8",
+    "--transitions",
+    "400",
+    "--data-episode-steps",
+    "100",
+    "--hidden",
+    "16",
+    "--epochs",
+    "2",
+    "--episodes",
+    "2",
+    "--episode-steps",
+    "4",
+    "--horizon",
+    "3",
+    "--candidates",
+    "12",
+    "--elites",
+    "3",
+    "--iterations",
+    "2",
+    "--particles",
+    "8",
 ]
 
 
@@ -57,7 +74,9 @@ def test_subset_of_cells_and_single_condition(tmp_path, capsys) -> None:
     assert cli.main(["ant", "--out", str(out), *TINY, "--episodes", "1", *options]) == 0
     rows = list(csv.DictReader(open(out / "results.csv")))
     assert {(r["planner"], r["adaptation"], r["condition"]) for r in rows} == {
-        ("RS", "none", "crippled"), ("RS", "SMCD", "crippled")}
+        ("RS", "none", "crippled"),
+        ("RS", "SMCD", "crippled"),
+    }
     assert "crippled" in capsys.readouterr().out
 
 

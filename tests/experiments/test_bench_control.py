@@ -11,8 +11,25 @@ import pytest
 from smcd_rl import cli
 from smcd_rl.experiments.bench_control import CONTENDERS
 
-TINY = ["--hidden", "16", "16", "--particles", "20", "--batch", "2", "--steps", "4", "--warmup", "1",
-        "--gd-steps", "1", "--device", "cpu", "--threads", "1"]
+TINY = [
+    "--hidden",
+    "16",
+    "16",
+    "--particles",
+    "20",
+    "--batch",
+    "2",
+    "--steps",
+    "4",
+    "--warmup",
+    "1",
+    "--gd-steps",
+    "1",
+    "--device",
+    "cpu",
+    "--threads",
+    "1",
+]
 
 
 def test_bench_control_prints_rates_and_ratios_and_writes_files(tmp_path, capsys) -> None:
@@ -24,7 +41,12 @@ def test_bench_control_prints_rates_and_ratios_and_writes_files(tmp_path, capsys
     assert [r["loop"] for r in rows] == list(CONTENDERS)
     assert all(float(r["steps_per_s"]) > 0 and int(r["steps"]) == 4 for r in rows)
     payload = json.loads((out / "results.json").read_text())
-    assert set(payload["ratios"]) == {"analytic_over_smcd", "smcd_over_gd", "no_adaptation_over_smcd", "analytic_over_gd"}
+    assert set(payload["ratios"]) == {
+        "analytic_over_smcd",
+        "smcd_over_gd",
+        "no_adaptation_over_smcd",
+        "analytic_over_gd",
+    }
     assert all(value > 0 for value in payload["ratios"].values())
     assert payload["network"]["mask_dim"] == 32 and payload["network"]["trained"] is False
 

@@ -11,13 +11,41 @@ import torch
 
 from smcd_rl import cli
 
-TINY = ["--particles", "20", "60", "--hidden", "32", "32", "--steps", "6", "--repeats", "3", "--warmup", "1",
-        "--device", "cpu", "--threads", "1"]
+TINY = [
+    "--particles",
+    "20",
+    "60",
+    "--hidden",
+    "32",
+    "32",
+    "--steps",
+    "6",
+    "--repeats",
+    "3",
+    "--warmup",
+    "1",
+    "--device",
+    "cpu",
+    "--threads",
+    "1",
+]
 
 
 def test_bench_filter_prints_ratios_memory_and_writes_files(tmp_path, capsys) -> None:
     out = tmp_path / "bench"
-    args = ["bench", "filter", "--out", str(out), *TINY, "--memory-particles", "50", "--memory-hidden", "16", "16", "16"]
+    args = [
+        "bench",
+        "filter",
+        "--out",
+        str(out),
+        *TINY,
+        "--memory-particles",
+        "50",
+        "--memory-hidden",
+        "16",
+        "16",
+        "16",
+    ]
     assert cli.main(args) == 0
     printed = capsys.readouterr().out
     assert "torch_threads=1" in printed and "naive / ours" in printed and "extra peak memory" in printed
@@ -25,7 +53,8 @@ def test_bench_filter_prints_ratios_memory_and_writes_files(tmp_path, capsys) ->
     rows = list(csv.DictReader(open(out / "results.csv")))
     schedules = ["interleaved", "back to back"]
     assert [(int(r["N"]), r["regime"], r["schedule"]) for r in rows] == [
-        (n, regime, schedule) for n in (20, 60) for regime in ("realistic", "worst") for schedule in schedules]
+        (n, regime, schedule) for n in (20, 60) for regime in ("realistic", "worst") for schedule in schedules
+    ]
     for row in rows:
         assert float(row["ours_ms"]) > 0 and float(row["naive_ms"]) > 0 and float(row["matmul_ms"]) > 0
         assert 1 <= float(row["mean_distinct_parents"]) <= int(row["N"])
@@ -37,9 +66,12 @@ def test_bench_filter_prints_ratios_memory_and_writes_files(tmp_path, capsys) ->
     assert set(payload["goals"]) == set(schedules)
     for goals in payload["goals"].values():
         # N = 20 and 60 only: the time goals at N = 1000 are not measured; the memory goal is.
-        assert goals == {"realistic_at_most_1.0x_matmul": None, "worst_at_most_1.5x_matmul": None,
-                         "at_least_10x_faster_than_naive": None,
-                         "peak_extra_under_200_mb": payload["memory"]["ours_peak_extra_mb"] < 200}
+        assert goals == {
+            "realistic_at_most_1.0x_matmul": None,
+            "worst_at_most_1.5x_matmul": None,
+            "at_least_10x_faster_than_naive": None,
+            "peak_extra_under_200_mb": payload["memory"]["ours_peak_extra_mb"] < 200,
+        }
 
 
 def test_bench_filter_json_flag_prints_only_json(tmp_path, capsys) -> None:

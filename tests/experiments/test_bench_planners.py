@@ -11,11 +11,34 @@ import pytest
 from smcd_rl import cli
 
 TINY = [
-    "--observation", "4", "--action", "2", "--hidden", "16", "16", "--horizon", "3", "--candidates", "20",
-    "--top-k", "4", "--steps", "2", "--repeats", "3", "--warmup", "1", "--device", "cpu",
+    "--observation",
+    "4",
+    "--action",
+    "2",
+    "--hidden",
+    "16",
+    "16",
+    "--horizon",
+    "3",
+    "--candidates",
+    "20",
+    "--top-k",
+    "4",
+    "--steps",
+    "2",
+    "--repeats",
+    "3",
+    "--warmup",
+    "1",
+    "--device",
+    "cpu",
 ]
-NAMES = {"torchrl CEMPlanner", "ours: CEM + model_reward_objective", "ours: CEM + plain objective",
-         "floor: bare forwards"}
+NAMES = {
+    "torchrl CEMPlanner",
+    "ours: CEM + model_reward_objective",
+    "ours: CEM + plain objective",
+    "floor: bare forwards",
+}
 
 
 def test_bench_planners_prints_ratios_and_writes_files(tmp_path, capsys) -> None:
@@ -32,8 +55,12 @@ def test_bench_planners_prints_ratios_and_writes_files(tmp_path, capsys) -> None
 
 
 def test_bench_planners_json_flag_prints_only_json(tmp_path, capsys) -> None:
-    assert cli.main(["bench", "planners", "--out", str(tmp_path), *TINY, "--json", "--adaptation", "smcd",
-                     "--particles", "5"]) == 0
+    assert (
+        cli.main(
+            ["bench", "planners", "--out", str(tmp_path), *TINY, "--json", "--adaptation", "smcd", "--particles", "5"]
+        )
+        == 0
+    )
     payload = json.loads(capsys.readouterr().out)
     assert {r["planner"] for r in payload["results"]} == NAMES
     assert payload["machine"]["torch_threads"] >= 1 and payload["device"] == "cpu"

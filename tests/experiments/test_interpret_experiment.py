@@ -14,14 +14,63 @@ from smcd_rl.envs.drone_operators import save_dataset, simulate_operators
 from smcd_rl.experiments import interpret
 
 TINY = [
-    "--fig9-latents", "8", "16", "--fig9-tasks", "10", "--fig9-episodes", "4", "--fig9-epochs", "1", "--fig9-arms", "12",
-    "--fig9-burn-in", "3", "--fig9-particles", "10", "--fig9-ks", "1", "3",
-    "--operators", "6", "--trajectories-per-operator", "4", "--hidden", "16", "--epochs", "1", "--particles", "10",
-    "--reptile-epochs", "1", "--steps", "1", "5", "--burn-in", "0.5", "--horizons", "0.25", "--methods", "M+N", "M+S",
-    "R+N", "--threads", "1",
+    "--fig9-latents",
+    "8",
+    "16",
+    "--fig9-tasks",
+    "10",
+    "--fig9-episodes",
+    "4",
+    "--fig9-epochs",
+    "1",
+    "--fig9-arms",
+    "12",
+    "--fig9-burn-in",
+    "3",
+    "--fig9-particles",
+    "10",
+    "--fig9-ks",
+    "1",
+    "3",
+    "--operators",
+    "6",
+    "--trajectories-per-operator",
+    "4",
+    "--hidden",
+    "16",
+    "--epochs",
+    "1",
+    "--particles",
+    "10",
+    "--reptile-epochs",
+    "1",
+    "--steps",
+    "1",
+    "5",
+    "--burn-in",
+    "0.5",
+    "--horizons",
+    "0.25",
+    "--methods",
+    "M+N",
+    "M+S",
+    "R+N",
+    "--threads",
+    "1",
 ]
-FILES = ("results.csv", "results.json", "fig9.csv", "confidence.csv", "lookahead.csv", "fig9.png",
-         "fig4_skill_strategy.png", "fig13_phase_success.png", "fig14_lookahead.png", "dataset.npz", "bc_model.pt")
+FILES = (
+    "results.csv",
+    "results.json",
+    "fig9.csv",
+    "confidence.csv",
+    "lookahead.csv",
+    "fig9.png",
+    "fig4_skill_strategy.png",
+    "fig13_phase_success.png",
+    "fig14_lookahead.png",
+    "dataset.npz",
+    "bc_model.pt",
+)
 
 
 def tables(printed: str) -> list[str]:
@@ -30,7 +79,9 @@ def tables(printed: str) -> list[str]:
 
 
 @pytest.mark.slow
-def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tables(tmp_path, capsys, monkeypatch) -> None:
+def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tables(
+    tmp_path, capsys, monkeypatch
+) -> None:
     first = tmp_path / "first"
     assert cli.main(["interpret", "--out", str(first), *TINY]) == 0
     printed = capsys.readouterr().out
@@ -38,8 +89,12 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
         assert (first / name).is_file(), name
     assert "Fig. 9" in printed and "| skill" in printed and "| M+S" in printed and "| R+N" in printed
     payload = json.loads((first / "results.json").read_text())
-    assert payload["dataset"]["train"]["trajectories"] + payload["dataset"]["known"]["trajectories"] \
-        + payload["dataset"]["unknown"]["trajectories"] == 24
+    assert (
+        payload["dataset"]["train"]["trajectories"]
+        + payload["dataset"]["known"]["trajectories"]
+        + payload["dataset"]["unknown"]["trajectories"]
+        == 24
+    )
     assert all(0 <= r["mean"] <= 1 and 0 <= r["chance"] <= 1 for r in payload["confidence"])
     assert all(0 <= r["accuracy"] <= 1 for r in payload["fig9"])
     assert all(math.isfinite(r["rmse_mean"]) and r["rmse_mean"] > 0 for r in payload["lookahead"])
@@ -63,6 +118,7 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
     with pytest.raises(KeyboardInterrupt):
         cli.main(["interpret", "--out", str(second), "--dataset", str(first / "dataset.npz"), *TINY])
     capsys.readouterr()
+
     def counted(*args, **kwargs):
         calls["n"] += 1
         return real(*args, **kwargs)

@@ -12,8 +12,29 @@ from smcd_rl.experiments import panda
 from smcd_rl.experiments.common import torch_threads
 
 TINY = [
-    "--samples", "2000", "--hidden", "32", "--depth", "2", "--epochs", "2", "--tasks", "4", "--seeds", "2",
-    "--intervals", "2", "5", "--steps", "25", "--particles", "20", "--gd-steps", "1", "--gd-window", "3",
+    "--samples",
+    "2000",
+    "--hidden",
+    "32",
+    "--depth",
+    "2",
+    "--epochs",
+    "2",
+    "--tasks",
+    "4",
+    "--seeds",
+    "2",
+    "--intervals",
+    "2",
+    "5",
+    "--steps",
+    "25",
+    "--particles",
+    "20",
+    "--gd-steps",
+    "1",
+    "--gd-window",
+    "3",
 ]
 
 
@@ -33,7 +54,10 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     rows = list(csv.DictReader(open(out / "results.csv")))
     # FK also runs at n = 1 (the reference line of Fig. 3) although 1 is not among the intervals.
     assert {(r["method"], int(r["interval"])) for r in rows} == {
-        ("FK", 1), ("FK", 2), ("FK", 5), *((m, n) for m in ("M+N", "M+G", "M+S (N=20)") for n in (2, 5))
+        ("FK", 1),
+        ("FK", 2),
+        ("FK", 5),
+        *((m, n) for m in ("M+N", "M+G", "M+S (N=20)") for n in (2, 5)),
     }
     assert all(0.0 <= float(r["success_mean"]) <= 1.0 and int(r["seeds"]) == 2 for r in rows)
     assert len(list(csv.DictReader(open(out / "trials.csv")))) == len(rows) * 2 * 4

@@ -40,7 +40,7 @@ def test_training_sweep_on_local_ray_equals_in_process_trials_and_resumes(tmp_pa
     points = sweep.trial_configs(config)
     rows = _rows(out / "results.csv")
     assert [int(r["hidden"]) for r in rows] == [p["hidden"] for p in points] == [8, 16]
-    for row, point in zip(rows, points):
+    for row, point in zip(rows, points, strict=True):
         assert float(row["train_loss"]) == sweep.trial(point)["train_loss"]
     summary = {(r["parameter"], r["value"]): r for r in _rows(out / "summary.csv")}
     assert set(summary) == {("hidden", "8"), ("hidden", "16")}  # one-valued parameters get no summary row
@@ -68,7 +68,20 @@ def test_smcd_sweep_on_a_running_ray_evaluates_each_filter_setting_and_resumes(t
     ray.init(address="local", num_cpus=2, include_dashboard=False)
     try:
         out = tmp_path / "run"
-        common = ["--study", "smcd", "--epochs", "2", "--arms", "8", "--burn-in", "1", "3", "--horizons", "2", *TINY_TWO_LINK]
+        common = [
+            "--study",
+            "smcd",
+            "--epochs",
+            "2",
+            "--arms",
+            "8",
+            "--burn-in",
+            "1",
+            "3",
+            "--horizons",
+            "2",
+            *TINY_TWO_LINK,
+        ]
         grid = ["hidden=16", "dropout=0.5", "flip_prob=0.01", "noise_std=0.05"]
         assert cli.main(["sweep", "--out", str(out), "--grid", *grid, "particles=10,20", *common]) == 0
         assert ray.is_initialized(), "a Ray the sweep did not start must be left running"

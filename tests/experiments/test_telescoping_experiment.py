@@ -10,9 +10,29 @@ from smcd_rl import cli
 from smcd_rl.experiments import telescoping
 
 TINY = [
-    "--tasks", "20", "--episodes", "5", "--hidden", "32", "--epochs", "2", "--reptile-epochs", "1",
-    "--trials", "6", "--horizon", "12", "--report-steps", "5", "12", "--particles", "50",
-    "--oracle-particles", "50", "--gd-steps", "1",
+    "--tasks",
+    "20",
+    "--episodes",
+    "5",
+    "--hidden",
+    "32",
+    "--epochs",
+    "2",
+    "--reptile-epochs",
+    "1",
+    "--trials",
+    "6",
+    "--horizon",
+    "12",
+    "--report-steps",
+    "5",
+    "12",
+    "--particles",
+    "50",
+    "--oracle-particles",
+    "50",
+    "--gd-steps",
+    "1",
 ]
 
 

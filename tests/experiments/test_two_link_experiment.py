@@ -10,9 +10,38 @@ from smcd_rl.experiments import two_link
 from smcd_rl.experiments.common import torch_threads
 
 SMALL = [
-    "--tasks", "100", "--episodes", "20", "--hidden", "128", "--epochs", "10", "--batch-size", "128",
-    "--lr", "2e-3", "--trials", "60", "--chunk", "30", "--burn-in", "1", "10", "--horizons", "1", "10",
-    "--particles", "300", "--oracle-particles", "300", "--reptile-epochs", "3", "--lv-epochs", "3", "--lv-width", "64",
+    "--tasks",
+    "100",
+    "--episodes",
+    "20",
+    "--hidden",
+    "128",
+    "--epochs",
+    "10",
+    "--batch-size",
+    "128",
+    "--lr",
+    "2e-3",
+    "--trials",
+    "60",
+    "--chunk",
+    "30",
+    "--burn-in",
+    "1",
+    "10",
+    "--horizons",
+    "1",
+    "10",
+    "--particles",
+    "300",
+    "--oracle-particles",
+    "300",
+    "--reptile-epochs",
+    "3",
+    "--lv-epochs",
+    "3",
+    "--lv-width",
+    "64",
 ]
 
 
@@ -32,8 +61,10 @@ def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> 
     assert "| M+S" in printed and "H=10" in printed
     for name in ("results.csv", "trials.csv", "results.json", "lookahead.png", "model.pt", "reptile_model.pt"):
         assert (out / name).is_file(), name
-    rows = {(r["method"], int(r["burn_in"]), int(r["horizon"])): float(r["rmse_mean"])
-            for r in csv.DictReader(open(out / "results.csv"))}
+    rows = {
+        (r["method"], int(r["burn_in"]), int(r["horizon"])): float(r["rmse_mean"])
+        for r in csv.DictReader(open(out / "results.csv"))
+    }
     assert rows[("O+P", 10, 10)] < rows[("M+N", 10, 10)] / 5
     assert rows[("M+S", 10, 10)] < 0.75 * rows[("M+N", 10, 10)]
     assert rows[("M+S", 10, 1)] < 0.75 * rows[("M+N", 10, 1)]
@@ -64,14 +95,41 @@ def test_help_and_bad_options(capsys) -> None:
 
 
 TINY = [
-    "--tasks", "20", "--episodes", "5", "--hidden", "32", "--epochs", "2", "--trials", "8", "--chunk", "8",
-    "--burn-in", "1", "3", "--horizons", "1", "2", "--particles", "50", "--oracle-particles", "50",
-    "--reptile-epochs", "1", "--lv-epochs", "1", "--lv-width", "16",
+    "--tasks",
+    "20",
+    "--episodes",
+    "5",
+    "--hidden",
+    "32",
+    "--epochs",
+    "2",
+    "--trials",
+    "8",
+    "--chunk",
+    "8",
+    "--burn-in",
+    "1",
+    "3",
+    "--horizons",
+    "1",
+    "2",
+    "--particles",
+    "50",
+    "--oracle-particles",
+    "50",
+    "--reptile-epochs",
+    "1",
+    "--lv-epochs",
+    "1",
+    "--lv-width",
+    "16",
 ]
 
 
 def _rows(out) -> dict:
-    return {(r["method"], r["burn_in"], r["horizon"]): r["rmse_mean"] for r in csv.DictReader(open(out / "results.csv"))}
+    return {
+        (r["method"], r["burn_in"], r["horizon"]): r["rmse_mean"] for r in csv.DictReader(open(out / "results.csv"))
+    }
 
 
 def test_reptile_and_latent_methods_leave_the_multitask_rows_unchanged(tmp_path, capsys) -> None:

@@ -6,6 +6,7 @@ what it observes, what info and the context carry) does not depend on how good t
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from typing import Any
 
@@ -161,7 +162,7 @@ def test_context_is_a_fixed_projection_of_the_mmse_mask_and_moves_as_the_model_a
     # as the filter concentrates on a few masks.
     norms = [float(np.linalg.norm(c[:6])) for c in contexts]
     assert norms[0] < 0.5 < norms[-1]
-    assert all(not np.array_equal(a[:6], b[:6]) for a, b in zip(contexts, contexts[1:]))
+    assert all(not np.array_equal(a[:6], b[:6]) for a, b in itertools.pairwise(contexts))
 
 
 # ---------------------------------------------------------------------------- vector envs
@@ -222,8 +223,16 @@ def test_ppo_trains_through_the_wrapper_and_its_policy_collects_fitting_data(mon
     model = arm_model()
     spy = CountObserve(model, monkeypatch)
     env = AdaptationWrapper(gymnasium.make(ARM, max_episode_steps=50), model, context=4)
-    agent = PPO("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=2, seed=0, device="cpu",
-                policy_kwargs={"net_arch": [32, 32]})
+    agent = PPO(
+        "MlpPolicy",
+        env,
+        n_steps=64,
+        batch_size=32,
+        n_epochs=2,
+        seed=0,
+        device="cpu",
+        policy_kwargs={"net_arch": [32, 32]},
+    )
     agent.learn(256)
     assert len(spy.calls) >= 256  # the hook saw every step PPO took
 

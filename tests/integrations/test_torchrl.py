@@ -219,7 +219,7 @@ def test_transform_observes_every_real_step_and_writes_the_summary(monkeypatch: 
     td = env.rollout(5, auto_reset=False, tensordict=start)
 
     assert len(calls) == 5
-    for call, step in zip(calls, td):
+    for call, step in zip(calls, td, strict=True):
         torch.testing.assert_close(call["observation"], step["observation"])
         torch.testing.assert_close(call["action"], step["action"])
         torch.testing.assert_close(call["next", "observation"], step["next", "observation"])
@@ -303,8 +303,18 @@ def test_mbrl_loop_runs_collect_fit_plan_adapt(planner: str) -> None:
     model = smcd_model(3, 1)
     env = GymEnv("Pendulum-v1")
     returns = mbrl_loop(
-        env, model, pendulum_reward, iterations=2, initial_frames=64, episode_steps=5, fit_epochs=2,
-        planner=planner, planning_horizon=3, optim_steps=2, num_candidates=16, top_k=4,  # type: ignore[arg-type]
+        env,
+        model,
+        pendulum_reward,
+        iterations=2,
+        initial_frames=64,
+        episode_steps=5,
+        fit_epochs=2,
+        planner=planner,
+        planning_horizon=3,
+        optim_steps=2,
+        num_candidates=16,
+        top_k=4,  # type: ignore[arg-type]
     )
     assert len(returns) == 2 and all(torch.isfinite(torch.tensor(returns)))
     assert all(r <= 0.0 for r in returns)  # Pendulum's rewards are never positive
