@@ -283,7 +283,9 @@ def save_dataset(dataset: TrajectoryDataset, path: str | os.PathLike[str]) -> No
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as handle:  # a file handle: np.savez would append .npz to other names
-        np.savez_compressed(handle, **arrays)
+        # mypy matches **arrays against the stubs' allow_pickle: bool; no key here has that name, and
+        # passing the flag would store an array named allow_pickle on numpy 1.26, which has no such flag.
+        np.savez_compressed(handle, **arrays)  # type: ignore[arg-type]
 
 
 def load_dataset(path: str | os.PathLike[str]) -> TrajectoryDataset:

@@ -25,6 +25,7 @@ import gymnasium
 import numpy as np
 import torch
 from gymnasium import spaces
+from numpy.typing import ArrayLike
 from tensordict import TensorDict
 from torch import Tensor
 
@@ -187,9 +188,10 @@ def integrate_panda(
     if not limits:
         q_dot = q_dot + dt * acceleration
         return q + dt * q_dot, q_dot
-    like = {"dtype": q.dtype, "device": q.device}
-    max_acc, max_vel = torch.tensor(ACCELERATION_LIMITS, **like), torch.tensor(VELOCITY_LIMITS, **like)
-    lower, upper = joint_limits(**like)
+    dtype, device = q.dtype, q.device
+    max_acc = torch.tensor(ACCELERATION_LIMITS, dtype=dtype, device=device)
+    max_vel = torch.tensor(VELOCITY_LIMITS, dtype=dtype, device=device)
+    lower, upper = joint_limits(dtype=dtype, device=device)
     q_dot = (q_dot + dt * torch.clamp(acceleration, -max_acc, max_acc)).clamp(-max_vel, max_vel)
     q = q + dt * q_dot
     stopped = (q <= lower) | (q >= upper)
@@ -381,6 +383,9 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     """
 
     metadata: dict[str, Any] = {"render_modes": []}
+    # Narrowed from gymnasium.Env's Space: __init__ always sets Boxes, and _observation clips to their bounds.
+    action_space: spaces.Box
+    observation_space: spaces.Box
 
     def __init__(
         self,
@@ -513,7 +518,7 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
 
     def _observation(self, *, fresh: bool) -> np.ndarray:
         assert self._q is not None
-        parts = [self._q.numpy(), self._q_dot.numpy(), self._goal, self._measured, [float(fresh)]]
+        parts: list[ArrayLike] = [self._q.numpy(), self._q_dot.numpy(), self._goal, self._measured, [float(fresh)]]
         return np.clip(np.concatenate(parts), self.observation_space.low, self.observation_space.high).astype(
             np.float32
         )
