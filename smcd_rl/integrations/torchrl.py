@@ -299,17 +299,17 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         obs_space = getattr(env, "single_observation_space", env.observation_space)
         action_space = getattr(env, "single_action_space", env.action_space)
         obs_dim, action_dim = model.observation_dim, model.action_dim
-        _check_box(obs_space, obs_dim, "observation", model)
-        _check_box(action_space, action_dim, "action", model)
+        obs_box = _check_box(obs_space, obs_dim, "observation", model)
+        action_box = _check_box(action_space, action_dim, "action", model)
         return cls(
             model,
             reward_fn,
-            action_low=torch.as_tensor(action_space.low, dtype=torch.float32),
-            action_high=torch.as_tensor(action_space.high, dtype=torch.float32),
-            observation_low=torch.as_tensor(obs_space.low, dtype=torch.float64),
-            observation_high=torch.as_tensor(obs_space.high, dtype=torch.float64),
+            action_low=torch.as_tensor(action_box.low, dtype=torch.float32),
+            action_high=torch.as_tensor(action_box.high, dtype=torch.float32),
+            observation_low=torch.as_tensor(obs_box.low, dtype=torch.float64),
+            observation_high=torch.as_tensor(obs_box.high, dtype=torch.float64),
             termination_fn=termination_fn,
-            observation_dtype=torch.from_numpy(np.zeros(0, dtype=obs_space.dtype)).dtype,
+            observation_dtype=torch.from_numpy(np.zeros(0, dtype=obs_box.dtype)).dtype,
             initial_observation=initial_observation,
             device=device,
         )
@@ -408,11 +408,13 @@ def _size_error(what: str, kind: str, shape: object, size: int, model: AdaptiveM
     )
 
 
-def _check_box(space: gymnasium.Space, size: int, what: str, model: AdaptiveModel) -> None:
+def _check_box(space: gymnasium.Space, size: int, what: str, model: AdaptiveModel) -> gymnasium.spaces.Box:
+    """``space`` itself, once it is known to be a Box of ``size`` values."""
     if not isinstance(space, gymnasium.spaces.Box) or len(space.shape) != 1:
         raise ValueError(f"the env's {what} space must be a 1-d gymnasium Box, got {space}")
     if space.shape != (size,):
         raise _size_error(what, "space", tuple(space.shape), size, model)
+    return space
 
 
 def _check_spec(spec: TensorSpec, size: int, what: str, model: AdaptiveModel) -> None:
