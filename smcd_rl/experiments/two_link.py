@@ -11,7 +11,6 @@ trial's RMSE), ``results.json`` (settings, table, training losses, timings, mach
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,16 +28,9 @@ from smcd_rl.envs.two_link_arm import (
     sample_link_lengths,
     two_link_fk,
 )
-from smcd_rl.experiments.common import (
-    ResultCache,
-    config_dict,
-    format_table,
-    machine_info,
-    option,
-    seed_everything,
-    write_csv,
-    write_json,
-)
+from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.harness import Experiment, ExperimentConfig, model_digest, setting
+from smcd_rl.experiments.stats import cell_statistics, verdict_table
 
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "run", "table"]
 
@@ -47,49 +39,51 @@ METHODS = ("O+P", "M+N", "M+G", "M+S", "R+N", "R+G", "R+S", "LV+N")
 
 
 @dataclass
-class TwoLinkConfig:
+class TwoLinkConfig(ExperimentConfig):
     """Settings of ``smcd-rl two-link``; the defaults finish in minutes on 2 CPU cores."""
 
-    out: str = option("runs/two-link", "output directory (results, plot, trained model)")
-    seed: int = option(0, "seed of data, training and trials")
-    tasks: int = option(200, "training arms (link-length draws)")
-    episodes: int = option(50, "motor-babbling episodes per training arm")
-    steps: int = option(10, "steps per motor-babbling episode")
-    hidden: int = option(512, "width of each hidden layer (the paper's latent dimension)")
-    depth: int = option(2, "number of hidden layers")
-    dropout: float = option(0.5, "dropout probability p used in training")
-    epochs: int = option(20, "training epochs")
-    batch_size: int = option(256, "training batch size")
-    lr: float = option(1e-3, "Adam learning rate")
-    measurement_noise: float = option(0.01, "std of the end-effector measurement noise (m), data and trials")
-    trials: int = option(500, "held-out arms to evaluate on")
-    chunk: int = option(100, "trials evaluated at once (bounds memory: chunk x particles x hidden)")
-    burn_in: tuple[int, ...] = option((1, 5, 10, 20), "burn-in (adaptation) steps T")
-    horizons: tuple[int, ...] = option((1, 5, 10, 20), "look-ahead horizons H")
-    methods: tuple[str, ...] = option(
-        METHODS, "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G or S; LV+N (VRNN)"
+    out: str = setting("runs/two-link", "output directory (results, plot, report, trained models)")
+    tasks: int = setting(200, "training arms (link-length draws)", low=1)
+    episodes: int = setting(50, "motor-babbling episodes per training arm", low=1)
+    steps: int = setting(10, "steps per motor-babbling episode", low=2)
+    hidden: int = setting(512, "width of each hidden layer (the paper's latent dimension)", low=1)
+    depth: int = setting(2, "number of hidden layers", low=1)
+    dropout: float = setting(0.5, "dropout probability p used in training", above=0.0)
+    epochs: int = setting(20, "training epochs", low=1)
+    batch_size: int = setting(256, "training batch size", low=1)
+    lr: float = setting(1e-3, "Adam learning rate", above=0.0)
+    measurement_noise: float = setting(0.01, "std of the end-effector measurement noise (m), data and trials", low=0.0)
+    trials: int = setting(500, "held-out arms to evaluate on", low=2)
+    chunk: int = setting(100, "trials evaluated at once (bounds memory: chunk x particles x hidden)", low=1)
+    burn_in: tuple[int, ...] = setting((1, 5, 10, 20), "burn-in (adaptation) steps T", low=1)
+    horizons: tuple[int, ...] = setting((1, 5, 10, 20), "look-ahead horizons H", low=1)
+    methods: tuple[str, ...] = setting(
+        METHODS,
+        "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G or S; LV+N (VRNN)",
+        choices=METHODS,
     )
-    reptile_epochs: int = option(20, "Reptile epochs (passes over all tasks) of the R network")
-    reptile_batch_size: int = option(64, "Reptile inner mini-batch size")
-    reptile_lr: float = option(0.1, "Reptile outer (meta) step size")
-    reptile_inner_lr: float = option(0.02, "Reptile inner SGD learning rate (the paper's 0.02)")
-    reptile_tasks_per_batch: int = option(1, "tasks per Reptile meta step")
-    lv_epochs: int = option(20, "training epochs of the latent-variable (VRNN) model")
-    lv_width: int = option(128, "width of the VRNN's layers (its recurrent state h has 8 dims)")
-    lv_batch_size: int = option(256, "VRNN batch size (two-step windows)")
-    lv_lr: float = option(1e-3, "VRNN Adam learning rate")
-    particles: int = option(1000, "SMCD mask particles")
-    flip_prob: float = option(0.01, "SMCD bit-flip probability per step")
-    noise_std: float = option(0.05, "likelihood noise std (m) of SMCD and the oracle")
-    gd_lr: float = option(0.01, "online gradient-descent learning rate (normalised units)")
-    gd_steps: int = option(5, "gradient steps per observation")
-    gd_window: int = option(10, "recent transitions in the gradient-descent loss")
-    oracle_particles: int = option(1000, "oracle particle count over link lengths")
-    oracle_jitter: float = option(0.005, "oracle random-walk std of link lengths per step")
-    device: str = option("cpu", "torch device")
-    full: bool = option(
+    reptile_epochs: int = setting(20, "Reptile epochs (passes over all tasks) of the R network", low=1)
+    reptile_batch_size: int = setting(64, "Reptile inner mini-batch size", low=1)
+    reptile_lr: float = setting(0.1, "Reptile outer (meta) step size", above=0.0)
+    reptile_inner_lr: float = setting(0.02, "Reptile inner SGD learning rate (the paper's 0.02)", above=0.0)
+    reptile_tasks_per_batch: int = setting(1, "tasks per Reptile meta step", low=1)
+    lv_epochs: int = setting(20, "training epochs of the latent-variable (VRNN) model", low=1)
+    lv_width: int = setting(128, "width of the VRNN's layers (its recurrent state h has 8 dims)", low=1)
+    lv_batch_size: int = setting(256, "VRNN batch size (two-step windows)", low=1)
+    lv_lr: float = setting(1e-3, "VRNN Adam learning rate", above=0.0)
+    particles: int = setting(1000, "SMCD mask particles", low=1)
+    flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0)
+    noise_std: float = setting(0.05, "likelihood noise std (m) of SMCD and the oracle", above=0.0)
+    gd_lr: float = setting(0.01, "online gradient-descent learning rate (normalised units)", above=0.0)
+    gd_steps: int = setting(5, "gradient steps per observation", low=1)
+    gd_window: int = setting(10, "recent transitions in the gradient-descent loss", low=1)
+    oracle_particles: int = setting(1000, "oracle particle count over link lengths", low=1)
+    oracle_jitter: float = setting(0.005, "oracle random-walk std of link lengths per step", low=0.0)
+    full: bool = setting(
         False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials, Reptile 1000 and LV 200 epochs"
     )
+
+    NON_EMPTY = ("burn_in", "horizons", "methods")
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -105,106 +99,89 @@ FULL = {
     "reptile_epochs": 1000,
     "lv_epochs": 200,
     "lv_batch_size": 64,
+    "threads": 0,
 }
+
+#: The adaptive methods, each compared (paired over the same arms) with M+N and with each other.
+ADAPTIVE = ("M+S", "M+G", "R+S", "R+G", "R+N", "LV+N", "O+P")
 
 
 def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the experiment and write its files; returns the JSON payload."""
-    unknown = set(config.methods) - set(METHODS)
-    if unknown:
-        raise ValueError(f"unknown method(s) {sorted(unknown)}; choose from {list(METHODS)}")
-    if min(config.burn_in) < 1 or min(config.horizons) < 1:
-        raise ValueError("burn_in and horizons must be >= 1")
-    out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = torch.device(config.device)
+    with Experiment(config, progress=progress) as ex:
+        # --- seed, data, models -----------------------------------------------------------------
+        data = motor_babbling(
+            config.tasks,
+            config.episodes,
+            config.steps,
+            measurement_noise=config.measurement_noise,
+            generator=ex.generator,
+        ).to(ex.device)
+        model = smcd_rl.AdaptiveModel(_network(config, ex.device), in_keys=["q"], out_key="ee")
+        losses = {"train_loss": ex.train("train", smcd_rl.fit, model, data, **_fit_settings(config))}
+        model.save(ex.out / "model.pt")
+        reptile, latent = _train_baselines(ex, config, data, losses)
 
-    # --- seed, data, model ------------------------------------------------------------
-    generator = seed_everything(config.seed)
-    data = motor_babbling(
-        config.tasks, config.episodes, config.steps, measurement_noise=config.measurement_noise, generator=generator
-    )
-    net = smcd_rl.MaskedMLP(2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
-    model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
-    started = time.perf_counter()
-    losses = smcd_rl.fit(
-        model,
-        data.to(device),
-        epochs=config.epochs,
-        batch_size=config.batch_size,
-        lr=config.lr,
-        seed=config.seed,
-        checkpoint=out / "train.ckpt",
-        progress=progress,
-    )
-    train_seconds = time.perf_counter() - started
-    model.save(out / "model.pt")
-    extra = _train_baselines(config, data, device, out, progress=progress)
+        # --- every method on the same held-out arms -------------------------------------------------
+        q, ee, ee_true, lengths = _trials(config, ex.device)
+        methods = {name: (lambda name=name: _method(name, model, reptile, latent, config)) for name in config.methods}
+        trained = {"M": model, "R": reptile, "LV": latent}
+        content = {name: model_digest(m) for name, m in trained.items() if m is not None}
+        done = ex.evaluate(
+            methods,
+            lambda name, method: {"sq_errors": _evaluate(method, q, ee, ee_true, config, desc=name, progress=progress)},
+            content=content,
+        )
 
-    # --- held-out trials ----------------------------------------------------------------
-    q, ee, ee_true, lengths = _trials(config, device)
-    methods = {
-        name: _method(name, model, extra.get("reptile_model"), extra.get("latent_model"), config)
-        for name in config.methods
-    }
-    settings = {k: v for k, v in config_dict(config).items() if k not in ("out", "full")}
-    cache = ResultCache(out / "partial.pt", settings)
-    sq_errors: dict[str, torch.Tensor] = {}
-    timings: dict[str, float] = {}
-    for name, method in methods.items():
-        done = cache.get(name)
-        if done is None:
-            started = time.perf_counter()
-            errors = _evaluate(method, q, ee, ee_true, config, desc=name, progress=progress)
-            done = {"sq_errors": errors, "seconds": time.perf_counter() - started}
-            cache.put(name, done)
-        sq_errors[name], timings[name] = done["sq_errors"], done["seconds"]
+        # --- results: per-arm RMSE per (T, H), CIs, paired verdicts ---------------------------------
+        scores = {
+            (t, h): {name: r["sq_errors"][:, i, :h].mean(-1).sqrt() for name, r in done.items()}
+            for i, t in enumerate(config.burn_in)
+            for h in config.horizons
+        }
+        rows, comparisons = cell_statistics(
+            scores, cell=("burn_in", "horizon"), baseline="M+N", adaptive=ADAPTIVE, metric="rmse", seed=config.seed
+        )
+        trial_rows = [
+            {"method": name, "burn_in": t, "horizon": h, "trial": k, "rmse": float(v)}
+            for (t, h), by_method in scores.items()
+            for name, values in by_method.items()
+            for k, v in enumerate(values)
+        ]
+        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G")]
+        ex.write(
+            experiment="two-link look-ahead prediction (paper Fig. 2)",
+            tables={
+                "End-effector RMSE (m), mean [95% CI] over held-out arms": table(rows, config),
+                "M+S paired with M+N and M+G over the same arms (negative: M+S's error is lower)": verdict_table(
+                    headline, cell=("burn_in", "horizon")
+                ),
+            },
+            rows=rows,
+            trials=trial_rows,
+            comparisons=comparisons,
+            payload={**losses, "test_link_lengths": lengths.tolist()},
+            plot=lambda path: _plot(rows, config, path),
+            plot_name="lookahead.png",
+        )
+    return ex.result
 
-    # --- results --------------------------------------------------------------------------
-    rows, trial_rows = [], []
-    for name, errors in sq_errors.items():  # errors: [trials, len(burn_in), max H]
-        for i, t in enumerate(config.burn_in):
-            for h in config.horizons:
-                rmse = errors[:, i, :h].mean(-1).sqrt()
-                rows.append(
-                    {
-                        "method": name,
-                        "burn_in": t,
-                        "horizon": h,
-                        "rmse_mean": float(rmse.mean()),
-                        "rmse_std": float(rmse.std()),
-                        "rmse_sem": float(rmse.std() / math.sqrt(len(rmse))),
-                        "trials": len(rmse),
-                    }
-                )
-                trial_rows += [
-                    {"method": name, "burn_in": t, "horizon": h, "trial": k, "rmse": float(v)}
-                    for k, v in enumerate(rmse)
-                ]
-    write_csv(out / "results.csv", rows)
-    write_csv(out / "trials.csv", trial_rows)
-    payload = {
-        "experiment": "two-link look-ahead prediction (paper Fig. 2)",
-        "config": config_dict(config),
-        "machine": machine_info(),
-        "train_loss": losses,
-        "train_seconds": train_seconds,
-        **{k: v for k, v in extra.items() if not k.endswith("_model")},
-        "method_seconds": timings,
-        "test_link_lengths": lengths.tolist(),
-        "results": rows,
-    }
-    write_json(out / "results.json", payload)
-    _plot(rows, config, out / "lookahead.png")
-    print(table(rows, config))
-    print(f"\nwrote {out}/results.csv, trials.csv, results.json, lookahead.png")
-    return payload
+
+def _network(config: TwoLinkConfig, device: torch.device) -> smcd_rl.MaskedMLP:
+    return smcd_rl.MaskedMLP(2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
+
+
+def _fit_settings(config: TwoLinkConfig) -> dict[str, Any]:
+    return {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
 
 
 def table(rows: list[dict[str, Any]], config: TwoLinkConfig) -> str:
-    """RMSE (mean over trials) with burn-in T down and horizon H across, one block per method."""
+    """RMSE (mean [95% CI] over arms) with burn-in T down and horizon H across, one block per method."""
     header = ["method", "T", *[f"H={h}" for h in config.horizons]]
-    lookup = {(r["method"], r["burn_in"], r["horizon"]): r["rmse_mean"] for r in rows}
+    lookup = {
+        (r["method"], r["burn_in"], r["horizon"]): f"{r['rmse_mean']:.3f} [{r['rmse_low']:.3f}, {r['rmse_high']:.3f}]"
+        for r in rows
+    }
     methods = list(dict.fromkeys(r["method"] for r in rows))
     body = [[m, t, *[lookup[(m, t, h)] for h in config.horizons]] for m in methods for t in config.burn_in]
     return format_table(body, header)
@@ -227,51 +204,46 @@ def _trials(config: TwoLinkConfig, device: torch.device) -> tuple[torch.Tensor, 
 
 
 def _train_baselines(
-    config: TwoLinkConfig, data: TensorDict, device: torch.device, out: Path, *, progress: bool
-) -> dict[str, Any]:
-    """Train (or load from their checkpoints) the Reptile network and the VRNN that the chosen methods need."""
-    result: dict[str, Any] = {}
-    # Their initial weights come from seeds of their own, and the global RNG is left as it was,
-    # so adding or dropping these methods changes nothing for the others.
+    ex: Experiment, config: TwoLinkConfig, data: TensorDict, losses: dict[str, Any]
+) -> tuple[smcd_rl.AdaptiveModel | None, LatentVariableModel | None]:
+    """Train (or resume) the Reptile network and the VRNN that the chosen methods need.
+
+    Their initial weights come from seeds of their own, and the global RNG is left as it was,
+    so adding or dropping these methods changes nothing for the others.
+    """
+    reptile = latent = None
     if any(name.startswith("R+") for name in config.methods):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed + 17)
-            net = smcd_rl.MaskedMLP(2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
-        reptile = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
-        started = time.perf_counter()
-        result["reptile_train_loss"] = smcd_rl.fit_reptile(
+            reptile = smcd_rl.AdaptiveModel(_network(config, ex.device), in_keys=["q"], out_key="ee")
+        losses["reptile_train_loss"] = ex.train(
+            "reptile",
+            smcd_rl.fit_reptile,
             reptile,
-            data.to(device),
+            data,
             epochs=config.reptile_epochs,
             batch_size=config.reptile_batch_size,
             lr=config.reptile_lr,
             inner_lr=config.reptile_inner_lr,
             tasks_per_batch=config.reptile_tasks_per_batch,
             seed=config.seed,
-            checkpoint=out / "reptile.ckpt",
-            progress=progress,
         )
-        result["reptile_train_seconds"] = time.perf_counter() - started
-        reptile.save(out / "reptile_model.pt")
-        result["reptile_model"] = reptile
+        reptile.save(ex.out / "reptile_model.pt")
     if "LV+N" in config.methods:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed + 19)
-            latent = LatentVariableModel(2, 2, in_keys=["q"], out_key="ee", width=config.lv_width, device=device)
-        started = time.perf_counter()
-        result["latent_train_loss"] = fit_latent(
+            latent = LatentVariableModel(2, 2, in_keys=["q"], out_key="ee", width=config.lv_width, device=ex.device)
+        losses["latent_train_loss"] = ex.train(
+            "latent",
+            fit_latent,
             latent,
-            data.to(device),
+            data,
             epochs=config.lv_epochs,
             batch_size=config.lv_batch_size,
             lr=config.lv_lr,
             seed=config.seed,
-            checkpoint=out / "latent.ckpt",
-            progress=progress,
         )
-        result["latent_train_seconds"] = time.perf_counter() - started
-        result["latent_model"] = latent
-    return result
+    return reptile, latent
 
 
 def _method(
@@ -357,7 +329,7 @@ def _plot(rows: list[dict[str, Any]], config: TwoLinkConfig, path: Path) -> None
             ax.errorbar(
                 [r["horizon"] for r in sel],
                 [r["rmse_mean"] for r in sel],
-                yerr=[r["rmse_sem"] for r in sel],
+                yerr=[[r["rmse_mean"] - r["rmse_low"] for r in sel], [r["rmse_high"] - r["rmse_mean"] for r in sel]],
                 marker="o",
                 capsize=2,
                 label=method,

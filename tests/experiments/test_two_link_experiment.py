@@ -59,7 +59,7 @@ def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> 
     assert cli.main(["two-link", "--out", str(out), *SMALL]) == 0
     printed = capsys.readouterr().out
     assert "| M+S" in printed and "H=10" in printed
-    for name in ("results.csv", "trials.csv", "results.json", "lookahead.png", "model.pt", "reptile_model.pt"):
+    for name in ("results.csv", "trials.csv", "comparisons.csv", "results.json", "lookahead.png", "report.md", "model.pt"):
         assert (out / name).is_file(), name
     rows = {
         (r["method"], int(r["burn_in"]), int(r["horizon"])): float(r["rmse_mean"])
@@ -91,7 +91,19 @@ def test_help_and_bad_options(capsys) -> None:
         cli.main(["two-link", "--help"])
     assert exit_info.value.code == 0 and "--burn-in" in capsys.readouterr().out
     assert cli.main(["two-link", "--methods", "X+Y", "--out", "/tmp/never"]) == 2
-    assert "unknown method" in capsys.readouterr().err
+    assert "--methods: unknown value 'X+Y'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [(["--particles", "-5"], "--particles must be >= 1"), (["--epochs", "0"], "--epochs must be >= 1")],
+)
+def test_bad_options_are_refused_before_any_training(tmp_path, capsys, option, message) -> None:
+    """Validation runs before any work: nothing is trained, not even the output directory made."""
+    out = tmp_path / "run"
+    assert cli.main(["two-link", "--out", str(out), *TINY, *option]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
 
 
 TINY = [
@@ -141,5 +153,5 @@ def test_reptile_and_latent_methods_leave_the_multitask_rows_unchanged(tmp_path,
     alone, together = _rows(tmp_path / "m"), _rows(tmp_path / "all")
     assert alone and all(together[key] == value for key, value in alone.items())
     assert {m for m, _, _ in together} == {"M+N", "M+S", "R+S", "LV+N"}
-    assert (tmp_path / "all" / "reptile.ckpt").is_file() and (tmp_path / "all" / "latent.ckpt").is_file()
-    assert not (tmp_path / "m" / "reptile.ckpt").exists()  # no Reptile method, no Reptile training
+    assert len(list((tmp_path / "all").glob("reptile-*.ckpt"))) == len(list((tmp_path / "all").glob("latent-*.ckpt"))) == 1
+    assert not list((tmp_path / "m").glob("reptile-*.ckpt"))  # no Reptile method, no Reptile training

@@ -1,0 +1,376 @@
+"""The experiment harness: what every ``smcd-rl`` experiment command shares, so a figure's module holds only its figure.
+
+An experiment module declares a config (a dataclass deriving :class:`ExperimentConfig`, whose
+field help is the command's ``--help``) and a ``run(config)`` that reads top to bottom::
+
+    with Experiment(config) as ex:                      # validate, threads, device, out dir, seed
+        data = make_data(ex.generator)
+        losses = ex.train("train", smcd_rl.fit, model, data, epochs=config.epochs, ...)  # or resume
+        scores = ex.evaluate(methods, evaluate_one, content={"model": model_digest(model)})
+        table = score_table(scores, baseline="M+N", ...)  # means, 95 % CIs, paired verdicts
+        ex.write(rows=..., trials=..., payload=..., plot=plot_fn, report=...)
+
+Training checkpoints are named by everything that determines the trained model (its architecture
+and initial weights, the trainer and all its settings, a digest of the data), and the per-method
+result cache is keyed by content (the evaluated models' digests and the settings), never by a
+file name, so no rerun ever picks up a stale result.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+import typing
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+import torch
+from tqdm.auto import tqdm
+
+from smcd_rl.experiments.common import (
+    ResultCache,
+    config_dict,
+    machine_info,
+    resolve_device,
+    seed_everything,
+    settings_fingerprint,
+    torch_threads,
+    write_csv,
+    write_json,
+)
+
+__all__ = [
+    "ExperimentConfig",
+    "Experiment",
+    "setting",
+    "content_digest",
+    "model_digest",
+    "OUTPUT_ONLY",
+]
+
+T = TypeVar("T")
+
+#: Settings that change where or how fast a run goes, never its numbers.
+OUTPUT_ONLY = ("out", "full")
+
+
+def setting(
+    default: Any,
+    help: str,  # noqa: A002 - mirrors argparse's name
+    *,
+    low: float | None = None,
+    above: float | None = None,
+    choices: Sequence[Any] | None = None,
+) -> Any:
+    """A config field: ``help`` becomes its ``--help`` text; the bounds are checked before any work.
+
+    Args:
+        default: the default value (a list or tuple becomes a tuple field).
+        help: the ``--help`` text.
+        low: the smallest allowed value (inclusive), for a number or each item of a tuple.
+        above: values must be strictly greater than this.
+        choices: the allowed values (of each item, for a tuple).
+
+    Example:
+        >>> from dataclasses import dataclass
+        >>> @dataclass
+        ... class C(ExperimentConfig):
+        ...     particles: int = setting(100, "SMCD particles", low=1)
+        >>> C(particles=0).validate()
+        Traceback (most recent call last):
+        ...
+        ValueError: --particles must be >= 1, got 0
+    """
+    metadata = {"help": help, "low": low, "above": above, "choices": None if choices is None else tuple(choices)}
+    if isinstance(default, (list, tuple)):
+        value = tuple(default)
+        return dataclasses.field(default_factory=lambda: value, metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+@dataclass
+class ExperimentConfig:
+    """The settings every experiment command shares; a command's config derives from this.
+
+    A derived config redeclares a field to change its default (e.g. ``out``) and adds its own.
+    """
+
+    out: str = setting("runs/experiment", "output directory (results, plot, report, trained models)")
+    seed: int = setting(0, "seed of data, training, trials and filters", low=0)
+    threads: int = setting(
+        1, "torch CPU threads (0: torch's default); results repeat bit for bit per thread count", low=0
+    )
+    device: str = setting("cpu", "torch device: cpu, cuda, cuda:1 or auto")
+    full: bool = setting(False, "the paper's scale (options given explicitly still win)")
+
+    #: Fields whose values must be non-empty when given as tuples (e.g. methods, horizons).
+    NON_EMPTY: ClassVar[tuple[str, ...]] = ()
+
+    def validate(self) -> None:
+        """Check every field against its declared type and bounds; raise ValueError naming the option."""
+        hints = typing.get_type_hints(type(self))
+        for field in dataclasses.fields(self):
+            value, flag = getattr(self, field.name), "--" + field.name.replace("_", "-")
+            items = value if isinstance(value, tuple) else (value,)
+            if isinstance(value, tuple) and not value and field.name in self.NON_EMPTY:
+                raise ValueError(f"{flag} needs at least one value")
+            kind = hints[field.name]
+            item_kind = typing.get_args(kind)[0] if typing.get_origin(kind) is tuple else kind
+            for item in items:
+                _check_item(flag, item, item_kind, field.metadata)
+        resolve_device(self.device)
+
+    def settings(self, *, exclude: Sequence[str] = ()) -> dict[str, Any]:
+        """The JSON-ready settings that determine the results (output-only fields left out)."""
+        return {k: v for k, v in config_dict(self).items() if k not in (*OUTPUT_ONLY, *exclude)}
+
+
+def _check_item(flag: str, value: Any, kind: Any, metadata: Mapping[str, Any]) -> None:
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if kind in (int, float, str, bool) and not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise ValueError(f"{flag} must be a {kind.__name__}, got {value!r}")
+    if kind is float and value != value:  # NaN
+        raise ValueError(f"{flag} must be a number, got NaN")
+    low, above, choices = metadata.get("low"), metadata.get("above"), metadata.get("choices")
+    if low is not None and value < low:
+        raise ValueError(f"{flag} must be >= {low}, got {value}")
+    if above is not None and value <= above:
+        raise ValueError(f"{flag} must be > {above}, got {value}")
+    if choices is not None and value not in choices:
+        raise ValueError(f"{flag}: unknown value {value!r}; choose from {list(choices)}")
+
+
+def content_digest(value: Any) -> str:
+    """A hex digest of tensors, TensorDicts, modules' states and plain values: equal only for equal content.
+
+    Example:
+        >>> import torch
+        >>> content_digest(torch.ones(3)) == content_digest(torch.ones(3)) != content_digest(torch.zeros(3))
+        True
+    """
+    digest = hashlib.sha256()
+    _feed(digest, value)
+    return digest.hexdigest()
+
+
+def model_digest(model: torch.nn.Module) -> str:
+    """The digest of a module's class, structure and every parameter and buffer (what it predicts)."""
+    return content_digest({"class": type(model).__qualname__, "repr": repr(model), "state": model.state_dict()})
+
+
+def _feed(digest: Any, value: Any) -> None:
+    from tensordict import TensorDictBase  # tensordict is heavy; only digests of data need it
+
+    if isinstance(value, torch.Tensor):
+        tensor = value.detach().cpu().contiguous()
+        digest.update(f"T{tensor.dtype}{tuple(tensor.shape)}".encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+    elif isinstance(value, TensorDictBase):
+        digest.update(f"TD{tuple(value.batch_size)}".encode())
+        for key in sorted(value.keys(include_nested=True, leaves_only=True), key=str):
+            digest.update(repr(key).encode())
+            _feed(digest, value.get(key))
+    elif isinstance(value, Mapping):
+        digest.update(b"{")
+        for key in sorted(value, key=str):
+            digest.update(repr(key).encode())
+            _feed(digest, value[key])
+        digest.update(b"}")
+    elif isinstance(value, (list, tuple)):
+        digest.update(f"[{len(value)}".encode())
+        for item in value:
+            _feed(digest, item)
+    else:
+        digest.update(repr(value).encode())
+
+
+class Experiment:
+    """One run of an experiment command: its output directory, seeded generator, device and caches.
+
+    Use it as a context manager: entering validates the config, sets the torch thread count,
+    creates ``out`` and seeds torch; leaving restores the thread count.
+
+    Example:
+        >>> import tempfile
+        >>> with Experiment(ExperimentConfig(out=tempfile.mkdtemp())) as ex:
+        ...     ex.device
+        device(type='cpu')
+    """
+
+    def __init__(self, config: ExperimentConfig, *, progress: bool = True) -> None:
+        self.config = config
+        self.progress = progress
+        self.out = Path(config.out)
+        self.device = torch.device("cpu")
+        self.generator = torch.Generator()
+        self.timings: dict[str, float] = {}
+        self._stack = ExitStack()
+        self._started = 0.0
+
+    def __enter__(self) -> Experiment:
+        self.config.validate()
+        self.device = torch.device(resolve_device(self.config.device))
+        self._stack.enter_context(torch_threads(self.config.threads))
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.generator = seed_everything(self.config.seed)
+        self._started = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stack.close()
+
+    @property
+    def elapsed(self) -> float:
+        """Wall seconds since the run began."""
+        return time.perf_counter() - self._started
+
+    def checkpoint(
+        self, name: str, trainer: Callable[..., Any], model: torch.nn.Module, data: Any, **settings: Any
+    ) -> Path:
+        """``out / "{name}-{fingerprint}.ckpt"``, named by the model before training, trainer, settings and data.
+
+        The untrained model's digest covers its architecture and its seeded initial weights, so
+        two runs that would train different models never share a checkpoint.
+        """
+        key = {
+            "trainer": f"{trainer.__module__}.{trainer.__qualname__}",
+            "model": model_digest(model),
+            "data": content_digest(data),
+            "settings": settings,
+        }
+        return self.out / f"{name}-{settings_fingerprint(key)[:12]}.ckpt"
+
+    def train(self, name: str, trainer: Callable[..., T], model: torch.nn.Module, data: Any, **settings: Any) -> T:
+        """Train ``model`` on ``data`` with ``trainer(model, data, **settings)``, or resume its checkpoint.
+
+        The wall time is recorded in :attr:`timings` under ``"train " + name``.
+        """
+        path = self.checkpoint(name, trainer, model, data, **settings)
+        started = time.perf_counter()
+        result = trainer(model, data, checkpoint=path, progress=self.progress, **settings)
+        self.timings[f"train {name}"] = time.perf_counter() - started
+        return result
+
+    def evaluate(
+        self,
+        methods: Mapping[str, Callable[[], T]],
+        evaluate: Callable[[str, T], Mapping[str, Any]],
+        *,
+        content: Mapping[str, Any],
+        cache: str = "partial.pt",
+    ) -> dict[str, dict[str, Any]]:
+        """Run ``evaluate(name, methods[name]())`` for every method, skipping those a rerun already has.
+
+        Args:
+            methods: method name -> a factory of what ``evaluate`` runs (built only when needed).
+            evaluate: runs one method over all trials and returns its results (tensors, numbers).
+            content: what determines the results besides the config's settings, e.g. the digests
+                of the trained models; the cache is keyed by it and by :meth:`ExperimentConfig.settings`.
+            cache: the cache file's name in ``out``.
+
+        Returns:
+            method name -> its results, each with ``"seconds"`` (wall time of its evaluation).
+        """
+        key = {"settings": self.config.settings(), "content": content}
+        store = ResultCache(self.out / cache, {"digest": content_digest(key)})
+        results: dict[str, dict[str, Any]] = {}
+        for name, factory in methods.items():
+            done = store.get(name)
+            if done is None:
+                started = time.perf_counter()
+                done = {**evaluate(name, factory()), "seconds": time.perf_counter() - started}
+                store.put(name, done)
+            results[name] = done
+            self.timings[f"evaluate {name}"] = done["seconds"]
+        return results
+
+    def bar(self, items: Sequence[T], desc: str, unit: str = "trial") -> Iterator[T]:
+        """A progress bar over ``items`` that honours ``progress``."""
+        return iter(tqdm(items, desc=desc, unit=unit, disable=not self.progress))
+
+    def write(
+        self,
+        *,
+        experiment: str,
+        tables: Mapping[str, str],
+        rows: Sequence[Mapping[str, Any]],
+        payload: Mapping[str, Any],
+        trials: Sequence[Mapping[str, Any]] = (),
+        comparisons: Sequence[Mapping[str, Any]] = (),
+        plot: Callable[[Path], None] | None = None,
+        plot_name: str = "results.png",
+    ) -> dict[str, Any]:
+        """Write the results, the plot and ``report.md``, print the tables, and return the JSON payload.
+
+        Writes ``results.csv`` (``rows``), ``trials.csv`` (one row per trial), ``comparisons.csv``
+        (the paired comparisons), ``results.json`` (the experiment's name, config, machine, wall
+        times, ``payload``'s entries, rows and comparisons), the plot, and ``report.md``: the
+        ``tables`` (caption -> Markdown table), the plot, the settings with their fingerprint,
+        the machine and the wall time. The result is also kept as :attr:`result`.
+        """
+        written = ["results.csv"]
+        write_csv(self.out / "results.csv", rows)
+        if trials:
+            write_csv(self.out / "trials.csv", trials)
+            written.append("trials.csv")
+        if comparisons:
+            write_csv(self.out / "comparisons.csv", comparisons)
+            written.append("comparisons.csv")
+        result = {
+            "experiment": experiment,
+            "config": config_dict(self.config),
+            "machine": machine_info(),
+            "seconds": {**self.timings, "total": self.elapsed},
+            **payload,
+            "results": list(rows),
+            **({"comparisons": list(comparisons)} if comparisons else {}),
+        }
+        write_json(self.out / "results.json", result)
+        written.append("results.json")
+        if plot is not None:
+            plot(self.out / plot_name)
+            written.append(plot_name)
+        write_report(self.out / "report.md", result, tables, plot_name if plot is not None else None)
+        written.append("report.md")
+        for caption, text in tables.items():
+            print(f"{caption}\n\n{text}\n")
+        print(f"wrote {self.out}/: {', '.join(written)}")
+        self.result = result
+        return result
+
+
+def write_report(path: Path, result: Mapping[str, Any], tables: Mapping[str, str], plot: str | None) -> None:
+    """``report.md``: an experiment's tables, plot, settings (with their fingerprint), machine and wall time.
+
+    The fingerprint is that of the settings that determine the numbers, so a reader (or a test)
+    can tell whether a committed report is what the current settings produce.
+    """
+    config = dict(result["config"])
+    settings = {k: v for k, v in config.items() if k not in OUTPUT_ONLY}
+    machine = result["machine"]
+    lines = [f"# {result['experiment']}", ""]
+    for caption, text in tables.items():
+        lines += [f"**{caption}**", "", text, ""]
+    if plot is not None:
+        lines += [f"![{result['experiment']}]({plot})", ""]
+    seconds = result["seconds"]["total"]
+    lines += [
+        f"Wall time {int(seconds // 60)} min {seconds % 60:.0f} s on {machine['processor']} "
+        f"({machine['cpus']} CPUs, {machine['torch_threads']} torch threads, torch {machine['torch']}"
+        + (f", {machine['gpu']}" if "gpu" in machine else "")
+        + ").",
+        "",
+        f"Settings (fingerprint `{settings_fingerprint(settings)[:12]}`):",
+        "",
+        "```json",
+        json.dumps(config, indent=2),
+        "```",
+        "",
+    ]
+    path.write_text("\n".join(lines))
