@@ -36,8 +36,6 @@ Example:
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -59,18 +57,10 @@ from smcd_rl.envs.panda_reach import (
     sample_goals,
     sample_tool_lengths,
 )
-from smcd_rl.experiments.common import (
-    config_dict,
-    format_table,
-    interleaved_times,
-    machine_info,
-    option,
-    resolve_device,
-    seed_everything,
-    torch_threads,
-    write_csv,
-    write_json,
-)
+from smcd_rl.experiments.benchmarking import BenchConfig, machine_line, publish, scale_to_unit_spread
+from smcd_rl.experiments.bounds import bounded, check_upper_bounds
+from smcd_rl.experiments.common import config_dict, format_table, interleaved_times, machine_info
+from smcd_rl.experiments.harness import Experiment, setting
 
 __all__ = ["BenchControlConfig", "CONTENDERS", "FULL", "run"]
 
@@ -79,27 +69,38 @@ CONTENDERS = ("M+S", "M+G", "M+N", "analytic")
 
 
 @dataclass
-class BenchControlConfig:
-    """Settings of ``smcd-rl bench control``; the defaults are the paper's Panda network and SMCD at N = 1000."""
+class BenchControlConfig(BenchConfig):
+    """Settings of ``smcd-rl bench control``; the defaults are the paper's Panda network and SMCD at N = 1000.
 
-    out: str = option("runs/bench-control", "output directory (results.json, results.csv)")
-    seed: int = option(0, "seed of the network, the hidden mask, the goals and the filters")
-    model: str = option("", "a trained model.pt to time (e.g. runs/panda/model.pt); empty: random weights of --hidden")
-    hidden: tuple[int, ...] = option((1024, 1024, 1024), "hidden widths of the random network (every layer masked)")
-    dropout: float = option(0.5, "dropout probability of the random network")
-    batch: int = option(1, "arms controlled at once by each contender")
-    particles: int = option(1000, "SMCD particles")
-    flip_prob: float = option(0.01, "SMCD bit-flip probability per step")
-    noise_std: float = option(0.05, "SMCD likelihood noise std (m)")
-    gd_lr: float = option(0.01, "online gradient-descent learning rate (normalised units)")
-    gd_steps: int = option(5, "gradient steps per observation")
-    gd_window: int = option(10, "recent transitions in the gradient-descent loss")
-    steps: int = option(50, "timed control steps per contender")
-    warmup: int = option(3, "untimed control steps per contender first")
-    device: str = option("auto", "torch device: auto (cuda when available), cpu, cuda, cuda:1, ...")
-    threads: int = option(1, "torch CPU threads (0: torch's default); see the module docstring for why 1")
-    json: bool = option(False, "print the results as JSON (for tools) instead of the table")
-    full: bool = option(False, "more timed steps for steadier means")
+    One torch thread, the harness's default, is also this benchmark's measured best (module docstring).
+    """
+
+    out: str = setting("runs/bench-control", "output directory (results.json, results.csv)")
+    model: str = setting("", "a trained model.pt to time (e.g. runs/panda/model.pt); empty: random weights of --hidden")
+    hidden: tuple[int, ...] = setting(
+        (1024, 1024, 1024), "hidden widths of the random network (every layer masked)", low=1
+    )
+    dropout: float = bounded(0.5, "dropout probability of the random network", low=0.0, below=1.0)
+    batch: int = setting(1, "arms controlled at once by each contender", low=1)
+    particles: int = setting(1000, "SMCD particles", low=1)
+    flip_prob: float = bounded(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
+    noise_std: float = setting(0.05, "SMCD likelihood noise std (m)", above=0.0)
+    gd_lr: float = setting(0.01, "online gradient-descent learning rate (normalised units)", above=0.0)
+    gd_steps: int = setting(5, "gradient steps per observation", low=1)
+    gd_window: int = setting(10, "recent transitions in the gradient-descent loss", low=1)
+    steps: int = setting(50, "timed control steps per contender", low=1)
+    warmup: int = setting(3, "untimed control steps per contender first", low=0)
+    full: bool = setting(False, "more timed steps for steadier means")
+
+    NON_EMPTY = ("hidden",)
+
+    def validate(self) -> None:
+        super().validate()
+        check_upper_bounds(self)
+        if self.model and not Path(self.model).is_file():
+            raise FileNotFoundError(
+                f"--model {self.model}: no such file; train one with `smcd-rl panda` or leave it empty"
+            )
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -108,114 +109,81 @@ FULL = {"steps": 200, "warmup": 10}
 
 def run(config: BenchControlConfig, *, progress: bool = True) -> dict[str, Any]:
     """Time the control loops, print the table and ratios (or JSON), write the files; returns the payload."""
-    _check(config)
-    config = dataclasses.replace(config, device=resolve_device(config.device))
-    with torch_threads(config.threads):
-        return _run(config, progress=progress)
+    with Experiment(config, progress=progress) as ex:
+        # --- seed, the network and the world it is timed on -------------------------------------
+        device, generator = ex.device, ex.generator
+        tools = sample_tool_lengths(config.batch, generator=generator)
+        goals = sample_goals(tools, generator=generator).to(device)
+        tools = tools.to(device)
+        model, world = _model_and_world(config, tools, generator, device)
 
-
-def _check(config: BenchControlConfig) -> None:
-    small = [
-        f"{k}={getattr(config, k)}"
-        for k in ("batch", "particles", "gd_steps", "gd_window", "steps")
-        if getattr(config, k) < 1
-    ]
-    if config.warmup < 0:
-        small.append(f"warmup={config.warmup} (>= 0)")
-    if not config.model and (not config.hidden or min(config.hidden) < 1):
-        small.append(f"hidden={list(config.hidden)}")
-    if small:
-        raise ValueError(f"sizes and counts must be >= 1: {', '.join(small)}")
-    if not 0.0 <= config.dropout < 1.0 or config.noise_std <= 0 or config.gd_lr <= 0:
-        raise ValueError(
-            f"need 0 <= dropout < 1, noise_std > 0 and gd_lr > 0, got {config.dropout}, "
-            f"{config.noise_std}, {config.gd_lr}"
-        )
-    if config.model and not Path(config.model).is_file():
-        raise FileNotFoundError(
-            f"--model {config.model}: no such file; train one with `smcd-rl panda` or leave it empty"
+        # --- the contenders: one control step each, every one with its own arms ------------------
+        contenders: dict[str, Callable[[], None]] = {}
+        for name in CONTENDERS:
+            if name == "analytic":
+                contenders[name] = _control_step(
+                    lambda q: panda_fk(q, tools), None, lambda q: panda_fk(q, tools), goals
+                )
+            else:
+                adapted = model.with_adaptation(_strategy(name, config, device))
+                adapted.reset(batch_shape=(config.batch,))
+                contenders[name] = _control_step(adapted.predict, None if name == "M+N" else adapted, world, goals)
+        times = interleaved_times(
+            contenders, config.steps, warmup=config.warmup, device=device, desc="bench control", progress=progress
         )
 
-
-def _run(config: BenchControlConfig, *, progress: bool) -> dict[str, Any]:
-    out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = torch.device(config.device)
-
-    # --- seed, the network and the world it is timed on -----------------------------------------
-    generator = seed_everything(config.seed)
-    tools = sample_tool_lengths(config.batch, generator=generator)
-    goals = sample_goals(tools, generator=generator).to(device)
-    tools = tools.to(device)
-    model, world = _model_and_world(config, tools, generator, device)
-
-    # --- the contenders: one control step each, every one with its own arms ----------------------
-    def strategy(name: str) -> smcd_rl.Adaptation:
-        if name == "M+S":
-            return smcd_rl.SMCD(
-                num_particles=config.particles,
-                flip_prob=config.flip_prob,
-                noise_std=config.noise_std,
-                generator=torch.Generator(device=device).manual_seed(config.seed + 1),
-            )
-        if name == "M+G":
-            return smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
-        return smcd_rl.NoAdaptation()
-
-    contenders: dict[str, Callable[[], None]] = {}
-    for name in CONTENDERS:
-        if name == "analytic":
-            contenders[name] = _control_step(lambda q: panda_fk(q, tools), None, lambda q: panda_fk(q, tools), goals)
-        else:
-            adapted = model.with_adaptation(strategy(name))
-            adapted.reset(batch_shape=(config.batch,))
-            observe = None if name == "M+N" else adapted
-            contenders[name] = _control_step(adapted.predict, observe, world, goals)
-    times = interleaved_times(
-        contenders, config.steps, warmup=config.warmup, device=device, desc="bench control", progress=progress
-    )
-
-    # --- results ------------------------------------------------------------------------------
-    rows = []
-    for name, samples in times.items():
-        mean = statistics.fmean(samples)
-        rows.append(
-            {
-                "loop": name,
-                "steps_per_s": 1.0 / mean,
-                "mean_ms": mean * 1e3,
-                "median_ms": statistics.median(samples) * 1e3,
-                "min_ms": min(samples) * 1e3,
-                "steps": len(samples),
-            }
-        )
-    rate = {row["loop"]: row["steps_per_s"] for row in rows}
-    ratios = {
-        "analytic_over_smcd": rate["analytic"] / rate["M+S"],
-        "smcd_over_gd": rate["M+S"] / rate["M+G"],
-        "no_adaptation_over_smcd": rate["M+N"] / rate["M+S"],
-        "analytic_over_gd": rate["analytic"] / rate["M+G"],
-    }
-    net = model.net
-    payload = {
-        "benchmark": "Panda reaching control steps per second: observe + Jacobian + PD + joint update, batch of arms",
-        "config": config_dict(config),
-        "device": str(device),
-        "machine": machine_info(),
-        "network": {
-            "in": net.in_features,
-            "hidden": [lin.out_features for lin in net.linears[:-1]],
-            "out": net.out_features,
-            "mask_dim": net.mask_dim,
-            "trained": bool(config.model),
-        },
-        "results": rows,
-        "ratios": ratios,
-    }
-    write_json(out / "results.json", payload)
-    write_csv(out / "results.csv", rows)
-    print(json.dumps(payload, indent=2, default=str) if config.json else _report(payload))
+        # --- results ----------------------------------------------------------------------------
+        rows = [_timing_row(name, samples) for name, samples in times.items()]
+        rate = {row["loop"]: row["steps_per_s"] for row in rows}
+        ratios = {
+            "analytic_over_smcd": rate["analytic"] / rate["M+S"],
+            "smcd_over_gd": rate["M+S"] / rate["M+G"],
+            "no_adaptation_over_smcd": rate["M+N"] / rate["M+S"],
+            "analytic_over_gd": rate["analytic"] / rate["M+G"],
+        }
+        net = model.net
+        payload = {
+            "benchmark": "Panda reaching control steps per second: observe + Jacobian + PD + joint update, batch of arms",
+            "config": config_dict(config),
+            "device": str(device),
+            "machine": machine_info(),
+            "network": {
+                "in": net.in_features,
+                "hidden": list(net.hidden),
+                "out": net.out_features,
+                "mask_dim": net.mask_dim,
+                "trained": bool(config.model),
+            },
+            "results": rows,
+            "ratios": ratios,
+        }
+        publish(ex.out, payload, rows, _report(payload), as_json=config.json)
     return payload
+
+
+def _strategy(name: str, config: BenchControlConfig, device: torch.device) -> smcd_rl.Adaptation:
+    if name == "M+S":
+        return smcd_rl.SMCD(
+            num_particles=config.particles,
+            flip_prob=config.flip_prob,
+            noise_std=config.noise_std,
+            generator=torch.Generator(device=device).manual_seed(config.seed + 1),
+        )
+    if name == "M+G":
+        return smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
+    return smcd_rl.NoAdaptation()
+
+
+def _timing_row(name: str, samples: list[float]) -> dict[str, Any]:
+    mean = statistics.fmean(samples)
+    return {
+        "loop": name,
+        "steps_per_s": 1.0 / mean,
+        "mean_ms": mean * 1e3,
+        "median_ms": statistics.median(samples) * 1e3,
+        "min_ms": min(samples) * 1e3,
+        "steps": len(samples),
+    }
 
 
 def _model_and_world(
@@ -234,12 +202,7 @@ def _model_and_world(
     model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
     # Zero epochs only fit the normalisers: inputs in radians, outputs in metres as for a trained model.
     smcd_rl.fit(model, panda_kinematics_data(4096, generator=generator).to(device), epochs=0, progress=False)
-    with torch.no_grad():  # random-mask predictions with unit spread, as after training on normalised targets
-        probe = torch.randn(256, 7, generator=generator).to(device)
-        masks = (torch.rand(256, net.mask_dim, generator=generator) < net.keep_prob).to(device)
-        scale = 1.0 / net(probe, mask=masks).std()
-        net.linears[-1].weight.mul_(scale)
-        net.linears[-1].bias.mul_(scale)
+    scale_to_unit_spread(net, generator)
     true_mask = (torch.rand(config.batch, net.mask_dim, generator=generator) < net.keep_prob).to(device)
 
     def world(q: Tensor) -> Tensor:
@@ -273,9 +236,7 @@ def _control_step(
 
 def _report(payload: dict[str, Any]) -> str:
     config, ratios, net = payload["config"], payload["ratios"], payload["network"]
-    lines = [
-        "machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"
-    ]
+    lines = [machine_line(payload)]
     lines.append(
         f"network: MaskedMLP {net['in']} -> {' -> '.join(map(str, net['hidden']))} -> {net['out']} "
         f"({'trained' if net['trained'] else 'random weights'}), {net['mask_dim']} mask bits; {config['batch']} arm(s) "

@@ -30,12 +30,9 @@ Example:
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -44,18 +41,9 @@ from torch import Tensor
 import smcd_rl
 from smcd_rl.agents.mpc import model_reward_objective
 from smcd_rl.agents.planners import CEM
-from smcd_rl.experiments.common import (
-    config_dict,
-    format_table,
-    interleaved_times,
-    machine_info,
-    option,
-    resolve_device,
-    seed_everything,
-    torch_threads,
-    write_csv,
-    write_json,
-)
+from smcd_rl.experiments.benchmarking import BenchConfig, machine_line, publish
+from smcd_rl.experiments.common import config_dict, format_table, interleaved_times, machine_info
+from smcd_rl.experiments.harness import Experiment, setting
 
 __all__ = ["BenchPlannersConfig", "FULL", "GOAL_SPEEDUP", "GOAL_FLOOR", "run", "bench_reward"]
 
@@ -66,26 +54,31 @@ GOAL_FLOOR = 1.3
 
 
 @dataclass
-class BenchPlannersConfig:
+class BenchPlannersConfig(BenchConfig):
     """Settings of ``smcd-rl bench planners``; the defaults are the reference setting (Ant-v5 sizes)."""
 
-    out: str = option("runs/bench-planners", "output directory (results.json, results.csv)")
-    seed: int = option(0, "seed of the model's weights, the start state and the planners' samples")
-    observation: int = option(27, "observation size (Ant-v5 without contact forces: 27)")
-    action: int = option(8, "action size (Ant: 8)")
-    hidden: tuple[int, ...] = option((256, 256), "hidden layer widths of the model")
-    horizon: int = option(15, "planning horizon H")
-    candidates: int = option(500, "action sequences per iteration")
-    top_k: int = option(50, "elites per iteration")
-    steps: int = option(5, "optimisation steps (iterations) per plan")
-    adaptation: str = option("none", "strategy the model plans with: none, or smcd (MMSE mask)")
-    particles: int = option(100, "SMCD particles (--adaptation smcd)")
-    repeats: int = option(20, "timed plans per planner (medians are reported)")
-    warmup: int = option(2, "untimed plans per planner first")
-    device: str = option("auto", "torch device: auto (cuda when available), cpu, cuda, cuda:1, ...")
-    threads: int = option(0, "torch CPU threads (0: torch's default)")
-    json: bool = option(False, "print the results as JSON (for tools) instead of the table")
-    full: bool = option(False, "more repeats for steadier medians")
+    out: str = setting("runs/bench-planners", "output directory (results.json, results.csv)")
+    observation: int = setting(27, "observation size (Ant-v5 without contact forces: 27)", low=1)
+    action: int = setting(8, "action size (Ant: 8)", low=1)
+    hidden: tuple[int, ...] = setting((256, 256), "hidden layer widths of the model", low=1)
+    horizon: int = setting(15, "planning horizon H", low=1)
+    candidates: int = setting(500, "action sequences per iteration", low=2)
+    top_k: int = setting(50, "elites per iteration (2 to --candidates)", low=2)
+    steps: int = setting(5, "optimisation steps (iterations) per plan", low=1)
+    adaptation: str = setting(
+        "none", "strategy the model plans with: none, or smcd (MMSE mask)", choices=("none", "smcd")
+    )
+    particles: int = setting(100, "SMCD particles (--adaptation smcd)", low=1)
+    repeats: int = setting(20, "timed plans per planner (medians are reported)", low=1)
+    warmup: int = setting(2, "untimed plans per planner first", low=0)
+    full: bool = setting(False, "more repeats for steadier medians")
+
+    NON_EMPTY = ("hidden",)
+
+    def validate(self) -> None:
+        super().validate()
+        if self.top_k > self.candidates:
+            raise ValueError(f"--top-k must be at most --candidates ({self.candidates}), got {self.top_k}")
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -105,35 +98,78 @@ def bench_reward(obs: Tensor, action: Tensor, next_obs: Tensor) -> Tensor:
 
 def run(config: BenchPlannersConfig, *, progress: bool = True) -> dict[str, Any]:
     """Time the planners, print the table and ratios (or JSON), write the files; returns the payload."""
-    _check(config)
-    config = dataclasses.replace(config, device=resolve_device(config.device))
-    with torch_threads(config.threads):
-        return _run(config, progress=progress)
+    with Experiment(config, progress=progress) as ex:
+        # --- seed and the shared model --------------------------------------------------------
+        device, generator = ex.device, ex.generator
+        obs_dim, action_dim = config.observation, config.action
+        net = smcd_rl.MaskedMLP(obs_dim + action_dim, obs_dim, hidden=config.hidden, device=device)
+        adaptation: smcd_rl.Adaptation = (
+            smcd_rl.SMCD(
+                num_particles=config.particles, generator=torch.Generator(device=device).manual_seed(config.seed)
+            )
+            if config.adaptation == "smcd"
+            else smcd_rl.NoAdaptation()
+        )
+        model = smcd_rl.AdaptiveDynamicsModel(net, adaptation)
+        model.reset()
+        obs = torch.randn(obs_dim, generator=generator).to(device)
+
+        # --- the contenders, timed side by side ------------------------------------------------
+        contenders = _contenders(model, obs, config, device, generator)
+        times = interleaved_times(
+            contenders, config.repeats, warmup=config.warmup, device=device, desc="bench planners", progress=progress
+        )
+
+        # --- results ------------------------------------------------------------------------------
+        rows = [_timing_row(name, samples) for name, samples in times.items()]
+        median = {row["planner"]: row["median_ms"] for row in rows}
+        torchrl_ms, ours_ms = median["torchrl CEMPlanner"], median["ours: CEM + model_reward_objective"]
+        plain_ms, floor_ms = median["ours: CEM + plain objective"], median["floor: bare forwards"]
+        ratios = {
+            "torchrl_over_ours": torchrl_ms / ours_ms,
+            "ours_over_floor": ours_ms / floor_ms,
+            "torchrl_over_floor": torchrl_ms / floor_ms,
+            "torchrl_over_plain": torchrl_ms / plain_ms,
+            "plain_over_floor": plain_ms / floor_ms,
+        }
+        goals = {
+            "ours_at_least_2x_faster_than_torchrl": ratios["torchrl_over_ours"] >= GOAL_SPEEDUP,
+            "ours_within_1.3x_of_floor": ratios["ours_over_floor"] <= GOAL_FLOOR,
+            # No planner that does the floor's forwards can beat torchrl by more than torchrl / floor.
+            "speedup_goal_reachable": ratios["torchrl_over_floor"] >= GOAL_SPEEDUP,
+        }
+        payload = {
+            "benchmark": "CEM planning on one adaptive dynamics model: ours vs torchrl's CEMPlanner vs bare forwards",
+            "config": config_dict(config),
+            "device": str(device),
+            "machine": machine_info(),
+            "model": {
+                "in": obs_dim + action_dim,
+                "hidden": list(config.hidden),
+                "out": obs_dim,
+                "adaptation": config.adaptation,
+                "forwards_per_plan": config.horizon * config.steps,
+            },
+            "results": rows,
+            "ratios": ratios,
+            "goals": goals,
+        }
+        publish(ex.out, payload, rows, _report(payload), as_json=config.json)
+    return payload
 
 
-def _run(config: BenchPlannersConfig, *, progress: bool) -> dict[str, Any]:
+def _contenders(
+    model: smcd_rl.AdaptiveDynamicsModel,
+    obs: Tensor,
+    config: BenchPlannersConfig,
+    device: torch.device,
+    generator: torch.Generator,
+) -> dict[str, Callable[[], None]]:
+    """One plan of each planner from ``obs`` on ``model``, and the bare forwards they all must do."""
     from torchrl.modules import CEMPlanner
 
     from smcd_rl.integrations.torchrl import AdaptiveWorldModelEnv
 
-    out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = torch.device(config.device)
-
-    # --- seed and the shared model ------------------------------------------------------------
-    generator = seed_everything(config.seed)
-    obs_dim, action_dim = config.observation, config.action
-    net = smcd_rl.MaskedMLP(obs_dim + action_dim, obs_dim, hidden=config.hidden, device=device)
-    adaptation: smcd_rl.Adaptation = (
-        smcd_rl.SMCD(num_particles=config.particles, generator=torch.Generator(device=device).manual_seed(config.seed))
-        if config.adaptation == "smcd"
-        else smcd_rl.NoAdaptation()
-    )
-    model = smcd_rl.AdaptiveDynamicsModel(net, adaptation)
-    model.reset()
-    obs = torch.randn(obs_dim, generator=generator).to(device)
-
-    # --- the contenders ---------------------------------------------------------------------------
     world = AdaptiveWorldModelEnv(model, bench_reward, action_low=-1.0, action_high=1.0, device=device)
     torchrl_cem = CEMPlanner(
         world,
@@ -145,8 +181,8 @@ def _run(config: BenchPlannersConfig, *, progress: bool) -> dict[str, Any]:
     start = world.reset()
     start.set(model.in_keys[0], obs.clone())
     ours = CEM(
-        action_low=[-1.0] * action_dim,
-        action_high=[1.0] * action_dim,
+        action_low=[-1.0] * config.action,
+        action_high=[1.0] * config.action,
         horizon=config.horizon,
         num_candidates=config.candidates,
         num_elites=config.top_k,
@@ -157,7 +193,7 @@ def _run(config: BenchPlannersConfig, *, progress: bool) -> dict[str, Any]:
     )
     objective = model_reward_objective(model, obs, bench_reward)
     plain = _plain_objective(model, obs)
-    floor_input = torch.randn(config.candidates, obs_dim + action_dim, generator=generator).to(device)
+    floor_input = torch.randn(config.candidates, config.observation + config.action, generator=generator).to(device)
 
     def run_torchrl() -> None:
         torchrl_cem(start.clone())
@@ -169,91 +205,27 @@ def _run(config: BenchPlannersConfig, *, progress: bool) -> dict[str, Any]:
         ours.plan(plain)
 
     def run_floor() -> None:
-        x = floor_input
         for _ in range(config.horizon * config.steps):
-            model.adaptation.predict(x)
+            model.adaptation.predict(floor_input)
 
-    contenders: dict[str, Callable[[], None]] = {
+    return {
         "torchrl CEMPlanner": run_torchrl,
         "ours: CEM + model_reward_objective": run_ours,
         "ours: CEM + plain objective": run_plain,
         "floor: bare forwards": run_floor,
     }
-    times = interleaved_times(
-        contenders, config.repeats, warmup=config.warmup, device=device, desc="bench planners", progress=progress
-    )
-
-    # --- results ------------------------------------------------------------------------------
-    rows = []
-    for name, samples in times.items():
-        quartiles = statistics.quantiles(samples, n=4) if len(samples) > 1 else [samples[0]] * 3
-        rows.append(
-            {
-                "planner": name,
-                "median_ms": statistics.median(samples) * 1e3,
-                "min_ms": min(samples) * 1e3,
-                "q25_ms": quartiles[0] * 1e3,
-                "q75_ms": quartiles[2] * 1e3,
-                "repeats": len(samples),
-            }
-        )
-    median = {row["planner"]: row["median_ms"] for row in rows}
-    torchrl_ms, ours_ms = median["torchrl CEMPlanner"], median["ours: CEM + model_reward_objective"]
-    plain_ms, floor_ms = median["ours: CEM + plain objective"], median["floor: bare forwards"]
-    ratios = {
-        "torchrl_over_ours": torchrl_ms / ours_ms,
-        "ours_over_floor": ours_ms / floor_ms,
-        "torchrl_over_floor": torchrl_ms / floor_ms,
-        "torchrl_over_plain": torchrl_ms / plain_ms,
-        "plain_over_floor": plain_ms / floor_ms,
-    }
-    goals = {
-        "ours_at_least_2x_faster_than_torchrl": ratios["torchrl_over_ours"] >= GOAL_SPEEDUP,
-        "ours_within_1.3x_of_floor": ratios["ours_over_floor"] <= GOAL_FLOOR,
-        # No planner that does the floor's forwards can beat torchrl by more than torchrl / floor.
-        "speedup_goal_reachable": ratios["torchrl_over_floor"] >= GOAL_SPEEDUP,
-    }
-    payload = {
-        "benchmark": "CEM planning on one adaptive dynamics model: ours vs torchrl's CEMPlanner vs bare forwards",
-        "config": config_dict(config),
-        "device": str(device),
-        "machine": machine_info(),
-        "model": {
-            "in": obs_dim + action_dim,
-            "hidden": list(config.hidden),
-            "out": obs_dim,
-            "adaptation": config.adaptation,
-            "forwards_per_plan": config.horizon * config.steps,
-        },
-        "results": rows,
-        "ratios": ratios,
-        "goals": goals,
-    }
-    write_json(out / "results.json", payload)
-    write_csv(out / "results.csv", rows)
-    if config.json:
-        print(json.dumps(payload, indent=2, default=str))
-    else:
-        print(_report(payload))
-    return payload
 
 
-def _check(config: BenchPlannersConfig) -> None:
-    if config.adaptation not in ("none", "smcd"):
-        raise ValueError(f"unknown adaptation {config.adaptation!r}; choose none or smcd")
-    small = [
-        f"{name}={getattr(config, name)}"
-        for name in ("observation", "action", "horizon", "candidates", "top_k", "steps", "particles", "repeats")
-        if getattr(config, name) < 1
-    ]
-    if config.warmup < 0:
-        small.append(f"warmup={config.warmup} (>= 0)")
-    if not config.hidden or min(config.hidden) < 1:
-        small.append(f"hidden={list(config.hidden)}")
-    if small:
-        raise ValueError(f"sizes and counts must be >= 1: {', '.join(small)}")
-    if config.top_k < 2 or config.top_k > config.candidates:
-        raise ValueError(f"top_k must be in [2, candidates={config.candidates}], got {config.top_k}")
+def _timing_row(name: str, samples: list[float]) -> dict[str, Any]:
+    quartiles = statistics.quantiles(samples, n=4) if len(samples) > 1 else [samples[0]] * 3
+    return {
+        "planner": name,
+        "median_ms": statistics.median(samples) * 1e3,
+        "min_ms": min(samples) * 1e3,
+        "q25_ms": quartiles[0] * 1e3,
+        "q75_ms": quartiles[2] * 1e3,
+        "repeats": len(samples),
+    }
 
 
 def _plain_objective(model: smcd_rl.AdaptiveDynamicsModel, obs: Tensor) -> Callable[[Tensor], Tensor]:
@@ -275,9 +247,7 @@ def _plain_objective(model: smcd_rl.AdaptiveDynamicsModel, obs: Tensor) -> Calla
 
 def _report(payload: dict[str, Any]) -> str:
     config, ratios, goals = payload["config"], payload["ratios"], payload["goals"]
-    lines = [
-        "machine: " + ", ".join(f"{k}={v}" for k, v in payload["machine"].items()) + f", device={payload['device']}"
-    ]
+    lines = [machine_line(payload)]
     model = payload["model"]
     lines.append(
         f"model: MaskedMLP {model['in']} -> {' -> '.join(map(str, model['hidden']))} -> {model['out']}, "

@@ -66,7 +66,26 @@ def test_bench_control_help_and_bad_options(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["bench", "control", "--help"])
     assert exit_info.value.code == 0 and "--particles" in capsys.readouterr().out
-    assert cli.main(["bench", "control", "--particles", "0", "--out", str(tmp_path)]) == 2
-    assert "particles=0" in capsys.readouterr().err
-    assert cli.main(["bench", "control", "--model", str(tmp_path / "missing.pt"), "--out", str(tmp_path)]) == 2
+    assert cli.main(["bench", "control", "--model", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "b")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--particles", "0"], "--particles must be >= 1, got 0"),
+        (["--hidden", "16", "0"], "--hidden must be >= 1, got 0"),
+        (["--dropout", "1.0"], "--dropout must be < 1.0, got 1.0"),
+        (["--flip-prob", "1.5"], "--flip-prob must be <= 1.0, got 1.5"),
+        (["--gd-lr", "0"], "--gd-lr must be > 0.0"),
+        (["--warmup", "-1"], "--warmup must be >= 0"),
+        (["--threads", "-1"], "--threads must be >= 0"),
+        (["--model", "missing.pt"], "no such file"),
+    ],
+)
+def test_bench_control_refuses_bad_options_before_any_work(tmp_path, capsys, option, message) -> None:
+    """Validation runs before anything is built or timed: not even the output directory is made."""
+    out = tmp_path / "bench"
+    assert cli.main(["bench", "control", "--out", str(out), *TINY, *option]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()

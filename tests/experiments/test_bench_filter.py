@@ -81,12 +81,31 @@ def test_bench_filter_json_flag_prints_only_json(tmp_path, capsys) -> None:
     assert payload["network"]["mask_dim"] == 64
 
 
-def test_bench_filter_help_and_bad_options(capsys) -> None:
+def test_bench_filter_help_and_bad_options(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["bench", "filter", "--help"])
     assert exit_info.value.code == 0 and "--particles" in capsys.readouterr().out
-    assert cli.main(["bench", "filter", "--particles", "0", "--out", "/tmp/never"]) == 2
-    assert "particles" in capsys.readouterr().err
     if not torch.cuda.is_available():
-        assert cli.main(["bench", "filter", "--device", "cuda", "--out", "/tmp/never"]) == 2
+        assert cli.main(["bench", "filter", "--device", "cuda", "--out", str(tmp_path / "never")]) == 2
         assert "no CUDA device" in capsys.readouterr().err
+        assert not (tmp_path / "never").exists()
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--particles", "20", "0"], "--particles must be >= 1, got 0"),
+        (["--memory-hidden", "-4"], "--memory-hidden must be >= 1, got -4"),
+        (["--dropout", "1.0"], "--dropout must be < 1.0, got 1.0"),
+        (["--flip-prob", "2"], "--flip-prob must be <= 1.0, got 2.0"),
+        (["--noise-std", "0"], "--noise-std must be > 0.0"),
+        (["--steps", "0"], "--steps must be >= 1"),
+        (["--memory-particles", "-1"], "--memory-particles must be >= 0"),
+    ],
+)
+def test_bench_filter_refuses_bad_options_before_any_work(tmp_path, capsys, option, message) -> None:
+    """Validation runs before the network is built or anything timed: not even the output directory is made."""
+    out = tmp_path / "bench"
+    assert cli.main(["bench", "filter", "--out", str(out), *TINY, *option]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()

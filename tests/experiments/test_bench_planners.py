@@ -73,5 +73,22 @@ def test_bench_planners_help_and_bad_options(capsys) -> None:
     assert exit_info.value.code == 0 and "--candidates" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         cli.main(["bench"])  # a group needs its sub-command
-    assert cli.main(["bench", "planners", "--top-k", "1", "--out", "/tmp/never"]) == 2
-    assert "top_k" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--top-k", "1"], "--top-k must be >= 2, got 1"),
+        (["--top-k", "21"], "--top-k must be at most --candidates (20), got 21"),
+        (["--hidden", "0"], "--hidden must be >= 1, got 0"),
+        (["--adaptation", "gd"], "--adaptation: unknown value 'gd'; choose from ['none', 'smcd']"),
+        (["--repeats", "0"], "--repeats must be >= 1"),
+        (["--seed", "-3"], "--seed must be >= 0"),
+    ],
+)
+def test_bench_planners_refuses_bad_options_before_any_work(tmp_path, capsys, option, message) -> None:
+    """Validation runs before the model is built or anything timed: not even the output directory is made."""
+    out = tmp_path / "bench"
+    assert cli.main(["bench", "planners", "--out", str(out), *TINY, *option]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
