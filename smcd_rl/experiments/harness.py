@@ -65,6 +65,8 @@ def setting(
     *,
     low: float | None = None,
     above: float | None = None,
+    high: float | None = None,
+    below: float | None = None,
     choices: Sequence[Any] | None = None,
 ) -> Any:
     """A config field: ``help`` becomes its ``--help`` text; the bounds are checked before any work.
@@ -74,6 +76,8 @@ def setting(
         help: the ``--help`` text.
         low: the smallest allowed value (inclusive), for a number or each item of a tuple.
         above: values must be strictly greater than this.
+        high: the largest allowed value (inclusive).
+        below: values must be strictly smaller than this.
         choices: the allowed values (of each item, for a tuple).
 
     Example:
@@ -86,7 +90,14 @@ def setting(
         ...
         ValueError: --particles must be >= 1, got 0
     """
-    metadata = {"help": help, "low": low, "above": above, "choices": None if choices is None else tuple(choices)}
+    metadata = {
+        "help": help,
+        "low": low,
+        "above": above,
+        "high": high,
+        "below": below,
+        "choices": None if choices is None else tuple(choices),
+    }
     if isinstance(default, (list, tuple)):
         value = tuple(default)
         return dataclasses.field(default_factory=lambda: value, metadata=metadata)
@@ -138,10 +149,15 @@ def _check_item(flag: str, value: Any, kind: Any, metadata: Mapping[str, Any]) -
     if kind is float and value != value:  # NaN
         raise ValueError(f"{flag} must be a number, got NaN")
     low, above, choices = metadata.get("low"), metadata.get("above"), metadata.get("choices")
+    high, below = metadata.get("high"), metadata.get("below")
     if low is not None and value < low:
         raise ValueError(f"{flag} must be >= {low}, got {value}")
     if above is not None and value <= above:
         raise ValueError(f"{flag} must be > {above}, got {value}")
+    if high is not None and value > high:
+        raise ValueError(f"{flag} must be <= {high}, got {value}")
+    if below is not None and value >= below:
+        raise ValueError(f"{flag} must be < {below}, got {value}")
     if choices is not None and value not in choices:
         raise ValueError(f"{flag}: unknown value {value!r}; choose from {list(choices)}")
 
