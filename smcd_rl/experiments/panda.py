@@ -14,10 +14,11 @@ corrects the measured error. In between, nothing is observed and the controller 
 error of its own kinematics' prediction (model-reference control). ``FK`` at ``n = 1`` is the
 reference line of Fig. 3.
 
-Writes ``results.csv`` (success rate, mean and std over seeds, per method and n),
-``trials.csv`` (every arm: reached, steps, final distance, tool), ``results.json`` (settings,
-table, training loss, held-out error, timings, machine) and ``panda.png`` (success rate against
-n). Finished (method, n, seed) runs are kept in ``partial.pt`` and skipped by a rerun.
+Writes ``results.csv`` (success rate per method and n: mean and 95 % CI over all arms, std over
+seeds), ``trials.csv`` (every arm: reached, steps, final distance, tool), ``comparisons.csv``
+(every adaptive method paired with M+N and the others over the same arms), ``results.json``,
+``panda.png`` (success rate against n) and ``report.md``. Finished (method, n) runs are kept in
+``partial.pt`` and skipped by a rerun with the same settings and network.
 
 Choices the paper leaves open, made here:
 
@@ -44,7 +45,6 @@ Example:
 from __future__ import annotations
 
 import itertools
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,35 +53,19 @@ from typing import Any
 import torch
 from tensordict import TensorDict
 from torch import Tensor
-from tqdm.auto import tqdm
 
 import smcd_rl
-from smcd_rl.agents.pd import JacobianPD
 from smcd_rl.envs.panda_reach import (
     DEFAULT_DT,
     GOAL_TOLERANCE,
     MAX_EPISODE_STEPS,
-    READY_POSE,
     TOOL_RANGE,
-    integrate_panda,
-    panda_fk,
     panda_kinematics_data,
-    sample_goals,
-    sample_tool_lengths,
 )
-from smcd_rl.experiments.common import (
-    ResultCache,
-    config_dict,
-    format_table,
-    machine_info,
-    option,
-    resolve_device,
-    seed_everything,
-    torch_threads,
-    training_checkpoint,
-    write_csv,
-    write_json,
-)
+from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.harness import Experiment, ExperimentConfig, model_digest, setting
+from smcd_rl.experiments.panda_reaching import method_kinematics, reach, sample_tasks
+from smcd_rl.experiments.stats import cell_statistics, verdict_table
 
 __all__ = ["PandaConfig", "FULL", "METHODS", "method_labels", "reach", "run", "table"]
 
@@ -90,38 +74,39 @@ METHODS = ("FK", "M+N", "M+G", "M+S")
 
 
 @dataclass
-class PandaConfig:
+class PandaConfig(ExperimentConfig):
     """Settings of ``smcd-rl panda``; the defaults finish in minutes on 2 CPU cores."""
 
-    out: str = option("runs/panda", "output directory (results, plot, trained model)")
-    seed: int = option(0, "seed of data, training, tasks and filters")
-    samples: int = option(50_000, "training samples (joint angles, end effector) with random tools")
-    hidden: int = option(256, "width of each hidden layer")
-    depth: int = option(3, "number of hidden layers")
-    dropout: float = option(0.5, "dropout probability p used in training")
-    epochs: int = option(30, "training epochs")
-    batch_size: int = option(256, "training batch size")
-    lr: float = option(1e-3, "Adam learning rate")
-    tasks: int = option(50, "reaching tasks per seed (all run at once as one batch)")
-    seeds: int = option(3, "seeds (each draws its own tasks)")
-    intervals: tuple[int, ...] = option((1, 2, 5, 10, 20), "measurement intervals n: a measurement every n-th step")
-    steps: int = option(MAX_EPISODE_STEPS, "control steps per task: success is reaching the goal within them")
-    methods: tuple[str, ...] = option(METHODS, "methods to run: FK, M+N, M+G, M+S")
-    particles: tuple[int, ...] = option((100, 300), "SMCD particle counts (one M+S line each)")
-    flip_prob: float = option(0.05, "SMCD bit-flip probability per step")
-    noise_std: float = option(0.02, "SMCD likelihood noise std (m)")
-    gd_lr: float = option(0.1, "online gradient-descent learning rate (normalised units)")
-    gd_steps: int = option(5, "gradient steps per observation")
-    gd_window: int = option(10, "recent transitions in the gradient-descent loss")
-    k1: float = option(20.0, "PD gain on the end-effector error")
-    k2: float = option(5.0, "PD gain on the joint velocity")
-    dt: float = option(DEFAULT_DT, "control period (s)")
-    tolerance: float = option(GOAL_TOLERANCE, "success distance (m)")
-    tool_range: float = option(TOOL_RANGE, "tools are drawn from U(-tool_range, tool_range) (m)")
-    measurement_noise: float = option(0.0, "std of the end-effector measurement noise (m)")
-    threads: int = option(1, "torch CPU threads (0: torch's default)")
-    device: str = option("cpu", "torch device: cpu, cuda, cuda:1, auto")
-    full: bool = option(False, "the paper's scale: 3 x 1024 network, 100000 samples, 100 tasks x 5 seeds")
+    out: str = setting("runs/panda", "output directory (results, plot, report, trained model)")
+    samples: int = setting(50_000, "training samples (joint angles, end effector) with random tools", low=1)
+    hidden: int = setting(256, "width of each hidden layer", low=1)
+    depth: int = setting(3, "number of hidden layers", low=1)
+    dropout: float = setting(0.5, "dropout probability p used in training", above=0.0)
+    epochs: int = setting(30, "training epochs", low=1)
+    batch_size: int = setting(256, "training batch size", low=1)
+    lr: float = setting(1e-3, "Adam learning rate", above=0.0)
+    tasks: int = setting(50, "reaching tasks per seed (all run at once as one batch)", low=1)
+    seeds: int = setting(3, "seeds (each draws its own tasks)", low=1)
+    intervals: tuple[int, ...] = setting(
+        (1, 2, 5, 10, 20), "measurement intervals n: a measurement every n-th step (1: every step)", low=1
+    )
+    steps: int = setting(MAX_EPISODE_STEPS, "control steps per task: success is reaching the goal within them", low=1)
+    methods: tuple[str, ...] = setting(METHODS, "methods to run: FK, M+N, M+G, M+S", choices=METHODS)
+    particles: tuple[int, ...] = setting((100, 300), "SMCD particle counts (one M+S line each)", low=1)
+    flip_prob: float = setting(0.05, "SMCD bit-flip probability per step", low=0.0)
+    noise_std: float = setting(0.02, "SMCD likelihood noise std (m)", above=0.0)
+    gd_lr: float = setting(0.1, "online gradient-descent learning rate (normalised units)", above=0.0)
+    gd_steps: int = setting(5, "gradient steps per observation", low=1)
+    gd_window: int = setting(10, "recent transitions in the gradient-descent loss", low=1)
+    k1: float = setting(20.0, "PD gain on the end-effector error", low=0.0)
+    k2: float = setting(5.0, "PD gain on the joint velocity", low=0.0)
+    dt: float = setting(DEFAULT_DT, "control period (s)", above=0.0)
+    tolerance: float = setting(GOAL_TOLERANCE, "success distance (m)", above=0.0)
+    tool_range: float = setting(TOOL_RANGE, "tools are drawn from U(-tool_range, tool_range) (m)", low=0.0)
+    measurement_noise: float = setting(0.0, "std of the end-effector measurement noise (m)", low=0.0)
+    full: bool = setting(False, "the paper's scale: 3 x 1024 network, 100000 samples, 100 tasks x 5 seeds")
+
+    NON_EMPTY = ("intervals", "methods", "particles")
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -151,155 +136,118 @@ def method_labels(config: PandaConfig) -> list[str]:
 
 def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the experiment and write its files; returns the JSON payload."""
-    _check(config)
-    with torch_threads(config.threads):
-        return _run(config, progress=progress)
+    with Experiment(config, progress=progress) as ex:
+        # --- seed, data, model --------------------------------------------------------------------
+        data = panda_kinematics_data(config.samples, tool_range=config.tool_range, generator=ex.generator)
+        held_out = panda_kinematics_data(2000, tool_range=config.tool_range, generator=ex.generator)
+        net = smcd_rl.MaskedMLP(7, 3, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=ex.device)
+        model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+        fit = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
+        losses = ex.train("train", smcd_rl.fit, model, data.to(ex.device), **fit)
+        model.save(ex.out / "model.pt")
+        held_out_rmse = _held_out_rmse(model, held_out.to(ex.device))
 
+        # --- every (method, n) on the same arms: each seed's tasks run as one batch -----------------
+        labels = method_labels(config)
+        runs = {f"{label} n={n}": (label, n) for label in labels for n in _intervals(label, config)}
 
-def _check(config: PandaConfig) -> None:
-    unknown = set(config.methods) - set(METHODS)
-    if unknown:
-        raise ValueError(f"unknown method(s) {sorted(unknown)}; choose from {list(METHODS)}")
-    if not config.methods:
-        raise ValueError(f"no methods given; choose from {list(METHODS)}")
-    if not config.intervals or min(config.intervals) < 1:
-        raise ValueError(f"measurement intervals must be >= 1 (1: every step), got {list(config.intervals)}")
-    if "M+S" in config.methods and (not config.particles or min(config.particles) < 1):
-        raise ValueError(f"M+S needs particle counts >= 1, got {list(config.particles)}")
-    counts = {
-        k: getattr(config, k) for k in ("samples", "hidden", "depth", "epochs", "batch_size", "tasks", "seeds", "steps")
-    }
-    small = [f"{k}={v}" for k, v in counts.items() if v < 1]
-    if small:
-        raise ValueError(f"sizes and counts must be >= 1: {', '.join(small)}")
-    if config.noise_std <= 0 or config.tolerance <= 0 or config.dt <= 0:
-        raise ValueError(
-            f"need noise_std, tolerance and dt > 0, got {config.noise_std}, {config.tolerance}, {config.dt}"
+        def evaluate(name: str, unit: tuple[str, int]) -> dict[str, Tensor]:
+            label, n = unit
+            per_seed = []
+            for s in ex.bar(range(config.seeds), desc=name, unit="seed"):
+                tools, goals = sample_tasks(config, s, ex.device)
+                kinematics, observe = method_kinematics(label, model, tools, config, s, ex.device)
+                # Measurement noise (if any) from the seed alone: every method and n sees the same draws.
+                noise = torch.Generator(device=ex.device).manual_seed(config.seed * 1_000_003 + 104_729 * (s + 1))
+                outcome = reach(kinematics, observe, tools, goals, interval=n, config=config, generator=noise)
+                per_seed.append({**outcome, "tools": tools})
+            return {key: torch.stack([r[key].cpu() for r in per_seed]) for key in per_seed[0]}  # [seeds, tasks]
+
+        units: dict[str, Callable[[], tuple[str, int]]] = {
+            name: (lambda unit=unit: unit) for name, unit in runs.items()
+        }
+        done = ex.evaluate(units, evaluate, content={"model": model_digest(model)})
+
+        # --- results: success over all arms per (n, method), CIs, paired verdicts -------------------
+        results = {unit: done[name] for name, unit in runs.items()}
+        intervals = sorted({n for _, n in results})
+        scores = {
+            (n,): {label: r["reached"].reshape(-1).double() for (label, m), r in results.items() if m == n}
+            for n in intervals
+        }
+        adaptive = [label for label in labels if label.startswith("M+S")] + [m for m in ("M+G", "FK") if m in labels]
+        rows, comparisons = cell_statistics(
+            scores,
+            cell=("interval",),
+            baseline="M+N",
+            adaptive=adaptive,
+            metric="success",
+            lower_is_better=False,
+            seed=config.seed,
         )
-    resolve_device(config.device)
+        rows = sorted((_describe(row, results, config) for row in rows), key=lambda r: labels.index(r["method"]))
+        headline = [c for c in comparisons if c["method"].startswith("M+S") and c["against"] in ("M+N", "M+G")]
+        ex.write(
+            experiment="7-DOF Panda reaching with an unknown tool and sparse measurements (paper Fig. 3)",
+            tables={
+                f"Success rate (within {100 * config.tolerance:.0f} cm in {config.steps} steps), mean [95% CI] over "
+                f"{config.seeds} seeds x {config.tasks} arms; the network's held-out RMSE (mean mask) is "
+                f"{held_out_rmse:.3f} m": table(rows, config),
+                "M+S paired with M+N and M+G over the same arms (positive: M+S reaches more goals)": verdict_table(
+                    headline, cell=("interval",)
+                ),
+            },
+            rows=rows,
+            trials=_trial_rows(results, config),
+            comparisons=comparisons,
+            payload={"train_loss": losses, "held_out_rmse_m": held_out_rmse},
+            plot=lambda path: _plot(rows, config, path),
+            plot_name="panda.png",
+        )
+    return ex.result
 
 
-def _run(config: PandaConfig, *, progress: bool) -> dict[str, Any]:
-    started_run = time.perf_counter()
-    out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = torch.device(resolve_device(config.device))
-
-    # --- seed, data, model --------------------------------------------------------------------
-    generator = seed_everything(config.seed)
-    data = panda_kinematics_data(config.samples, tool_range=config.tool_range, generator=generator)
-    held_out = panda_kinematics_data(2000, tool_range=config.tool_range, generator=generator)
-    net = smcd_rl.MaskedMLP(7, 3, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
-    model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
-    train_keys = ("seed", "samples", "hidden", "depth", "dropout", "epochs", "batch_size", "lr", "tool_range", "device")
-    started = time.perf_counter()
-    losses = smcd_rl.fit(
-        model,
-        data.to(device),
-        epochs=config.epochs,
-        batch_size=config.batch_size,
-        lr=config.lr,
-        seed=config.seed,
-        checkpoint=training_checkpoint(out, "train", {k: getattr(config, k) for k in train_keys}),
-        progress=progress,
-    )
-    train_seconds = time.perf_counter() - started
-    model.save(out / "model.pt")
-    held_out_rmse = _held_out_rmse(model, held_out.to(device))
-
-    # --- every (method, n, seed) run ----------------------------------------------------------
+def _intervals(label: str, config: PandaConfig) -> list[int]:
     # FK with a measurement every step is the reference line of Fig. 3, so it always runs.
-    intervals = sorted(set(config.intervals) | ({1} if "FK" in config.methods else set()))
-    labels = method_labels(config)
-    ignored = ("out", "full", "threads", "methods", "particles", "intervals")
-    cache = ResultCache(out / "partial.pt", {k: v for k, v in config_dict(config).items() if k not in ignored})
-    runs = [
-        (label, n, s)
-        for label in labels
-        for n in (intervals if label == "FK" else sorted(config.intervals))
-        for s in range(config.seeds)
-    ]
-    results: dict[tuple[str, int, int], dict[str, Any]] = {}
-    bar = tqdm(runs, desc="panda", unit="run", disable=not progress)
-    for label, n, s in bar:
-        key = f"{label}|n={n}|seed={s}"
-        bar.set_postfix_str(key)
-        result = cache.get(key)
-        if result is None:
-            tools, goals = _tasks(config, s, device)
-            kinematics, observe = _method(label, model, tools, config, s, device)
-            started = time.perf_counter()
-            # Measurement noise (if any) from the seed alone: every method and n sees the same draws.
-            noise = torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + 104_729 * (s + 1))
-            outcome = reach(kinematics, observe, tools, goals, interval=n, config=config, generator=noise)
-            result = {
-                **{k: v.cpu() for k, v in outcome.items()},
-                "tools": tools.cpu(),
-                "seconds": time.perf_counter() - started,
-            }
-            cache.put(key, result)
-        results[(label, n, s)] = result
+    return sorted(set(config.intervals) | ({1} if label == "FK" else set()))
 
-    # --- results ------------------------------------------------------------------------------
-    rows, trial_rows = [], []
-    for label in labels:
-        for n in intervals if label == "FK" else sorted(config.intervals):
-            per_seed = [results[(label, n, s)] for s in range(config.seeds)]
-            rates = torch.tensor([float(r["reached"].float().mean()) for r in per_seed], dtype=torch.float64)
-            reached = torch.cat([r["reached"] for r in per_seed])
-            steps_taken = torch.cat([r["steps"] for r in per_seed]).double()
-            rows.append(
-                {
-                    "method": label,
-                    "interval": n,
-                    "success_mean": float(rates.mean()),
-                    "success_std": float(rates.std(correction=1)) if len(rates) > 1 else 0.0,
-                    "steps_mean": float(steps_taken[reached].mean()) if bool(reached.any()) else None,
-                    "final_distance_median": float(torch.cat([r["final_distance"] for r in per_seed]).median()),
-                    "seeds": len(rates),
-                    "tasks": config.tasks,
-                    "seconds": sum(r["seconds"] for r in per_seed),
-                }
-            )
-            for s, r in enumerate(per_seed):
-                trial_rows += [
-                    {
-                        "method": label,
-                        "interval": n,
-                        "seed": s,
-                        "task": k,
-                        "reached": bool(r["reached"][k]),
-                        "steps": int(r["steps"][k]),
-                        "final_distance": float(r["final_distance"][k]),
-                        "tool_length": float(r["tools"][k]),
-                    }
-                    for k in range(config.tasks)
-                ]
-    write_csv(out / "results.csv", rows)
-    write_csv(out / "trials.csv", trial_rows)
-    payload = {
-        "experiment": "7-DOF Panda reaching with an unknown tool and sparse measurements (paper Fig. 3)",
-        "config": config_dict(config),
-        "machine": machine_info(),
-        "train_loss": losses,
-        "train_seconds": train_seconds,
-        "held_out_rmse_m": held_out_rmse,
-        "method_seconds": {label: sum(r["seconds"] for k, r in results.items() if k[0] == label) for label in labels},
-        "total_seconds": time.perf_counter() - started_run,
-        "results": rows,
+
+def _describe(row: dict[str, Any], results: dict[tuple[str, int], dict[str, Any]], config: PandaConfig) -> dict:
+    """A table row with what the success rate leaves out: spread over seeds, steps, final distance."""
+    r = results[(row["method"], row["interval"])]
+    rates, reached = r["reached"].double().mean(1), r["reached"].reshape(-1)
+    steps = r["steps"].reshape(-1).double()
+    return {
+        **row,
+        "success_seed_std": float(rates.std()) if len(rates) > 1 else 0.0,
+        "steps_mean": float(steps[reached].mean()) if bool(reached.any()) else None,
+        "final_distance_median": float(r["final_distance"].median()),
+        "seeds": config.seeds,
+        "tasks": config.tasks,
+        "seconds": r["seconds"],
     }
-    write_json(out / "results.json", payload)
-    _plot(rows, config, out / "panda.png")
-    print(table(rows, config))
-    print(
-        f"\nnetwork held-out RMSE (mean mask): {held_out_rmse:.3f} m; wrote {out}/results.csv, trials.csv, "
-        "results.json, panda.png"
-    )
-    return payload
+
+
+def _trial_rows(results: dict[tuple[str, int], dict[str, Any]], config: PandaConfig) -> list[dict[str, Any]]:
+    return [
+        {
+            "method": label,
+            "interval": n,
+            "seed": s,
+            "task": k,
+            "reached": bool(r["reached"][s, k]),
+            "steps": int(r["steps"][s, k]),
+            "final_distance": float(r["final_distance"][s, k]),
+            "tool_length": float(r["tools"][s, k]),
+        }
+        for (label, n), r in results.items()
+        for s in range(config.seeds)
+        for k in range(config.tasks)
+    ]
 
 
 def table(rows: list[dict[str, Any]], config: PandaConfig) -> str:
-    """Success rate (mean +- std over seeds), method down and measurement interval n across."""
+    """Success rate (mean [95% CI] over all arms), method down and measurement interval n across."""
     intervals = sorted(set(config.intervals))
     lookup = {(r["method"], r["interval"]): r for r in rows}
     body = []
@@ -307,7 +255,9 @@ def table(rows: list[dict[str, Any]], config: PandaConfig) -> str:
         cells = []
         for n in intervals:
             r = lookup.get((label, n))
-            cells.append("-" if r is None else f"{r['success_mean']:.2f} ± {r['success_std']:.2f}")
+            cells.append(
+                "-" if r is None else f"{r['success_mean']:.2f} [{r['success_low']:.2f}, {r['success_high']:.2f}]"
+            )
         body.append([label, *cells])
     return format_table(body, ["method", *[f"n={n}" for n in intervals]])
 
@@ -318,118 +268,6 @@ def _held_out_rmse(model: smcd_rl.AdaptiveModel, data: TensorDict) -> float:
     with torch.no_grad():
         error = model.predict(data["q"]) - data["ee"]
     return float(error.square().sum(-1).mean().sqrt())
-
-
-def _tasks(config: PandaConfig, seed: int, device: torch.device) -> tuple[Tensor, Tensor]:
-    """One seed's tools ``[tasks]`` and goals ``[tasks, 3]``, disjoint from the training data's draws."""
-    generator = torch.Generator().manual_seed(config.seed * 1_000_003 + 7919 * (seed + 1))
-    tools = sample_tool_lengths(config.tasks, tool_range=config.tool_range, generator=generator)
-    goals = sample_goals(tools, generator=generator)
-    return tools.to(device), goals.to(device)
-
-
-Kinematics = Callable[[Tensor], Tensor]
-Observe = Callable[[Tensor, Tensor], None]
-
-
-def _method(
-    label: str, model: smcd_rl.AdaptiveModel, tools: Tensor, config: PandaConfig, seed: int, device: torch.device
-) -> tuple[Kinematics, Observe | None]:
-    """The controller's kinematics and, for adaptive models, what a measurement updates."""
-    if label == "FK":
-        return (lambda q: panda_fk(q, 0.0)), None  # the tool is unknown: assume none
-    if label == "M+N":
-        strategy: smcd_rl.Adaptation = smcd_rl.NoAdaptation()
-    elif label == "M+G":
-        strategy = smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
-    else:
-        particles = int(label.split("N=")[1].rstrip(")"))
-        strategy = smcd_rl.SMCD(
-            num_particles=particles,
-            flip_prob=config.flip_prob,
-            noise_std=config.noise_std,
-            generator=torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + seed),
-        )
-    adapted = model.with_adaptation(strategy)
-    adapted.reset(batch_shape=(tools.shape[0],))
-
-    def observe(q: Tensor, measured: Tensor) -> None:
-        adapted.observe(TensorDict({"q": q, "ee": measured}, [q.shape[0]]))
-
-    return adapted.predict, observe
-
-
-def reach(
-    kinematics: Kinematics,
-    observe: Observe | None,
-    tools: Tensor,
-    goals: Tensor,
-    *,
-    interval: int,
-    config: PandaConfig,
-    generator: torch.Generator | None = None,
-) -> dict[str, Tensor]:
-    """Drive a batch of arms from the ready pose towards their goals with Jacobian PD control.
-
-    At steps ``0, interval, 2 interval, ...`` the true end effector is measured: ``observe(q, x)``
-    adapts the model (if any) and the controller corrects the measured error; at other steps it
-    corrects its kinematics' own prediction (model-reference control).
-
-    Args:
-        kinematics: the controller's ``q [B, 7] -> x [B, 3]`` (row-wise).
-        observe: called with ``(q, measured x)`` at every measurement, or ``None``.
-        tools: the true tool of each arm ``[B]``.
-        goals: ``[B, 3]``.
-        interval: a measurement every ``interval``-th step.
-        config: gains, step, tolerance, step count and measurement noise.
-        generator: random source of the measurement noise.
-
-    Returns:
-        ``reached`` (bool ``[B]``: within ``config.tolerance`` at some step), ``steps`` (the first
-        such step, ``config.steps + 1`` if never) and ``final_distance`` (m) after the last step
-        (``config.steps``, or earlier once every arm has reached its goal).
-
-    Example:
-        >>> import torch
-        >>> from smcd_rl.experiments.panda import PandaConfig, reach
-        >>> from smcd_rl.envs.panda_reach import panda_fk, sample_goals
-        >>> tools = torch.tensor([0.3, -0.2])
-        >>> goals = sample_goals(tools, generator=torch.Generator().manual_seed(0))
-        >>> result = reach(lambda q: panda_fk(q, tools), None, tools, goals, interval=1, config=PandaConfig())
-        >>> result["reached"]  # the true kinematics, measured every step
-        tensor([True, True])
-    """
-    batch = tools.shape[0]
-    pd = JacobianPD(kinematics, k1=config.k1, k2=config.k2)
-    q = torch.tensor(READY_POSE, device=tools.device, dtype=tools.dtype).expand(batch, -1).clone()
-    q_dot = torch.zeros_like(q)
-    reached = torch.zeros(batch, dtype=torch.bool, device=tools.device)
-    first = torch.full((batch,), config.steps + 1, device=tools.device)
-    for t in range(config.steps):
-        position = None
-        if t % interval == 0:
-            position = panda_fk(q, tools)
-            if config.measurement_noise > 0:
-                noise = torch.randn(position.shape, generator=generator, device=position.device)
-                position = position + config.measurement_noise * noise
-            if observe is not None:
-                observe(q, position)
-        with torch.no_grad():
-            try:
-                u = pd(q, q_dot, goals, position)
-            except torch.linalg.LinAlgError as err:  # the pseudo-inverse of a NaN Jacobian
-                raise ValueError(
-                    f"the controller's kinematics became non-finite at step {t} (a diverged adaptation, e.g. "
-                    "gradient descent with too high a learning rate: lower --gd-lr)"
-                ) from err
-            q, q_dot = integrate_panda(q, q_dot, u, config.dt)
-            close = (panda_fk(q, tools) - goals).norm(dim=-1) < config.tolerance
-        first = torch.where(close & ~reached, torch.full_like(first, t + 1), first)
-        reached |= close
-        if bool(reached.all()):  # success is decided at the first arrival: nothing left to learn
-            break
-    final = (panda_fk(q, tools) - goals).norm(dim=-1)
-    return {"reached": reached, "steps": first, "final_distance": final}
 
 
 def _plot(rows: list[dict[str, Any]], config: PandaConfig, path: Path) -> None:
@@ -450,7 +288,10 @@ def _plot(rows: list[dict[str, Any]], config: PandaConfig, path: Path) -> None:
             [r["interval"] for r in sel],
             [r["success_mean"] for r in sel],
             color=next(colours),
-            yerr=[r["success_std"] for r in sel],
+            yerr=[
+                [r["success_mean"] - r["success_low"] for r in sel],
+                [r["success_high"] - r["success_mean"] for r in sel],
+            ],
             marker="o",
             capsize=2,
             label=label,

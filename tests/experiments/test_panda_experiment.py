@@ -1,4 +1,4 @@
-"""``smcd-rl panda`` at a tiny scale (files, table, resume, errors) and the reaching loop's semantics."""
+"""``smcd-rl panda`` at a tiny scale (files, tables, resume, refused options) and the reaching loop's semantics."""
 
 import csv
 import json
@@ -38,8 +38,16 @@ TINY = [
 ]
 
 
+class Interrupted(RuntimeError):
+    """Stands for a Ctrl-C mid-run (pytest would stop the session on a real KeyboardInterrupt)."""
+
+
 def _table(printed: str) -> list[str]:
-    return [line for line in printed.splitlines() if line.startswith("|")]
+    """The first Markdown table printed (the success rates; the verdict table follows it)."""
+    lines = printed.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("|"))
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    return lines[start:end]
 
 
 def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, capsys, monkeypatch) -> None:
@@ -49,8 +57,10 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     table = _table(printed)
     assert [cell.strip() for cell in table[0].split("|")[1:-1]] == ["method", "n=2", "n=5"]
     assert [line.split("|")[1].strip() for line in table[2:]] == ["FK", "M+N", "M+G", "M+S (N=20)"]
-    for name in ("results.csv", "trials.csv", "results.json", "panda.png", "model.pt"):
+    assert "| M+S (N=20) | M+G     |" in printed  # the headline verdicts: M+S against M+N and M+G
+    for name in ("results.csv", "trials.csv", "comparisons.csv", "results.json", "panda.png", "report.md", "model.pt"):
         assert (out / name).is_file(), name
+    assert len(list(out.glob("train-*.ckpt"))) == 1
     rows = list(csv.DictReader(open(out / "results.csv")))
     # FK also runs at n = 1 (the reference line of Fig. 3) although 1 is not among the intervals.
     assert {(r["method"], int(r["interval"])) for r in rows} == {
@@ -59,13 +69,19 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
         ("FK", 5),
         *((m, n) for m in ("M+N", "M+G", "M+S (N=20)") for n in (2, 5)),
     }
-    assert all(0.0 <= float(r["success_mean"]) <= 1.0 and int(r["seeds"]) == 2 for r in rows)
+    for r in rows:
+        low, mean, high = float(r["success_low"]), float(r["success_mean"]), float(r["success_high"])
+        assert 0.0 <= low <= mean <= high <= 1.0 and int(r["seeds"]) == 2 and int(r["trials"]) == 2 * 4
     assert len(list(csv.DictReader(open(out / "trials.csv")))) == len(rows) * 2 * 4
+    # Every adaptive method against M+N, and pairwise (M+S, M+G, FK), at each interval both run at.
+    pairs = {(c["interval"], c["method"], c["against"]) for c in csv.DictReader(open(out / "comparisons.csv"))}
+    assert ("5", "M+S (N=20)", "M+N") in pairs and ("5", "M+S (N=20)", "M+G") in pairs and ("2", "M+G", "FK") in pairs
     payload = json.loads((out / "results.json").read_text())
     assert payload["config"]["tasks"] == 4 and payload["machine"]["torch_threads"] >= 1
     assert payload["held_out_rmse_m"] > 0 and len(payload["train_loss"]) == 2
+    assert "M+S (N=20)" in (out / "report.md").read_text()
 
-    # A rerun finds every (method, n, seed) run done: it must not control a single arm again.
+    # A rerun finds every (method, n) run done: it must not control a single arm again.
     def no_reaching(*args, **kwargs):
         raise AssertionError("a finished run was redone")
 
@@ -74,12 +90,26 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     assert _table(capsys.readouterr().out) == table
     monkeypatch.undo()
 
-    # Interrupted after the FK runs: the resumed run redoes only the rest and prints the same table.
+    # Interrupted in the 7th batch of arms (FK's three intervals x two seeds finished): the
+    # resumed run redoes only the other (method, n) runs and prints the same table.
+    reach, calls, interrupt_at = panda.reach, [], [7]
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) in interrupt_at:
+            raise Interrupted
+        return reach(*args, **kwargs)
+
+    monkeypatch.setattr(panda, "reach", interrupted)
     resumed = tmp_path / "resumed"
-    assert cli.main(["panda", "--out", str(resumed), *TINY, "--methods", "FK"]) == 0
+    with pytest.raises(Interrupted):
+        cli.main(["panda", "--out", str(resumed), *TINY])
     capsys.readouterr()
+    calls.clear()
+    interrupt_at.clear()
     assert cli.main(["panda", "--out", str(resumed), *TINY]) == 0
     assert _table(capsys.readouterr().out) == table
+    assert len(calls) == (len(rows) - 3) * 2  # the two seeds of every run but FK's three
 
 
 def test_help_full_preset_and_bad_options(capsys) -> None:
@@ -88,12 +118,30 @@ def test_help_full_preset_and_bad_options(capsys) -> None:
     assert exit_info.value.code == 0 and "--intervals" in capsys.readouterr().out
     config = cli.make_config("panda", {"full": True, "tasks": 7})
     assert config.tasks == 7 and config.hidden == 1024 and config.samples == 100_000 and config.seeds == 5
-    assert cli.main(["panda", "--methods", "FK", "X+Y", "--out", "/tmp/never"]) == 2
-    assert "unknown method(s) ['X+Y']" in capsys.readouterr().err
-    assert cli.main(["panda", "--intervals", "0", "--out", "/tmp/never"]) == 2
-    assert "measurement intervals must be >= 1" in capsys.readouterr().err
-    assert cli.main(["panda", "--particles", "0", "--out", "/tmp/never"]) == 2
-    assert "particle counts" in capsys.readouterr().err
+    assert cli.make_config("panda", {}).threads == 1
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--methods", "FK", "X+Y"], "--methods: unknown value 'X+Y'"),
+        (["--intervals", "0"], "--intervals must be >= 1"),
+        (["--particles", "0"], "--particles must be >= 1"),
+        (["--particles", "-5"], "--particles must be >= 1"),
+        (["--epochs", "0"], "--epochs must be >= 1"),
+        (["--seeds", "0"], "--seeds must be >= 1"),
+        (["--noise-std", "0"], "--noise-std must be > 0"),
+        (["--dt", "-0.1"], "--dt must be > 0"),
+        (["--tool-range", "-1"], "--tool-range must be >= 0"),
+        (["--device", "tpu"], "unknown device 'tpu'"),
+    ],
+)
+def test_bad_options_are_refused_before_any_training(tmp_path, capsys, option, message) -> None:
+    """Validation runs before any work: no data, no training, not even the output directory."""
+    out = tmp_path / "run"
+    assert cli.main(["panda", "--out", str(out), *TINY, *option]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_measurements_arrive_every_nth_step_and_model_reference_control_needs_a_true_model() -> None:
