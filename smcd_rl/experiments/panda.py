@@ -18,7 +18,8 @@ Writes ``results.csv`` (success rate per method and n: mean and 95 % CI over all
 seeds), ``trials.csv`` (every arm: reached, steps, final distance, tool), ``comparisons.csv``
 (every adaptive method paired with M+N and the others over the same arms), ``results.json``,
 ``panda.png`` (success rate against n) and ``report.md``. Finished (method, n) runs are kept in
-``partial.pt`` and skipped by a rerun with the same settings and network.
+``partial.pt`` and skipped by a rerun with the same network and settings (methods, particle
+counts and intervals aside).
 
 Choices the paper leaves open, made here:
 
@@ -45,7 +46,7 @@ Example:
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -71,6 +72,9 @@ __all__ = ["PandaConfig", "FULL", "METHODS", "method_labels", "reach", "run", "t
 
 #: Method families of Fig. 3 that this command runs.
 METHODS = ("FK", "M+N", "M+G", "M+S")
+#: Settings that choose which (method, n) runs there are, not what any run computes (its name says
+#: the method, particle count and n): a rerun with more methods or intervals reuses the finished ones.
+SELECTION = ("methods", "particles", "intervals")
 
 
 @dataclass
@@ -81,7 +85,7 @@ class PandaConfig(ExperimentConfig):
     samples: int = setting(50_000, "training samples (joint angles, end effector) with random tools", low=1)
     hidden: int = setting(256, "width of each hidden layer", low=1)
     depth: int = setting(3, "number of hidden layers", low=1)
-    dropout: float = setting(0.5, "dropout probability p used in training", above=0.0)
+    dropout: float = setting(0.5, "dropout probability p used in training", above=0.0, below=1.0)
     epochs: int = setting(30, "training epochs", low=1)
     batch_size: int = setting(256, "training batch size", low=1)
     lr: float = setting(1e-3, "Adam learning rate", above=0.0)
@@ -93,7 +97,7 @@ class PandaConfig(ExperimentConfig):
     steps: int = setting(MAX_EPISODE_STEPS, "control steps per task: success is reaching the goal within them", low=1)
     methods: tuple[str, ...] = setting(METHODS, "methods to run: FK, M+N, M+G, M+S", choices=METHODS)
     particles: tuple[int, ...] = setting((100, 300), "SMCD particle counts (one M+S line each)", low=1)
-    flip_prob: float = setting(0.05, "SMCD bit-flip probability per step", low=0.0)
+    flip_prob: float = setting(0.05, "SMCD bit-flip probability per step", low=0.0, high=1.0)
     noise_std: float = setting(0.02, "SMCD likelihood noise std (m)", above=0.0)
     gd_lr: float = setting(0.1, "online gradient-descent learning rate (normalised units)", above=0.0)
     gd_steps: int = setting(5, "gradient steps per observation", low=1)
@@ -107,6 +111,10 @@ class PandaConfig(ExperimentConfig):
     full: bool = setting(False, "the paper's scale: 3 x 1024 network, 100000 samples, 100 tasks x 5 seeds")
 
     NON_EMPTY = ("intervals", "methods", "particles")
+
+    def settings(self, *, exclude: Sequence[str] = ()) -> dict[str, Any]:
+        """The settings that determine each (method, n) run: which runs there are (:data:`SELECTION`) left out."""
+        return super().settings(exclude=(*SELECTION, *exclude))
 
 
 #: What ``--full`` changes (options given explicitly still win).

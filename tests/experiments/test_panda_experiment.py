@@ -111,6 +111,16 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     assert _table(capsys.readouterr().out) == table
     assert len(calls) == (len(rows) - 3) * 2  # the two seeds of every run but FK's three
 
+    # Which runs there are does not change what a run computes: FK alone first, then every
+    # method, and the FK runs are reused.
+    subset = tmp_path / "subset"
+    assert cli.main(["panda", "--out", str(subset), *TINY, "--methods", "FK"]) == 0
+    capsys.readouterr()
+    calls.clear()
+    assert cli.main(["panda", "--out", str(subset), *TINY]) == 0
+    assert _table(capsys.readouterr().out) == table
+    assert len(calls) == (len(rows) - 3) * 2
+
 
 def test_help_full_preset_and_bad_options(capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
@@ -130,6 +140,8 @@ def test_help_full_preset_and_bad_options(capsys) -> None:
         (["--particles", "-5"], "--particles must be >= 1"),
         (["--epochs", "0"], "--epochs must be >= 1"),
         (["--seeds", "0"], "--seeds must be >= 1"),
+        (["--dropout", "1"], "--dropout must be < 1"),
+        (["--flip-prob", "2"], "--flip-prob must be <= 1"),
         (["--noise-std", "0"], "--noise-std must be > 0"),
         (["--dt", "-0.1"], "--dt must be > 0"),
         (["--tool-range", "-1"], "--tool-range must be >= 0"),
