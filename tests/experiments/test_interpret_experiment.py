@@ -1,4 +1,4 @@
-"""``smcd-rl interpret`` end to end at a tiny scale: files, tables, --dataset, resume, bad input."""
+"""``smcd-rl interpret`` end to end at a tiny scale: files, tables with CIs, --dataset, resume, bad input."""
 
 from __future__ import annotations
 
@@ -8,10 +8,12 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from smcd_rl import cli
 from smcd_rl.envs.drone_operators import save_dataset, simulate_operators
-from smcd_rl.experiments import interpret
+from smcd_rl.experiments import interpret, interpret_links, interpret_lookahead
+from smcd_rl.interpret import top_k_neighbour_accuracy
 
 TINY = [
     "--fig9-latents",
@@ -60,7 +62,10 @@ TINY = [
 ]
 FILES = (
     "results.csv",
+    "trials.csv",
+    "comparisons.csv",
     "results.json",
+    "report.md",
     "fig9.csv",
     "confidence.csv",
     "lookahead.csv",
@@ -70,7 +75,10 @@ FILES = (
     "fig14_lookahead.png",
     "dataset.npz",
     "bc_model.pt",
+    "reptile_model.pt",
 )
+#: Training checkpoints, named by the harness after the model, trainer, settings and data.
+CHECKPOINTS = ("fig9_ld8-*.ckpt", "fig9_ld16-*.ckpt", "bc-*.ckpt", "reptile-*.ckpt")
 
 
 def tables(printed: str) -> list[str]:
@@ -87,7 +95,10 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
     printed = capsys.readouterr().out
     for name in FILES:
         assert (first / name).is_file(), name
+    for pattern in CHECKPOINTS:
+        assert len(list(first.glob(pattern))) == 1, pattern
     assert "Fig. 9" in printed and "| skill" in printed and "| M+S" in printed and "| R+N" in printed
+    assert "M+S paired with M+N and M+G" in printed and "[95% CI]" in printed
     payload = json.loads((first / "results.json").read_text())
     assert (
         payload["dataset"]["train"]["trajectories"]
@@ -95,17 +106,31 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
         + payload["dataset"]["unknown"]["trajectories"]
         == 24
     )
-    assert all(0 <= r["mean"] <= 1 and 0 <= r["chance"] <= 1 for r in payload["confidence"])
-    assert all(0 <= r["accuracy"] <= 1 for r in payload["fig9"])
+    for figure, metric in (("fig9", "accuracy"), ("confidence", "confidence"), ("lookahead", "rmse")):
+        rows = payload[figure]
+        assert rows and all(r[f"{metric}_low"] <= r[f"{metric}_mean"] <= r[f"{metric}_high"] for r in rows), figure
+    assert all(0 <= r["confidence_mean"] <= 1 for r in payload["confidence"])
+    assert all(0 <= r["accuracy_mean"] <= 1 for r in payload["fig9"])
     assert all(math.isfinite(r["rmse_mean"]) and r["rmse_mean"] > 0 for r in payload["lookahead"])
-    assert all(r["vs_mn_mean"] == 0 for r in payload["lookahead"] if r["method"] == "M+N")  # paired with itself
+    # Every adaptive method paired with M+N and with each other on the same trajectories, in each cell.
+    pairs = {(c["figure"], c["set"], c["method"], c["against"]) for c in payload["comparisons"]}
+    for set_name in ("known", "unknown"):
+        assert {("lookahead", set_name, "M+S", "M+N"), ("lookahead", set_name, "R+N", "M+N")} <= pairs
+        assert ("lookahead", set_name, "M+S", "R+N") in pairs
+    assert {c["verdict"] for c in payload["comparisons"]} <= {"better", "worse", "no significant difference"}
     with open(first / "results.csv") as handle:
         figures = {row["figure"] for row in csv.DictReader(handle)}
     assert figures == {"fig9", "confidence", "lookahead"}
+    with open(first / "trials.csv") as handle:
+        trials = list(csv.DictReader(handle))
+    lookahead_trials = [t for t in trials if t["figure"] == "lookahead" and t["method"] == "M+S"]
+    assert len(lookahead_trials) == sum(r["trials"] for r in payload["lookahead"] if r["method"] == "M+S")
+    report = (first / "report.md").read_text()
+    assert "Fig. 14" in report and all(f"({name})" in report for name in FILES if name.endswith(".png"))
 
     # The same data as a user's --dataset; the run is interrupted in its second look-ahead method.
     second = tmp_path / "second"
-    real = interpret._evaluate_lookahead
+    real = interpret_lookahead.evaluate_lookahead
     calls = {"n": 0}
 
     def interrupted(*args, **kwargs):
@@ -114,7 +139,7 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(interpret, "_evaluate_lookahead", interrupted)
+    monkeypatch.setattr(interpret_lookahead, "evaluate_lookahead", interrupted)
     with pytest.raises(KeyboardInterrupt):
         cli.main(["interpret", "--out", str(second), "--dataset", str(first / "dataset.npz"), *TINY])
     capsys.readouterr()
@@ -124,7 +149,7 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
         return real(*args, **kwargs)
 
     calls["n"] = 0
-    monkeypatch.setattr(interpret, "_evaluate_lookahead", counted)
+    monkeypatch.setattr(interpret_lookahead, "evaluate_lookahead", counted)
     assert cli.main(["interpret", "--out", str(second), "--dataset", str(first / "dataset.npz"), *TINY]) == 0
     assert calls["n"] == 4  # M+S and R+N for both sets; M+N came from the cache
     assert tables(capsys.readouterr().out) == tables(printed)
@@ -146,28 +171,102 @@ def _user_dataset(tmp_path, drop_label: str | None = None, drop_key: str | None 
 
 
 def test_bad_datasets_are_reported_before_any_training(tmp_path, capsys) -> None:
-    out = str(tmp_path / "run")
-    assert cli.main(["interpret", "--out", out, "--parts", "confidence", "--dataset", str(tmp_path / "none.npz")]) == 2
+    out = tmp_path / "run"
+    missing = ["interpret", "--out", str(out), "--parts", "confidence", "--dataset", str(tmp_path / "none.npz")]
+    assert cli.main(missing) == 2
     assert "no such file" in capsys.readouterr().err
+    assert not out.exists()  # refused by validate(), before the output directory is made
     path = _user_dataset(tmp_path, drop_label="phase")
-    assert cli.main(["interpret", "--out", out, "--parts", "confidence", "--dataset", str(path)]) == 2
+    assert cli.main(["interpret", "--out", str(out), "--parts", "confidence", "--dataset", str(path)]) == 2
     error = capsys.readouterr().err
     assert "phase" in error and "--labels" in error
     path = _user_dataset(tmp_path, drop_key="operator")
-    assert cli.main(["interpret", "--out", out, "--parts", "confidence", "--dataset", str(path)]) == 2
+    assert cli.main(["interpret", "--out", str(out), "--parts", "confidence", "--dataset", str(path)]) == 2
     assert "lacks key" in capsys.readouterr().err
-    assert not (tmp_path / "run" / "bc.ckpt").exists()
+    # A dataset's own faults show only once it is read, but still before it is copied or trained on.
+    assert not list(out.glob("*.ckpt")) and not (out / "dataset.npz").exists()
 
 
-def test_unknown_names_and_bad_settings_are_errors(capsys) -> None:
-    assert cli.main(["interpret", "--methods", "M+X", "--out", "/tmp/never"]) == 2
-    assert "unknown method" in capsys.readouterr().err
-    assert cli.main(["interpret", "--parts", "fig10", "--out", "/tmp/never"]) == 2
-    assert "unknown part" in capsys.readouterr().err
-    assert cli.main(["interpret", "--burn-in", "1.5", "--out", "/tmp/never"]) == 2
-    assert "burn_in" in capsys.readouterr().err
-    assert cli.main(["interpret", "--fig9-arms", "10", "--fig9-ks", "20", "--out", "/tmp/never"]) == 2
-    assert "fig9_arms" in capsys.readouterr().err
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--particles", "-5"], "--particles must be >= 1"),
+        (["--epochs", "0"], "--epochs must be >= 1"),
+        (["--fig9-epochs", "0"], "--fig9-epochs must be >= 1"),
+        (["--fig9-arms", "1"], "--fig9-arms must be >= 2"),
+        (["--fig9-ks", "0"], "--fig9-ks must be >= 1"),
+        (["--fig9-arms", "10", "--fig9-ks", "20"], "--fig9-ks must be at most --fig9-arms - 1 = 9"),
+        (["--methods", "M+X"], "--methods: unknown value 'M+X'"),
+        (["--parts", "fig10"], "--parts: unknown value 'fig10'"),
+        (["--labels", "colour"], "--labels: the simulated operators have no ['colour']"),
+        (["--burn-in", "1.5"], "--burn-in must be < 1.0"),
+        (["--horizons", "0"], "--horizons must be > 0.0"),
+        (["--dropout", "1"], "--dropout must be < 1.0"),
+        (["--flip-prob", "1.5"], "--flip-prob must be <= 1.0"),
+        (["--known-fraction", "0.6", "--unknown-fraction", "0.5"], "--known-fraction + --unknown-fraction"),
+        (["--operators", "1"], "--operators must be >= 2"),
+        (["--k", "0"], "--k must be >= 1"),
+        (["--steps", "0"], "--steps must be >= 1"),
+        (["--chunk", "0"], "--chunk must be >= 1"),
+        (["--noise-scale", "0"], "--noise-scale must be > 0.0"),
+        (["--reptile-lr", "-1"], "--reptile-lr must be > 0.0"),
+        (["--threads", "-1"], "--threads must be >= 0"),
+    ],
+)
+def test_bad_options_are_refused_before_any_training(tmp_path, capsys, option, message) -> None:
+    """Validation runs before any work: nothing is trained, not even the output directory made."""
+    out = tmp_path / "run"
+    assert cli.main(["interpret", "--out", str(out), *TINY, *option]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_empty_lists_are_refused() -> None:
+    """The command line cannot give an empty list (nargs="+"), but a config built in Python can."""
+    for name in interpret.InterpretConfig.NON_EMPTY:
+        with pytest.raises(ValueError, match=f"--{name.replace('_', '-')} needs at least one value"):
+            interpret.run(interpret.InterpretConfig(out="/tmp/never", **{name: ()}), progress=False)
+
+
+def test_overwriting_the_dataset_file_retrains_and_recomputes(tmp_path, capsys, monkeypatch) -> None:
+    """Checkpoints and cached results follow the dataset's content, not its path.
+
+    (The command once kept the model in ``bc.ckpt``, which refused to resume on the new data.)
+    """
+    path, out = tmp_path / "flights.npz", tmp_path / "run"
+    save_dataset(simulate_operators(num_operators=4, trajectories_per_operator=3, seed=0), path)
+    argv = ["interpret", "--out", str(out), "--dataset", str(path), "--parts", "lookahead", *TINY, "--methods", "M+N"]
+    real, calls = interpret_lookahead.evaluate_lookahead, {"n": 0}
+
+    def counted(*args, **kwargs):
+        calls["n"] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(interpret_lookahead, "evaluate_lookahead", counted)
+    assert cli.main(argv) == 0
+    before = json.loads((out / "results.json").read_text())["lookahead"]
+    assert calls["n"] == 2  # M+N on the known and the unknown operators
+    assert cli.main(argv) == 0 and calls["n"] == 2  # the same file: everything from the cache
+    save_dataset(simulate_operators(num_operators=4, trajectories_per_operator=3, seed=1), path)
+    assert cli.main(argv) == 0
+    capsys.readouterr()
+    assert calls["n"] == 4  # the new content: evaluated afresh
+    assert len(list(out.glob("bc-*.ckpt"))) == 2  # and trained afresh, beside the first model
+    assert json.loads((out / "results.json").read_text())["lookahead"] != before
+
+
+def test_neighbour_hits_average_to_the_top_k_accuracy() -> None:
+    generator = torch.Generator().manual_seed(0)
+    masks, lengths = torch.rand(30, 16, generator=generator).round(), torch.rand(30, 2, generator=generator)
+    hits = interpret_links.neighbour_hits(masks, lengths, (1, 3, 10))
+    assert hits.shape == (30, 3) and set(hits.unique().tolist()) <= {0.0, 1.0}
+    assert torch.allclose(hits.mean(0).float(), top_k_neighbour_accuracy(masks, lengths, [1, 3, 10]))
+
+
+def test_simulated_labels_are_those_the_simulation_writes() -> None:
+    assert set(interpret.SIMULATED_LABELS) == set(
+        simulate_operators(num_operators=2, trajectories_per_operator=1).labels
+    )
 
 
 def test_help_and_full_preset(capsys) -> None:
@@ -177,3 +276,4 @@ def test_help_and_full_preset(capsys) -> None:
     config = cli.make_config("interpret", {"full": True, "particles": 7})
     assert config.particles == 7 and config.hidden == interpret.FULL["hidden"] and config.epochs == 400
     assert cli.make_config("interpret", {}).hidden == interpret.InterpretConfig().hidden
+    assert interpret.InterpretConfig().threads == 1 and interpret.FULL["threads"] == 0
