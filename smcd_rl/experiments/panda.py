@@ -45,8 +45,9 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -171,9 +172,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
                 per_seed.append({**outcome, "tools": tools})
             return {key: torch.stack([r[key].cpu() for r in per_seed]) for key in per_seed[0]}  # [seeds, tasks]
 
-        units: dict[str, Callable[[], tuple[str, int]]] = {
-            name: (lambda unit=unit: unit) for name, unit in runs.items()
-        }
+        units = {name: functools.partial(_unit, *unit) for name, unit in runs.items()}
         done = ex.evaluate(units, evaluate, content={"model": model_digest(model)})
 
         # --- results: success over all arms per (n, method), CIs, paired verdicts -------------------
@@ -213,6 +212,10 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             plot_name="panda.png",
         )
     return ex.result
+
+
+def _unit(label: str, n: int) -> tuple[str, int]:
+    return label, n
 
 
 def _intervals(label: str, config: PandaConfig) -> list[int]:
