@@ -292,11 +292,11 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                 bases["R"] = reptile
             errors = ex.evaluate(
                 {
-                    name: partial(lookahead.make_method, name, bases, train, config, ex.device)
+                    name: partial(lookahead.method_builder, name, bases, train, config, ex.device)
                     for name in config.methods
                 },
-                lambda name, method: {
-                    s: lookahead.evaluate_lookahead(method, test, config, ex.device, f"{name} {s}", progress)
+                lambda name, build: {
+                    s: lookahead.evaluate_lookahead(build(), test, config, ex.device, f"{name} {s}", progress)
                     for s, test in tests.items()
                 },
                 content={**{key: model_digest(m) for key, m in bases.items()}, "dataset": dataset},

@@ -10,6 +10,8 @@ left out of that burn-in's cells. Methods: M (multi-task) or R (Reptile, operato
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,7 +29,7 @@ from smcd_rl.experiments.interpret_masks import padded, smcd_filter
 if TYPE_CHECKING:
     from smcd_rl.experiments.interpret import InterpretConfig
 
-__all__ = ["reptile_tasks", "make_method", "evaluate_lookahead", "cell_scores", "table", "plot"]
+__all__ = ["reptile_tasks", "make_method", "method_builder", "evaluate_lookahead", "cell_scores", "table", "plot"]
 
 
 def reptile_tasks(train: TrajectoryDataset, config: InterpretConfig, device: torch.device) -> TensorDict:
@@ -68,6 +70,18 @@ def make_method(
             device=device,
         )
     return base.with_adaptation(adaptation)
+
+
+def method_builder(
+    name: str,
+    bases: dict[str, smcd_rl.AdaptiveModel],
+    train: TrajectoryDataset,
+    config: InterpretConfig,
+    device: torch.device,
+) -> Callable[[], smcd_rl.AdaptiveModel]:
+    """A builder of method ``name``, called once per test set: each set starts from a freshly seeded filter,
+    so neither set's results depend on whether the other ran first."""
+    return partial(make_method, name, bases, train, config, device)
 
 
 def _burn_in_steps(test: TrajectoryDataset, config: InterpretConfig) -> torch.Tensor:
