@@ -17,6 +17,8 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from smcd_rl.files import load_file, save_file
+
 __all__ = [
     "option",
     "config_dict",
@@ -160,7 +162,7 @@ class ResultCache:
         self.fingerprint = settings_fingerprint(settings)
         self._entries: dict[str, Any] = {}
         if self.path.is_file():
-            saved = torch.load(self.path, map_location="cpu", weights_only=False)
+            saved = load_file(self.path, what="result cache", fix="delete it and rerun: its pieces are computed again")
             if isinstance(saved, dict) and saved.get("fingerprint") == self.fingerprint:
                 self._entries = saved["entries"]
 
@@ -169,18 +171,16 @@ class ResultCache:
 
     def put(self, key: str, value: Any) -> None:
         self._entries[key] = value
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_suffix(self.path.suffix + ".tmp")
-        torch.save({"fingerprint": self.fingerprint, "entries": self._entries}, tmp)
-        os.replace(tmp, self.path)
+        save_file({"fingerprint": self.fingerprint, "entries": self._entries}, self.path, what="result cache")
 
 
 def write_csv(path: str | os.PathLike[str], rows: Sequence[Mapping[str, Any]]) -> None:
-    """Write dict rows to a CSV file (columns from the first row)."""
+    """Write dict rows to a CSV file; its columns are every row's keys in order of appearance, blank where a row has none."""
     if not rows:
         raise ValueError(f"no rows to write to {path}")
+    columns = list(dict.fromkeys(key for row in rows for key in row))
     with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(handle, fieldnames=columns, restval="")
         writer.writeheader()
         writer.writerows(rows)
 
