@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+import smcd_rl
 from smcd_rl.experiments.common import (
     ResultCache,
     config_dict,
@@ -303,7 +304,8 @@ class Experiment:
         Returns:
             method name -> its results, each with ``"seconds"`` (wall time of its evaluation).
         """
-        key = {"settings": self.config.settings(), "content": content}
+        # The package version stands for the code: an upgrade recomputes rather than reuse old numbers.
+        key = {"version": smcd_rl.__version__, "settings": self.config.settings(), "content": content}
         store = ResultCache(self.out / cache, {"digest": content_digest(key)})
         results: dict[str, dict[str, Any]] = {}
         for name, factory in methods.items():
