@@ -1,4 +1,4 @@
-"""``smcd-rl telescoping`` end to end at a tiny scale: files, table, resume, bad options."""
+"""``smcd-rl telescoping`` end to end at a tiny scale: files, tables, resume, a cache keyed by content, refused options."""
 
 import csv
 import json
@@ -6,8 +6,11 @@ import json
 import pytest
 import torch
 
+import smcd_rl
 from smcd_rl import cli
+from smcd_rl.envs.two_link_arm import motor_babbling
 from smcd_rl.experiments import telescoping
+from smcd_rl.experiments.telescoping_tracking import sample_episodes, track
 
 TINY = [
     "--tasks",
@@ -36,25 +39,34 @@ TINY = [
 ]
 
 
-def last_table(printed: str) -> list[str]:
+def first_table(printed: str) -> list[str]:
+    """The first Markdown table printed: the errors (the verdict table follows it)."""
     lines = printed.splitlines()
-    end = max(i for i, line in enumerate(lines) if line.startswith("|"))
-    start = end
-    while start > 0 and lines[start - 1].startswith("|"):
-        start -= 1
-    return lines[start : end + 1]
+    start = next(i for i, line in enumerate(lines) if line.startswith("|"))
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    return lines[start:end]
 
 
 def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, capsys) -> None:
     whole = tmp_path / "whole"
     assert cli.main(["telescoping", "--out", str(whole), *TINY]) == 0
-    uninterrupted = last_table(capsys.readouterr().out)
+    printed = capsys.readouterr().out
+    uninterrupted = first_table(printed)
     assert [line.split("|")[1].strip() for line in uninterrupted[2:]] == list(telescoping.METHODS)
-    for name in ("results.csv", "curves.csv", "results.json", "tracking.png", "model.pt", "reptile.pt"):
+    assert "| episode | M+S    | M+N     |" in printed  # the headline verdicts: M+S against M+N and M+G
+    for name in ("results.csv", "trials.csv", "comparisons.csv", "curves.csv", "results.json", "tracking.png"):
         assert (whole / name).is_file(), name
+    for name in ("report.md", "model.pt", "reptile.pt"):
+        assert (whole / name).is_file(), name
+    assert len(list(whole.glob("train-*.ckpt"))) == len(list(whole.glob("reptile-*.ckpt"))) == 1
     rows = list(csv.DictReader(open(whole / "results.csv")))
-    assert {r["method"] for r in rows} == set(telescoping.METHODS)
-    assert all(float(r["episode_mean"]) > 0 and float(r["error_k12"]) >= 0 for r in rows)
+    assert [r["method"] for r in rows] == list(telescoping.METHODS)
+    for r in rows:
+        assert 0 <= float(r["episode_low"]) <= float(r["episode_mean"]) <= float(r["episode_high"])
+        assert float(r["error_k12_low"]) <= float(r["error_k12"]) <= float(r["error_k12_high"]) and r["trials"] == "6"
+    assert len(list(csv.DictReader(open(whole / "trials.csv")))) == len(telescoping.METHODS) * 6
+    pairs = {(c["k"], c["method"], c["against"]) for c in csv.DictReader(open(whole / "comparisons.csv"))}
+    assert {("episode", "M+S", "M+N"), ("episode", "M+S", "M+G"), ("5", "R+S", "R+N"), ("12", "M+S", "true")} <= pairs
     curves = list(csv.DictReader(open(whole / "curves.csv")))
     assert len(curves) == len(telescoping.METHODS) * 13  # k = 0..12
     payload = json.loads((whole / "results.json").read_text())
@@ -65,12 +77,44 @@ def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, 
     # An interrupted run (two methods finished, the rest never started) resumed to the end.
     split = tmp_path / "split"
     assert cli.main(["telescoping", "--out", str(split), *TINY, "--methods", "R+S", "O+P"]) == 0
-    first = json.loads((split / "results.json").read_text())["method_seconds"]
+    first = json.loads((split / "results.json").read_text())["seconds"]
     capsys.readouterr()
     assert cli.main(["telescoping", "--out", str(split), *TINY]) == 0
-    assert last_table(capsys.readouterr().out) == uninterrupted
-    resumed = json.loads((split / "results.json").read_text())["method_seconds"]
-    assert resumed["R+S"] == first["R+S"] and resumed["O+P"] == first["O+P"]  # taken from the cache
+    assert first_table(capsys.readouterr().out) == uninterrupted
+    resumed = json.loads((split / "results.json").read_text())["seconds"]
+    for name in ("evaluate R+S", "evaluate O+P"):
+        assert resumed[name] == first[name]  # taken from the cache
+
+
+def _save_model(path, seed: int) -> None:
+    """A small two-link model q -> ee, trained one epoch from initial weights of ``seed``."""
+    data = motor_babbling(10, 5, 5, generator=torch.Generator().manual_seed(0))
+    torch.manual_seed(seed)
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(32,)), in_keys=["q"], out_key="ee")
+    smcd_rl.fit(model, data, epochs=1, batch_size=32, lr=1e-3, progress=False)
+    model.save(path)
+
+
+def test_a_rerun_with_an_overwritten_model_file_recomputes_its_methods(tmp_path, capsys) -> None:
+    """The M methods are cached by the loaded model's digest, not by the --model path: after the
+    file is overwritten with another model, the rerun tracks again with the new one (it used to
+    print the old model's table); the true kinematics do not depend on it and are reused."""
+    path, out = tmp_path / "model.pt", tmp_path / "run"
+    command = ["telescoping", "--out", str(out), *TINY, "--model", str(path), "--methods", "true", "M+N"]
+    _save_model(path, seed=1)
+    assert cli.main(command) == 0
+    before = first_table(capsys.readouterr().out)
+    seconds = json.loads((out / "results.json").read_text())["seconds"]
+    assert not list(out.glob("train-*.ckpt"))  # M was loaded, not trained
+    _save_model(path, seed=2)
+    assert cli.main(command) == 0
+    after = first_table(capsys.readouterr().out)
+    rerun = json.loads((out / "results.json").read_text())["seconds"]
+    assert after[2] == before[2] and rerun["evaluate true"] == seconds["evaluate true"]
+    assert after[3] != before[3] and rerun["evaluate M+N"] != seconds["evaluate M+N"]
+    _save_model(path, seed=1)  # the first model again: the same table as its first run
+    assert cli.main(command) == 0
+    assert first_table(capsys.readouterr().out) == before
 
 
 def test_track_with_true_kinematics_is_better_than_doing_nothing() -> None:
@@ -80,8 +124,8 @@ def test_track_with_true_kinematics_is_better_than_doing_nothing() -> None:
     0.25 m by k = 30 (measured ~0.12 m, the PD law's lag behind the moving target and link).
     """
     config = telescoping.TelescopingConfig(trials=40, horizon=30)
-    episodes, noise = telescoping._trials(config, torch.device("cpu"))
-    errors = telescoping._track("true", None, episodes, noise, config, progress=False)
+    episodes, noise = sample_episodes(config, torch.device("cpu"))
+    errors = track("true", None, episodes, noise, config, progress=False)
     assert errors.shape == (40, 31)
     assert float(errors[:, 0].mean()) > 1.0 and float(errors[:, -1].mean()) < 0.25
 
@@ -96,15 +140,36 @@ def test_help_and_bad_options(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["telescoping", "--help"])
     assert exit_info.value.code == 0 and "--feedback" in capsys.readouterr().out
-    never = str(tmp_path / "never")
-    assert cli.main(["telescoping", "--methods", "X+Y", "--out", never]) == 2
-    assert "unknown method" in capsys.readouterr().err
-    assert cli.main(["telescoping", "--feedback", "guessed", "--out", never]) == 2
-    assert "feedback" in capsys.readouterr().err
-    assert cli.main(["telescoping", "--report-steps", "500", "--out", never]) == 2
-    assert "report_steps" in capsys.readouterr().err
-    assert cli.main(["telescoping", "--model", str(tmp_path / "missing.pt"), "--out", never]) == 2
-    assert "no such file" in capsys.readouterr().err
+    assert cli.make_config("telescoping", {}).threads == 1
     (tmp_path / "notes.pt").write_text("not a model")
-    assert cli.main(["telescoping", "--model", str(tmp_path / "notes.pt"), "--out", never]) == 2
-    assert "not a saved smcd_rl model" in capsys.readouterr().err
+    out = tmp_path / "run"
+    assert cli.main(["telescoping", "--model", str(tmp_path / "notes.pt"), "--out", str(out), *TINY]) == 2
+    error = capsys.readouterr().err
+    assert str(tmp_path / "notes.pt") in error and "smcd_rl model checkpoint" in error
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--methods", "X+Y"], "--methods: unknown value 'X+Y'"),
+        (["--feedback", "guessed"], "--feedback: unknown value 'guessed'"),
+        (["--report-steps", "500"], "--report-steps [500] lie beyond --horizon 12"),
+        (["--report-steps", "-1"], "--report-steps must be >= 0"),
+        (["--particles", "-5"], "--particles must be >= 1"),
+        (["--oracle-particles", "0"], "--oracle-particles must be >= 1"),
+        (["--epochs", "0"], "--epochs must be >= 1"),
+        (["--reptile-epochs", "0"], "--reptile-epochs must be >= 1"),
+        (["--trials", "1"], "--trials must be >= 2"),
+        (["--dt", "0"], "--dt must be > 0"),
+        (["--damping", "-1"], "--damping must be >= 0"),
+        (["--dropout", "1"], "--dropout must be < 1"),
+        (["--flip-prob", "1.5"], "--flip-prob must be <= 1"),
+        (["--model", "missing.pt"], "--model missing.pt: no such file"),
+    ],
+)
+def test_bad_options_are_refused_before_any_training(tmp_path, capsys, option, message) -> None:
+    """Validation runs before any work: no data, no training, not even the output directory."""
+    out = tmp_path / "run"
+    assert cli.main(["telescoping", "--out", str(out), *TINY, *option]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
