@@ -50,7 +50,6 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,8 +73,6 @@ ADAPTATIONS: dict[str, str] = {"none": "none", "gd": "GD", "smcd": "SMCD"}
 CONDITIONS: tuple[str, ...] = ("healthy", "crippled")
 #: Every (planner, adaptation, condition) cell of Fig. 15.
 CELLS: tuple[tuple[str, str, str], ...] = tuple(itertools.product(PLANNERS, ADAPTATIONS, CONDITIONS))
-#: Settings that choose which cells run, not what any cell computes: a subset rerun reuses cells.
-SELECTION = ("planners", "adaptations", "conditions")
 #: Settings that determine the collected transitions.
 DATA_SETTINGS = ("seed", "task", "data_policy", "sac_steps", "transitions", "data_episode_steps")
 
@@ -132,6 +129,7 @@ class AntConfig(ExperimentConfig):
     full: bool = setting(False, "the paper's scale: 3 x 1024 model, 10^6 transitions, 110 episodes of 1000 steps")
 
     NON_EMPTY = ("planners", "adaptations", "conditions", "crippled_legs")
+    SELECTION = ("planners", "adaptations", "conditions")  # which cells run: a subset rerun reuses cells
 
     def validate(self) -> None:
         """The declared bounds, then what they cannot express: upper bounds and bounds across options."""
@@ -149,10 +147,6 @@ class AntConfig(ExperimentConfig):
                 f"--flip-prob {self.flip_prob} is too large at dropout {self.dropout}: "
                 f"use at most {1 / (2 * max(keep, 1 - keep)):.3g}"
             )
-
-    def settings(self, *, exclude: Sequence[str] = ()) -> dict[str, Any]:
-        """The settings that determine each cell's results: which cells run (:data:`SELECTION`) left out."""
-        return super().settings(exclude=(*SELECTION, *exclude))
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -281,8 +275,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
                     "smcd_noise_std": noise_std.tolist(),
                 },
             },
-            plot=lambda path: _plot(rows, config, path),
-            plot_name="ant.png",
+            plots={"ant.png": lambda path: _plot(rows, config, path)},
         )
     return ex.result
 

@@ -8,7 +8,7 @@ field help is the command's ``--help``) and a ``run(config)`` that reads top to 
         losses = ex.train("train", smcd_rl.fit, model, data, epochs=config.epochs, ...)  # or resume
         scores = ex.evaluate(methods, evaluate_one, content={"model": model_digest(model)})
         table = score_table(scores, baseline="M+N", ...)  # means, 95 % CIs, paired verdicts
-        ex.write(rows=..., trials=..., payload=..., plot=plot_fn, report=...)
+        ex.write(experiment=..., tables=..., rows=..., trials=..., comparisons=..., plots={"fig.png": draw})
 
 Training checkpoints are named by everything that determines the trained model (its architecture
 and initial weights, the trainer and all its settings, a digest of the data), and the per-method
@@ -123,6 +123,10 @@ class ExperimentConfig:
 
     #: Fields whose values must be non-empty when given as tuples (e.g. methods, horizons).
     NON_EMPTY: ClassVar[tuple[str, ...]] = ()
+    #: Fields the method cache leaves out: those that choose which methods or cells run (not what
+    #: any of them computes), so a rerun with more methods reuses the finished ones, and paths of
+    #: inputs whose content the cache is keyed by instead.
+    SELECTION: ClassVar[tuple[str, ...]] = ()
 
     def validate(self) -> None:
         """Check every field against its declared type and bounds; raise ValueError naming the option."""
@@ -237,6 +241,8 @@ class Experiment:
         self.device = torch.device("cpu")
         self.generator = torch.Generator()
         self.timings: dict[str, float] = {}
+        self.written: list[str] = []  # the files :meth:`write` wrote
+        self.result: dict[str, Any] = {}  # what :meth:`write` returned
         self._stack = ExitStack()
         self._started = 0.0
 
@@ -289,31 +295,38 @@ class Experiment:
         methods: Mapping[str, Callable[[], T]],
         evaluate: Callable[[str, T], Mapping[str, Any]],
         *,
-        content: Mapping[str, Any],
+        content: Mapping[str, Any] | Callable[[str], Mapping[str, Any]],
         cache: str = "partial.pt",
     ) -> dict[str, dict[str, Any]]:
         """Run ``evaluate(name, methods[name]())`` for every method, skipping those a rerun already has.
 
+        Each method's results are cached under a key of everything that determines them: the
+        package version, the config's settings (less :attr:`ExperimentConfig.SELECTION`) and
+        ``content``. Nothing is keyed by a file name, so a changed model file or dataset is
+        evaluated afresh.
+
         Args:
             methods: method name -> a factory of what ``evaluate`` runs (built only when needed).
             evaluate: runs one method over all trials and returns its results (tensors, numbers).
-            content: what determines the results besides the config's settings, e.g. the digests
-                of the trained models; the cache is keyed by it and by :meth:`ExperimentConfig.settings`.
+            content: what determines the results besides the settings, e.g. the digests of the
+                trained models; a function of the method's name where methods use different models.
             cache: the cache file's name in ``out``.
 
         Returns:
             method name -> its results, each with ``"seconds"`` (wall time of its evaluation).
         """
-        # The package version stands for the code: an upgrade recomputes rather than reuse old numbers.
-        key = {"version": smcd_rl.__version__, "settings": self.config.settings(), "content": content}
-        store = ResultCache(self.out / cache, {"digest": content_digest(key)})
+        settings = self.config.settings(exclude=self.config.SELECTION)
+        store = ResultCache(self.out / cache, {"cache": "methods"})
         results: dict[str, dict[str, Any]] = {}
         for name, factory in methods.items():
-            done = store.get(name)
+            # The package version stands for the code: an upgrade recomputes rather than reuse old numbers.
+            key = {"version": smcd_rl.__version__, "settings": settings, "content": _content(content, name)}
+            entry = f"{name}|{content_digest(key)[:16]}"
+            done = store.get(entry)
             if done is None:
                 started = time.perf_counter()
                 done = {**evaluate(name, factory()), "seconds": time.perf_counter() - started}
-                store.put(name, done)
+                store.put(entry, done)
             results[name] = done
             self.timings[f"evaluate {name}"] = done["seconds"]
         return results
@@ -331,17 +344,30 @@ class Experiment:
         payload: Mapping[str, Any],
         trials: Sequence[Mapping[str, Any]] = (),
         comparisons: Sequence[Mapping[str, Any]] = (),
-        plot: Callable[[Path], None] | None = None,
+        plots: Mapping[str, Callable[[Path], None]] | None = None,
+        files: Sequence[str] = (),
+        plot: Callable[[Path], None] | None = None,  # TODO(lead): drop once every caller passes plots
         plot_name: str = "results.png",
     ) -> dict[str, Any]:
-        """Write the results, the plot and ``report.md``, print the tables, and return the JSON payload.
+        """Write the results, the plots and ``report.md``, print the tables, and return the JSON payload.
 
         Writes ``results.csv`` (``rows``), ``trials.csv`` (one row per trial), ``comparisons.csv``
         (the paired comparisons), ``results.json`` (the experiment's name, config, machine, wall
-        times, ``payload``'s entries, rows and comparisons), the plot, and ``report.md``: the
-        ``tables`` (caption -> Markdown table), the plot, the settings with their fingerprint,
+        times, ``payload``'s entries, rows and comparisons), each plot, and ``report.md``: the
+        ``tables`` (caption -> Markdown table), the plots, the settings with their fingerprint,
         the machine and the wall time. The result is also kept as :attr:`result`.
+
+        Args:
+            experiment: the experiment's title.
+            tables: caption -> Markdown table, printed and in the report in this order.
+            rows: the table's rows, one per cell and method.
+            payload: further ``results.json`` entries (training losses, ...).
+            trials: one row per trial, cell and method.
+            comparisons: the paired comparison rows.
+            plots: file name -> a function drawing that figure at the given path.
+            files: other files the command wrote in ``out``, listed with these.
         """
+        plots = dict(plots or {}) | ({plot_name: plot} if plot is not None else {})
         written = ["results.csv"]
         write_csv(self.out / "results.csv", rows)
         if trials:
@@ -361,19 +387,23 @@ class Experiment:
         }
         write_json(self.out / "results.json", result)
         written.append("results.json")
-        if plot is not None:
-            plot(self.out / plot_name)
-            written.append(plot_name)
-        write_report(self.out / "report.md", result, tables, plot_name if plot is not None else None)
-        written.append("report.md")
+        for name, draw in plots.items():
+            draw(self.out / name)
+        written += [*plots, *files, "report.md"]
+        write_report(self.out / "report.md", result, tables, list(plots))
         for caption, text in tables.items():
             print(f"{caption}\n\n{text}\n")
         print(f"wrote {self.out}/: {', '.join(written)}")
+        self.written = written
         self.result = result
         return result
 
 
-def write_report(path: Path, result: Mapping[str, Any], tables: Mapping[str, str], plot: str | None) -> None:
+def _content(content: Mapping[str, Any] | Callable[[str], Mapping[str, Any]], name: str) -> Mapping[str, Any]:
+    return content(name) if callable(content) else content
+
+
+def write_report(path: Path, result: Mapping[str, Any], tables: Mapping[str, str], plots: Sequence[str]) -> None:
     """``report.md``: an experiment's tables, plot, settings (with their fingerprint), machine and wall time.
 
     The fingerprint is that of the settings that determine the numbers, so a reader (or a test)
@@ -385,8 +415,8 @@ def write_report(path: Path, result: Mapping[str, Any], tables: Mapping[str, str
     lines = [f"# {result['experiment']}", ""]
     for caption, text in tables.items():
         lines += [f"**{caption}**", "", text, ""]
-    if plot is not None:
-        lines += [f"![{result['experiment']}]({plot})", ""]
+    for plot in plots:
+        lines += [f"![{plot}]({plot})", ""]
     seconds = result["seconds"]["total"]
     lines += [
         f"Wall time {int(seconds // 60)} min {seconds % 60:.0f} s on {machine['processor']} "

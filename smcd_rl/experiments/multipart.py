@@ -4,8 +4,8 @@
 rows, trials and comparisons and draws one plot. A command with several parts (``smcd-rl
 interpret``: Fig. 9, Figs. 4/13, Fig. 14), each scored over trials of its own and with a metric
 of its own, adds each part here; :meth:`PartsReport.write` then writes one CSV per part beside
-the harness's files, which hold every part in long format with a ``figure`` column, and draws
-every part's plots, all of them shown in ``report.md``.
+the harness's files, which hold every part in long format with a ``figure`` column, and every
+part's plots.
 
 Example:
     >>> import tempfile, torch
@@ -34,7 +34,7 @@ from smcd_rl.experiments.common import write_csv
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.stats import cell_statistics
 
-__all__ = ["PartsReport", "long_format"]
+__all__ = ["PartsReport"]
 
 
 class PartsReport:
@@ -106,35 +106,13 @@ class PartsReport:
         """Each part's ``{part}.csv``, then :meth:`Experiment.write` with every part in long format and every plot."""
         for part, rows in self.rows.items():
             write_csv(ex.out / f"{part}.csv", rows)
-        names = list(self.plots)
-
-        def plot(path: Path) -> None:  # the harness draws one figure (the first); the others go beside it
-            for name in names:
-                self.plots[name](path.parent / name)
-
-        result = ex.write(
+        return ex.write(
             experiment=experiment,
             tables=self.tables,
-            rows=long_format([{"figure": part, **r} for part, rows in self.rows.items() for r in rows]),
-            trials=long_format(self._trials),
-            comparisons=long_format([{"figure": part, **c} for part, cs in self.comparisons.items() for c in cs]),
+            rows=[{"figure": part, **r} for part, rows in self.rows.items() for r in rows],
+            trials=self._trials,
+            comparisons=[{"figure": part, **c} for part, cs in self.comparisons.items() for c in cs],
             payload=self.payload,
-            plot=plot if names else None,
-            plot_name=names[0] if names else "results.png",
+            plots=self.plots,
+            files=[f"{part}.csv" for part in self.rows],
         )
-        if len(names) > 1:  # report.md shows the harness's one plot: show every part's beside it
-            report = ex.out / "report.md"
-            first = f"![{experiment}]({names[0]})"
-            report.write_text(report.read_text().replace(first, "\n\n".join(f"![{n}]({n})" for n in names), 1))
-        return result
-
-
-def long_format(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Rows with the union of their columns, blank where a row has none, as one CSV file needs.
-
-    Example:
-        >>> long_format([{"a": 1}, {"b": 2}])
-        [{'a': 1, 'b': ''}, {'a': '', 'b': 2}]
-    """
-    columns = list(dict.fromkeys(key for row in rows for key in row))
-    return [{c: row.get(c, "") for c in columns} for row in rows]

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -73,9 +72,6 @@ __all__ = ["PandaConfig", "FULL", "METHODS", "method_labels", "reach", "run", "t
 
 #: Method families of Fig. 3 that this command runs.
 METHODS = ("FK", "M+N", "M+G", "M+S")
-#: Settings that choose which (method, n) runs there are, not what any run computes (its name says
-#: the method, particle count and n): a rerun with more methods or intervals reuses the finished ones.
-SELECTION = ("methods", "particles", "intervals")
 
 
 @dataclass
@@ -112,10 +108,8 @@ class PandaConfig(ExperimentConfig):
     full: bool = setting(False, "the paper's scale: 3 x 1024 network, 100000 samples, 100 tasks x 5 seeds")
 
     NON_EMPTY = ("intervals", "methods", "particles")
-
-    def settings(self, *, exclude: Sequence[str] = ()) -> dict[str, Any]:
-        """The settings that determine each (method, n) run: which runs there are (:data:`SELECTION`) left out."""
-        return super().settings(exclude=(*SELECTION, *exclude))
+    # Which (method, n) runs there are; a run's name says its method, particle count and n.
+    SELECTION = ("methods", "particles", "intervals")
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -208,8 +202,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             trials=_trial_rows(results, config),
             comparisons=comparisons,
             payload={"train_loss": losses, "held_out_rmse_m": held_out_rmse},
-            plot=lambda path: _plot(rows, config, path),
-            plot_name="panda.png",
+            plots={"panda.png": lambda path: _plot(rows, config, path)},
         )
     return ex.result
 

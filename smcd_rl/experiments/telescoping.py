@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -50,10 +49,6 @@ METHODS = ("true", "O+P", "M+N", "M+G", "M+S", "R+N", "R+G", "R+S")
 
 #: The adaptive methods, each compared (paired over the same episodes) with M+N and with each other.
 ADAPTIVE = ("M+S", "M+G", "R+S", "R+G", "R+N", "O+P", "true")
-
-#: Settings a method's error curves do not depend on: which methods run, which steps the table
-#: shows, and the path of ``--model`` (the loaded model's digest keys the M methods instead).
-NOT_IN_RESULTS = ("methods", "report_steps", "model")
 
 
 @dataclass
@@ -117,6 +112,9 @@ class TelescopingConfig(ExperimentConfig):
     full: bool = setting(False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials")
 
     NON_EMPTY = ("report_steps", "methods")
+    # Which methods run, which steps the table shows, and the path of --model (the loaded model's
+    # digest keys the M methods instead).
+    SELECTION = ("methods", "report_steps", "model")
 
     def validate(self) -> None:
         """The declared bounds, then what they cannot say: report steps within the episode, an existing --model."""
@@ -130,10 +128,6 @@ class TelescopingConfig(ExperimentConfig):
             raise FileNotFoundError(
                 f"--model {self.model}: no such file; train one with `smcd-rl two-link` or drop --model"
             )
-
-    def settings(self, *, exclude: Sequence[str] = ()) -> dict[str, Any]:
-        """The settings that determine each method's errors (:data:`NOT_IN_RESULTS` left out)."""
-        return super().settings(exclude=(*NOT_IN_RESULTS, *exclude))
 
 
 #: What ``--full`` changes (options given explicitly still win). The Reptile epochs follow the
@@ -176,16 +170,12 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
 
         # --- every method on the same episodes, cached by the digest of the model it adapts ---------
         episodes, noise = sample_episodes(config, ex.device)
-        done: dict[str, dict[str, Any]] = {}
-        for family in ("", "M", "R"):  # "": the true kinematics and the oracle, which use no trained model
-            names = [name for name in config.methods if _family(name) == family]
-            if names:
-                done |= ex.evaluate(
-                    {name: functools.partial(make_method, name, models, config, ex.device) for name in names},
-                    lambda name, method: {"errors": track(name, method, episodes, noise, config, progress=progress)},
-                    content={family: model_digest(models[family])} if family else {},
-                    cache=f"partial-{family}.pt" if family else "partial.pt",
-                )
+        done = ex.evaluate(
+            {name: functools.partial(make_method, name, models, config, ex.device) for name in config.methods},
+            lambda name, method: {"errors": track(name, method, episodes, noise, config, progress=progress)},
+            # "": the true kinematics and the oracle, which use no trained model
+            content=lambda name: {_family(name): model_digest(models[_family(name)])} if _family(name) else {},
+        )
         errors = {name: done[name]["errors"] for name in config.methods}
 
         # --- results: per-episode error at each report step and over the episode, CIs, verdicts -----
@@ -217,8 +207,7 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
             trials=_trial_rows(scores),
             comparisons=comparisons,
             payload={"train_loss": losses, "curves": curves},
-            plot=lambda path: _plot(errors, config, path),
-            plot_name="tracking.png",
+            plots={"tracking.png": lambda path: _plot(errors, config, path)},
         )
     return ex.result
 

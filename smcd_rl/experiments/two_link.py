@@ -161,8 +161,7 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
             trials=trial_rows,
             comparisons=comparisons,
             payload={**losses, "test_link_lengths": lengths.tolist()},
-            plot=lambda path: _plot(rows, config, path),
-            plot_name="lookahead.png",
+            plots={"lookahead.png": lambda path: _plot(rows, config, path)},
         )
     return ex.result
 
