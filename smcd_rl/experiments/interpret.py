@@ -43,7 +43,6 @@ from smcd_rl.envs.drone_operators import save_dataset
 from smcd_rl.experiments import interpret_drone as drone
 from smcd_rl.experiments import interpret_links as links
 from smcd_rl.experiments import interpret_lookahead as lookahead
-from smcd_rl.experiments.bounds import bounded, check_upper_bounds
 from smcd_rl.experiments.harness import Experiment, ExperimentConfig, content_digest, model_digest, setting
 from smcd_rl.experiments.interpret_masks import shared_prior, smcd_filter
 from smcd_rl.experiments.multipart import PartsReport
@@ -87,20 +86,20 @@ class InterpretConfig(ExperimentConfig):
     )
     operators: int = setting(33, "simulated operators", low=2)
     trajectories_per_operator: int = setting(16, "landings per simulated operator", low=1)
-    known_fraction: float = bounded(
+    known_fraction: float = setting(
         0.10, "share of all trajectories held out from training operators", low=0.0, below=1.0
     )
-    unknown_fraction: float = bounded(0.07, "share of operators held out entirely", low=0.0, below=1.0)
+    unknown_fraction: float = setting(0.07, "share of operators held out entirely", low=0.0, below=1.0)
     # --- behaviour-cloning model u = f(x)
     hidden: int = setting(128, "width of each hidden layer", low=1)
     depth: int = setting(2, "number of hidden layers", low=1)
-    dropout: float = bounded(0.5, "dropout probability p used in training", above=0.0, below=1.0)
+    dropout: float = setting(0.5, "dropout probability p used in training", above=0.0, below=1.0)
     epochs: int = setting(20, "training epochs (multi-task)", low=1)
     batch_size: int = setting(256, "training batch size (multi-task)", low=1)
     lr: float = setting(1e-3, "Adam learning rate (multi-task)", above=0.0)
     # --- SMCD
     particles: int = setting(300, "SMCD mask particles", low=1)
-    flip_prob: float = bounded(0.002, "SMCD bit-flip probability per step", low=0.0, high=1.0)
+    flip_prob: float = setting(0.002, "SMCD bit-flip probability per step", low=0.0, high=1.0)
     noise_scale: float = setting(
         0.7, "SMCD likelihood noise, in units of the model's training RMSE per action dim", above=0.0
     )
@@ -119,10 +118,10 @@ class InterpretConfig(ExperimentConfig):
     phase_stride: int = setting(5, "steps between stored masks for per-step labels", low=1)
     # --- look-ahead (Fig. 14)
     methods: tuple[str, ...] = setting(METHODS, "look-ahead methods: M+N M+G M+S R+N R+G R+S", choices=METHODS)
-    burn_in: tuple[float, ...] = bounded(
+    burn_in: tuple[float, ...] = setting(
         (0.1, 0.25, 0.5), "burn-in as a fraction of the trajectory", above=0.0, below=1.0
     )
-    horizons: tuple[float, ...] = bounded(
+    horizons: tuple[float, ...] = setting(
         (0.1, 0.25, 0.5), "look-ahead horizon as a fraction of the trajectory", above=0.0, below=1.0
     )
     gd_lr: float = setting(0.01, "online gradient-descent learning rate (normalised units)", above=0.0)
@@ -142,7 +141,6 @@ class InterpretConfig(ExperimentConfig):
     def validate(self) -> None:
         """The declared bounds, then the checks across fields and of the dataset file."""
         super().validate()
-        check_upper_bounds(self)
         if self.known_fraction + self.unknown_fraction >= 1:
             raise ValueError(
                 f"--known-fraction + --unknown-fraction must be below 1, got {self.known_fraction + self.unknown_fraction}"
