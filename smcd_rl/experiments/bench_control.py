@@ -58,7 +58,6 @@ from smcd_rl.envs.panda_reach import (
     sample_tool_lengths,
 )
 from smcd_rl.experiments.benchmarking import BenchConfig, machine_line, publish, scale_to_unit_spread
-from smcd_rl.experiments.bounds import bounded, check_upper_bounds
 from smcd_rl.experiments.common import config_dict, format_table, interleaved_times, machine_info
 from smcd_rl.experiments.harness import Experiment, setting
 
@@ -80,10 +79,10 @@ class BenchControlConfig(BenchConfig):
     hidden: tuple[int, ...] = setting(
         (1024, 1024, 1024), "hidden widths of the random network (every layer masked)", low=1
     )
-    dropout: float = bounded(0.5, "dropout probability of the random network", low=0.0, below=1.0)
+    dropout: float = setting(0.5, "dropout probability of the random network", low=0.0, below=1.0)
     batch: int = setting(1, "arms controlled at once by each contender", low=1)
     particles: int = setting(1000, "SMCD particles", low=1)
-    flip_prob: float = bounded(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
+    flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
     noise_std: float = setting(0.05, "SMCD likelihood noise std (m)", above=0.0)
     gd_lr: float = setting(0.01, "online gradient-descent learning rate (normalised units)", above=0.0)
     gd_steps: int = setting(5, "gradient steps per observation", low=1)
@@ -96,7 +95,6 @@ class BenchControlConfig(BenchConfig):
 
     def validate(self) -> None:
         super().validate()
-        check_upper_bounds(self)
         if self.model and not Path(self.model).is_file():
             raise FileNotFoundError(
                 f"--model {self.model}: no such file; train one with `smcd-rl panda` or leave it empty"

@@ -53,7 +53,6 @@ from tqdm.auto import tqdm
 import smcd_rl
 from smcd_rl.experiments.bench_filter_report import GOAL_PARTICLES, GOALS, SCHEDULES, goals, report
 from smcd_rl.experiments.benchmarking import BenchConfig, publish, scale_to_unit_spread
-from smcd_rl.experiments.bounds import bounded, check_upper_bounds
 from smcd_rl.experiments.common import config_dict, machine_info, seed_everything
 from smcd_rl.experiments.harness import Experiment, setting
 from smcd_rl.particle_forward import ParticlePath
@@ -73,8 +72,8 @@ class BenchFilterConfig(BenchConfig):
     inputs: int = setting(4, "network input size", low=1)
     outputs: int = setting(2, "network output size", low=1)
     hidden: tuple[int, ...] = setting((1024, 1024), "hidden widths (every hidden layer carries mask bits)", low=1)
-    dropout: float = bounded(0.5, "dropout probability of the network (keep_prob = 1 - dropout)", low=0.0, below=1.0)
-    flip_prob: float = bounded(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
+    dropout: float = setting(0.5, "dropout probability of the network (keep_prob = 1 - dropout)", low=0.0, below=1.0)
+    flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
     noise_std: float = setting(
         0.05,
         "observation noise of the realistic regime, in the network's output units (std 1, as after "
@@ -89,10 +88,6 @@ class BenchFilterConfig(BenchConfig):
     full: bool = setting(False, "more worst-case repeats for steadier medians")
 
     NON_EMPTY = ("particles", "hidden", "memory_hidden")
-
-    def validate(self) -> None:
-        super().validate()
-        check_upper_bounds(self)
 
 
 #: What ``--full`` changes (options given explicitly still win).
