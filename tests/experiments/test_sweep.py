@@ -1,4 +1,4 @@
-"""``smcd-rl sweep``: grids, trials on a local Ray equal to in-process trials, resume, errors, Ray optional.
+"""``smcd-rl sweep``: grids, trials on a local Ray equal to in-process trials, resume, statistics, errors, Ray optional.
 
 Ray is a required test dependency (the ``test`` extra): a missing Ray fails the Ray tests, it does not skip them.
 """
@@ -31,8 +31,10 @@ def test_training_sweep_on_local_ray_equals_in_process_trials_and_resumes(tmp_pa
     assert cli.main(["sweep", "--out", str(out), "--grid", *grid, *TINY_TWO_LINK]) == 0
     printed = capsys.readouterr().out
     assert "| train_loss | hidden" in printed and "2 computed, 0 from the cache" in printed
-    for name in ("results.csv", "summary.csv", "results.json", "sweep.png"):
+    for name in ("results.csv", "summary.csv", "results.json", "sweep.png", "report.md"):
         assert (out / name).is_file(), name
+    # Training losses have no trials to resample: no per-trial scores, no comparisons.
+    assert not (out / "trials.csv").exists() and not (out / "comparisons.csv").exists()
     assert not ray.is_initialized(), "the sweep started Ray, so it must shut it down"
 
     # Determinism: each Ray trial equals the same trial function called here, bit for bit.
@@ -86,8 +88,9 @@ def test_smcd_sweep_on_a_running_ray_evaluates_each_filter_setting_and_resumes(t
         assert cli.main(["sweep", "--out", str(out), "--grid", *grid, "particles=10,20", *common]) == 0
         assert ray.is_initialized(), "a Ray the sweep did not start must be left running"
         printed = capsys.readouterr().out
-        assert "| mse_T3_H2 | particles" in printed
-        assert len(list((out / "models").glob("*.pt"))) == 1  # one training run shared by both filter settings
+        assert "| mse_T3_H2 | particles" in printed and "M+S against" in printed
+        assert len(list((out / "partial").glob("train-*.pt"))) == 1  # one training run shared by both filter settings
+        assert len(list((out / "partial").glob("reference-*.pt"))) == 2  # M+N and M+G on it, once
 
         # A third particle count: the saved model is reused (no retraining), the finished points are not redone.
         assert cli.main(["sweep", "--out", str(out), "--grid", *grid, "particles=10,20,30", *common]) == 0
@@ -103,6 +106,19 @@ def test_smcd_sweep_on_a_running_ray_evaluates_each_filter_setting_and_resumes(t
     for row, point in zip(rows, sweep.trial_configs(cli.make_config("sweep", given)), strict=True):
         assert int(row["particles"]) == point["particles"]
         assert {k: float(row[k]) for k in ("mse_T1_H2", "mse_T3_H2")} == sweep.trial(point)
+        for k in ("mse_T1_H2", "mse_T3_H2"):  # a 95% CI over the 8 arms around each grid point's mean
+            assert float(row[f"{k}_low"]) <= float(row[k]) <= float(row[f"{k}_high"])
+
+    # Every arm of every grid point and reference is a trial; SMCD is paired with both references.
+    trials = _rows(out / "trials.csv")
+    assert {r["method"] for r in trials} == {"M+S", "M+N", "M+G"} and len(trials) == (3 + 2) * 8
+    comparisons = _rows(out / "comparisons.csv")
+    pairs = {(r["method"], r["against"]) for r in comparisons}
+    assert pairs == {("M+S", "M+N"), ("M+S", "M+G"), ("M+G", "M+N")}
+    assert len(comparisons) == (3 * 2 + 1) * 2  # per grid point and (T, H); M+G vs M+N per model and (T, H)
+    assert all(r["verdict"] in ("better", "worse", "no significant difference") for r in comparisons)
+    report = (out / "report.md").read_text()
+    assert "M+S against" in report and "| M+N" in report
 
 
 def test_grids_factorial_and_one_at_a_time() -> None:
@@ -140,21 +156,59 @@ def test_summary_is_mean_std_min_over_the_other_parameters() -> None:
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--study", "ablation"], "unknown study 'ablation'; choose from training, smcd, drone"),
+        (["--study", "ablation"], "--study: unknown value 'ablation'; choose from ['training', 'smcd', 'drone']"),
         (["--grid", "latent=64"], "unknown parameter 'latent' for study 'training'; its parameters: hidden, dropout"),
         (["--grid", "particles=10"], "unknown parameter 'particles' for study 'training'"),
         (["--study", "smcd", "--grid", "lr=0.1"], "unknown parameter 'lr' for study 'smcd'"),
         (["--grid", "hidden"], "must read NAME=V1,V2"),
         (["--grid", "hidden=8", "hidden=16"], "given twice"),
         (["--grid", "hidden=8.5"], "values of hidden must be ints"),
-        (["--grid", "dropout=1.5"], "dropout = 1.5 is out of range: it must be in [0, 1)"),
-        (["--design", "random"], "unknown design 'random'"),
+        (["--grid", "dropout=1.5"], "--grid dropout=1.5: --dropout must be < 1.0, got 1.5"),
+        (["--grid", "lr=0.1,-0.1"], "--grid lr=-0.1: --lr must be > 0.0, got -0.1"),
+        (["--study", "smcd", "--grid", "particles=10,0"], "--grid particles=0: --particles must be >= 1, got 0"),
+        (["--design", "random"], "--design: unknown value 'random'"),
         (["--cpus", "2", "--cpus-per-trial", "3"], "exceeds the local Ray's 2 CPUs"),
+        (["--particles", "-5"], "--particles must be >= 1, got -5"),
+        (["--epochs", "0"], "--epochs must be >= 1, got 0"),
+        (["--flip-prob", "1.5"], "--flip-prob must be <= 1.0, got 1.5"),
+        (["--arms", "1"], "--arms must be >= 2, got 1"),
+        (["--burn-in", "1", "0"], "--burn-in must be >= 1, got 0"),
+        (["--cpus-per-trial", "0"], "--cpus-per-trial must be >= 1, got 0"),
+        (["--gpus-per-trial", "-1"], "--gpus-per-trial must be >= 0.0"),
+        (["--threads", "-2"], "--threads must be >= 0"),
+        (["--study", "drone", "--dataset", "missing.npz"], "--dataset missing.npz: no such file"),
     ],
 )
-def test_bad_options_name_the_problem(tmp_path, capsys, argv, message) -> None:
-    assert cli.main(["sweep", "--out", str(tmp_path / "never"), *argv]) == 2
+def test_bad_options_are_refused_before_any_work(tmp_path, capsys, argv, message) -> None:
+    """Validation names the problem before any data, Ray or training: not even the output directory is made."""
+    out = tmp_path / "never"
+    assert cli.main(["sweep", "--out", str(out), *argv]) == 2
     assert message in capsys.readouterr().err
+    assert not out.exists()
+    with pytest.raises(ValueError, match="--horizons needs at least one value"):
+        sweep.SweepConfig(study="smcd", horizons=()).validate()
+
+
+@pytest.mark.slow
+def test_overwriting_the_drone_dataset_makes_the_rerun_recompute(tmp_path, capsys) -> None:
+    """Stored results are keyed by the dataset's content, not its path: new data at the same path is retrained."""
+    from smcd_rl.envs import drone_operators
+
+    dataset = tmp_path / "landings.npz"
+    drone_operators.save_dataset(drone_operators.simulate_operators(4, 3, seed=1, max_steps=60), dataset)
+    out = tmp_path / "run"
+    argv = ["sweep", "--study", "drone", "--out", str(out), "--dataset", str(dataset), "--subset", "0", "--cpus", "2"]
+    grid = ["--grid", "hidden=8", "dropout=0.5", "lr=0.01", "batch_size=64", "epochs=1"]
+    assert cli.main([*argv, *grid]) == 0
+    assert "1 computed, 0 from the cache" in capsys.readouterr().out
+    first = float(_rows(out / "results.csv")[0]["train_loss"])
+    assert cli.main([*argv, *grid]) == 0  # same file: the stored result is reused
+    assert "0 computed, 1 from the cache" in capsys.readouterr().out
+
+    drone_operators.save_dataset(drone_operators.simulate_operators(4, 3, seed=2, max_steps=60), dataset)
+    assert cli.main([*argv, *grid]) == 0
+    assert "1 computed, 0 from the cache" in capsys.readouterr().out
+    assert float(_rows(out / "results.csv")[0]["train_loss"]) != first
 
 
 @pytest.mark.slow

@@ -1,0 +1,83 @@
+"""Finished pieces of a long experiment, one file each, named by the digest of what determines them.
+
+The harness's per-method cache holds a few entries in one file, rewritten whole on every new
+entry. An experiment of thousands of pieces (``smcd-rl sweep``: one per grid point, each with its
+per-trial scores) would rewrite that file thousands of times, so this store keeps each piece in a
+file of its own, ``{kind}-{digest}.pt``, the digest that of the piece's key (every setting and
+input digest its result depends on). A changed setting or input gives another file, so a rerun
+never reads a stale result, and a grown grid reuses every finished piece; a key that names an
+input file holds its :func:`file_digest`, so new data at the same path is never mistaken for the
+old. Files are written and read through :mod:`smcd_rl.files` (atomic writes; a damaged file is
+an error naming it and the fix).
+
+Example:
+    >>> import tempfile
+    >>> store = ResultStore(tempfile.mkdtemp(), what="demo result")
+    >>> store.get("point", {"lr": 0.1}) is None
+    True
+    >>> store.put("point", {"lr": 0.1}, {"loss": 0.5})
+    >>> store.get("point", {"lr": 0.1}), store.get("point", {"lr": 0.2})
+    ({'loss': 0.5}, None)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import smcd_rl
+from smcd_rl.experiments.harness import content_digest
+from smcd_rl.files import load_file, save_file
+
+__all__ = ["ResultStore", "file_digest"]
+
+_FORMAT = "smcd_rl.result_store/1"
+
+
+class ResultStore:
+    """A directory of finished results, each keyed by content (see the module docstring).
+
+    Args:
+        directory: where the files go (created on the first :meth:`put`).
+        what: what the results are, for error messages (``"sweep result"``).
+    """
+
+    def __init__(self, directory: str | os.PathLike[str], *, what: str = "result") -> None:
+        self.directory = Path(directory)
+        self.what = what
+
+    def path(self, kind: str, key: Mapping[str, Any]) -> Path:
+        """The file of the result of ``kind`` (e.g. ``"point"``) determined by ``key``."""
+        return self.directory / f"{kind}-{_digest(key)[:16]}.pt"
+
+    def get(self, kind: str, key: Mapping[str, Any]) -> dict[str, Any] | None:
+        """The stored result for ``key``, or ``None`` when there is none yet."""
+        path = self.path(kind, key)
+        if not path.is_file():
+            return None
+        entry = load_file(path, what=f"{self.what} file", expect_format=_FORMAT, expect_keys=["digest", "value"])
+        if entry["digest"] != _digest(key):  # another key with the same 16-digit prefix
+            return None
+        return dict(entry["value"])
+
+    def put(self, kind: str, key: Mapping[str, Any], value: Mapping[str, Any]) -> None:
+        """Store ``value`` (a dict of tensors, numbers, lists) as the result for ``key``, atomically."""
+        entry = {"format": _FORMAT, "digest": _digest(key), "key": dict(key), "value": dict(value)}
+        save_file(entry, self.path(kind, key), what=f"{self.what} file")
+
+
+def _digest(key: Mapping[str, Any]) -> str:
+    # The package version stands for the code, as in the harness's method cache: an upgrade recomputes.
+    return content_digest({"version": smcd_rl.__version__, "key": dict(key)})
+
+
+def file_digest(path: str | os.PathLike[str]) -> str:
+    """The SHA-256 of a file's bytes (read in 1 MiB blocks, so a large dataset is never held whole)."""
+    digest = hashlib.sha256()
+    with Path(path).open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
