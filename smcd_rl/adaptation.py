@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 from torch.func import functional_call, grad, vmap
 
+from smcd_rl.checks import check_count, check_real
 from smcd_rl.filter import SMCDFilter, Transition, check_transition
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.particle_forward import Lineage, ParticleForward, ParticlePath, check_path
@@ -64,8 +65,11 @@ class Adaptation(ABC):
         return {}
 
     def state_dict(self) -> dict[str, Any]:
-        """A copy of the adaptation state; :meth:`restore_rows` puts rows of it back."""
+        """A copy of the adaptation state; :meth:`load_state_dict` restores it, :meth:`restore_rows` rows of it."""
         return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:  # noqa: B027 - stateless default
+        """Restore a :meth:`state_dict` exactly (random generator included), as if nothing happened since."""
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:  # noqa: B027 - stateless default
         """Put back ``state``'s batch elements where ``rows [*B]`` is True, leave the others.
@@ -171,16 +175,14 @@ class SMCD(Adaptation):
     ) -> None:
         super().__init__()
         check_scheme(resampling)
-        if int(num_particles) < 1:
-            raise ValueError(f"num_particles must be >= 1, got {num_particles}")
-        noise = torch.as_tensor(noise_std, dtype=torch.float32)
-        if noise.dim() > 1 or not bool((noise > 0).all()) or not bool(torch.isfinite(noise).all()):
-            raise ValueError(f"noise_std must be a positive finite scalar or 1-d sequence, got {noise_std}")
-        self.num_particles = int(num_particles)
-        self.flip_prob = float(flip_prob)
+        self.num_particles = check_count(num_particles, "num_particles")
+        self.flip_prob = check_real(flip_prob, "flip_prob", low=0.0, high=1.0)
+        self.ess_threshold = check_real(ess_threshold, "ess_threshold", low=0.0, high=1.0)
+        noise = _checked_noise(noise_std)
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise TypeError(f"generator must be a torch.Generator or None, got {type(generator).__name__}")
         self.noise_std = noise_std
         self.resampling: ResamplingScheme = resampling
-        self.ess_threshold = float(ess_threshold)
         # Checked here too, so a bad name fails at construction and not at the first reset.
         self.forward_path = check_path(forward_path, "forward_path")
         self.transition = check_transition(transition)
@@ -283,6 +285,9 @@ class SMCD(Adaptation):
     def state_dict(self) -> dict[str, Any]:
         return self._filter.state_dict()
 
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._filter.load_state_dict(state)
+
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         self._filter.restore_rows(state, rows)
 
@@ -316,11 +321,9 @@ class GradientDescent(Adaptation):
 
     def __init__(self, lr: float = 1e-2, steps: int = 1, window: int = 10) -> None:
         super().__init__()
-        if lr <= 0 or int(steps) < 1 or int(window) < 1:
-            raise ValueError(f"need lr > 0, steps >= 1 and window >= 1, got lr={lr}, steps={steps}, window={window}")
-        self.lr = float(lr)
-        self.steps = int(steps)
-        self.window = int(window)
+        self.lr = check_real(lr, "lr", low=0.0, open_low=True)
+        self.steps = check_count(steps, "steps")
+        self.window = check_count(window, "window")
         self._params: dict[str, Tensor] = {}
         self._inputs: Tensor | None = None
         self._targets: Tensor | None = None
@@ -370,6 +373,11 @@ class GradientDescent(Adaptation):
             "count": self._count.clone(),
         }
 
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._params = {k: v.clone() for k, v in state["params"].items()}
+        self._inputs, self._targets = state["inputs"].clone(), state["targets"].clone()
+        self._count = state["count"].clone()
+
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
         rows = rows.to(self._count.device).reshape(-1)
@@ -386,6 +394,20 @@ class GradientDescent(Adaptation):
         flat = inputs.reshape(math.prod(self._batch_shape), -1, inputs.shape[-1])
         out = vmap(lambda p, x: functional_call(self.net, p, (x,)))(self._params, flat)
         return out.reshape(*inputs.shape[:-1], out.shape[-1])
+
+
+def _checked_noise(noise_std: Any) -> Tensor:
+    """``noise_std`` as a float tensor if it is a positive finite scalar or 1-d sequence, else a clear error."""
+    try:
+        noise = torch.as_tensor(noise_std)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(f"noise_std must be a positive number or a sequence of them, got {noise_std!r}") from err
+    if noise.dtype == torch.bool or noise.is_complex() or not (noise.is_floating_point() or noise.dtype.is_signed):
+        raise TypeError(f"noise_std must be a positive number or a sequence of them, got {noise_std!r}")
+    noise = noise.to(torch.float32)
+    if noise.dim() > 1 or noise.numel() == 0 or not bool((noise > 0).all()) or not bool(torch.isfinite(noise).all()):
+        raise ValueError(f"noise_std must be a positive finite scalar or 1-d sequence, got {noise_std}")
+    return noise
 
 
 #: Strategy classes by name, for configuration files and the CLI.

@@ -15,6 +15,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from smcd_rl.checks import check_count, check_real, check_shape
 from smcd_rl.resampling import ResamplingScheme, check_scheme, resample_indices
 
 __all__ = ["ParticleFilter", "SMCDFilter", "sample_flip_positions", "flat_particle_index", "Transition"]
@@ -59,12 +60,11 @@ class ParticleFilter:
         generator: torch.Generator | None = None,
         device: torch.device | str | None = None,
     ) -> None:
-        if int(num_particles) < 1:
-            raise ValueError(f"num_particles must be >= 1, got {num_particles}")
-        if not 0.0 <= ess_threshold <= 1.0:
-            raise ValueError(f"ess_threshold must be in [0, 1], got {ess_threshold}")
+        num_particles = check_count(num_particles, "num_particles")
+        self.ess_threshold = check_real(ess_threshold, "ess_threshold", low=0.0, high=1.0)
         self.resampling: ResamplingScheme = check_scheme(resampling)
-        self.ess_threshold = float(ess_threshold)
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise TypeError(f"generator must be a torch.Generator or None, got {type(generator).__name__}")
         if device is None:
             device = generator.device if generator is not None else "cpu"
         self.device = torch.device(device)
@@ -74,7 +74,7 @@ class ParticleFilter:
         elif generator.device.type != self.device.type:
             raise ValueError(f"generator is on {generator.device} but the filter is on {self.device}")
         self.generator = generator
-        self._num_particles = int(num_particles)
+        self._num_particles = num_particles
         self._particles: Tensor | None = None
         self._log_weights: Tensor | None = None
         #: Quantities computed from particles and weights (e.g. the MMSE mask), dropped when either changes.
@@ -131,11 +131,12 @@ class ParticleFilter:
     @property
     def ess(self) -> Tensor:
         """Effective sample size ``1 / sum w_i^2``, in ``[1, N]``, shape ``[*batch]``."""
-        return torch.exp(-torch.logsumexp(2.0 * self._state()[1], dim=-1))
+        # Clamped: float rounding of weights that sum to 1 can put the sum of squares a hair outside [1/N, 1].
+        return torch.exp(-torch.logsumexp(2.0 * self._state()[1], dim=-1)).clamp_(1.0, float(self._num_particles))
 
     def reset(self, batch_shape: Sequence[int] = ()) -> None:
         """Draw fresh particles from the prior, with uniform weights and zero log evidence."""
-        batch_shape = tuple(int(b) for b in batch_shape)
+        batch_shape = check_shape(batch_shape, "batch_shape")
         n = self._num_particles
         self.particles = self._initial(batch_shape, n)
         self.log_weights = torch.full((*batch_shape, n), -math.log(n), device=self.device)
@@ -153,8 +154,7 @@ class ParticleFilter:
             log_likelihood: ``[*batch, N]`` log p(z | particle). NaN or ``+inf`` entries, or a
                 batch element whose entries are all ``-inf``, raise ValueError and change nothing.
         """
-        log_likelihood = self._checked_log_likelihood(log_likelihood)
-        self._apply(log_likelihood)
+        self._commit(*self._reweighted(*self._checked_log_likelihood(log_likelihood)))
 
     def update(self, log_likelihood_fn: Callable[[Tensor], Tensor]) -> Tensor:
         """One filter step: propagate, score the proposed particles, reweight and resample.
@@ -172,12 +172,13 @@ class ParticleFilter:
         rng_state = self.generator.get_state()
         try:
             proposed = self._transition(particles)
-            log_likelihood = self._checked_log_likelihood(log_likelihood_fn(proposed))
+            log_likelihood, finite = self._checked_log_likelihood(log_likelihood_fn(proposed))
+            reweighted = self._reweighted(log_likelihood, finite)  # may still refuse: nothing changed before it
         except BaseException:
             self.generator.set_state(rng_state)
             raise
         self.particles = proposed
-        self._apply(log_likelihood)
+        self._commit(*reweighted)
         return log_likelihood
 
     def resize(self, num_particles: int) -> None:
@@ -185,12 +186,11 @@ class ParticleFilter:
 
         The weighted distribution is kept (in expectation); weights become uniform.
         """
-        if int(num_particles) < 1:
-            raise ValueError(f"num_particles must be >= 1, got {num_particles}")
+        num_particles = check_count(num_particles, "num_particles")
         particles, log_weights, _ = self._state()
-        idx = resample_indices(log_weights, self.resampling, num_samples=int(num_particles), generator=self.generator)
+        idx = resample_indices(log_weights, self.resampling, num_samples=num_particles, generator=self.generator)
         self.particles = _gather_particles(particles, idx)
-        self._num_particles = int(num_particles)
+        self._num_particles = num_particles
         self.log_weights = torch.full(idx.shape, -math.log(self._num_particles), device=self.device)
         self.ancestors = idx
 
@@ -201,16 +201,21 @@ class ParticleFilter:
             "particles": particles.clone(),
             "log_weights": log_weights.clone(),
             "log_evidence": log_evidence.clone(),
-            "last_ess": None if self.last_ess is None else self.last_ess.clone(),
+            "last_ess": _clone(self.last_ess),
+            # Which particles are copies decides how later updates and summaries are computed (and so
+            # their float rounding): a restored state must compute them exactly as the saved one would.
+            "ancestors": _clone(self.ancestors),
             "generator": self.generator.get_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict` exactly: later updates give the same bits as from the saved state."""
         self.particles = state["particles"].clone().to(self.device)
         self.log_weights = state["log_weights"].clone().to(self.device)
         self.log_evidence = state["log_evidence"].clone().to(self.device)
         self._num_particles = self.particles.shape[-2]
-        self.last_ess = None if state.get("last_ess") is None else state["last_ess"].clone().to(self.device)
+        self.last_ess = _clone(state.get("last_ess"), self.device)
+        self.ancestors = _clone(state.get("ancestors"), self.device)
         self.generator.set_state(state["generator"])
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
@@ -226,7 +231,7 @@ class ParticleFilter:
         """
         particles, log_weights, log_evidence = self._state()
         ancestors = self.ancestors
-        rows = rows.to(self.device).reshape(log_evidence.shape)
+        rows = self._checked_rows(state, rows)
         self.particles = torch.where(rows[..., None, None], state["particles"], particles)
         self.log_weights = torch.where(rows[..., None], state["log_weights"], log_weights)
         self.log_evidence = torch.where(rows, state["log_evidence"], log_evidence)
@@ -243,7 +248,26 @@ class ParticleFilter:
             raise RuntimeError(f"{type(self).__name__} has no particles yet: call reset(batch_shape) first")
         return self.particles, self.log_weights, self.log_evidence
 
-    def _checked_log_likelihood(self, log_likelihood: Tensor) -> Tensor:
+    def _checked_rows(self, state: dict[str, Any], rows: Tensor) -> Tensor:
+        """``rows`` as bool ``[*batch]`` on the filter's device, after checking it and ``state`` fit the filter."""
+        particles = self._state()[0]
+        saved = state.get("particles")
+        if not isinstance(saved, Tensor) or saved.shape != particles.shape:
+            got = list(saved.shape) if isinstance(saved, Tensor) else type(saved).__name__
+            raise ValueError(
+                f"restore_rows needs a state_dict() of this filter with particles {list(particles.shape)}, got {got}; "
+                "save the state after the reset whose rows you restore"
+            )
+        rows = torch.as_tensor(rows, device=self.device)
+        if rows.dtype != torch.bool or tuple(rows.shape) != self.batch_shape:
+            raise ValueError(
+                f"rows must be a bool tensor of the batch shape {list(self.batch_shape)}, "
+                f"got {rows.dtype} {list(rows.shape)}"
+            )
+        return rows
+
+    def _checked_log_likelihood(self, log_likelihood: Tensor) -> tuple[Tensor, bool]:
+        """``log_likelihood`` in the weights' dtype after checking it, and whether all of it is finite."""
         log_weights = self._state()[1]
         if not isinstance(log_likelihood, Tensor):
             raise TypeError(f"log_likelihood must be a Tensor, got {type(log_likelihood).__name__}")
@@ -252,7 +276,8 @@ class ParticleFilter:
                 f"log_likelihood must have shape [*batch, N] = {list(log_weights.shape)}, "
                 f"got {list(log_likelihood.shape)}"
             )
-        if not bool(torch.isfinite(log_likelihood).all()):  # one pass; the checks below name the problem
+        finite = bool(torch.isfinite(log_likelihood).all())
+        if not finite:  # one pass above; the checks below name the problem
             if torch.isnan(log_likelihood).any():
                 raise ValueError("log_likelihood contains NaN; check the observation and the model's prediction")
             if torch.isposinf(log_likelihood).any():
@@ -262,21 +287,58 @@ class ParticleFilter:
                     "every particle of a batch element has zero likelihood (all -inf): "
                     "the observation is impossible under the model; increase the likelihood's noise scale"
                 )
-        return log_likelihood.to(log_weights.dtype)
+        return log_likelihood.to(log_weights.dtype), finite
 
-    def _apply(self, log_likelihood: Tensor) -> None:
-        particles, log_weights, log_evidence = self._state()
-        joint = log_weights + log_likelihood
-        log_norm = torch.logsumexp(joint, dim=-1)
-        self.log_evidence = log_evidence + log_norm
-        self.log_weights = joint - log_norm.unsqueeze(-1)
-        self.last_ess = self.ess
-        self._resample_if_needed()
+    def _reweighted(self, log_likelihood: Tensor, finite: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """The log-weights, log evidence and ESS after ``log_likelihood``, computed without changing the filter.
 
-    def _resample_if_needed(self) -> None:
+        In float64 and relative to each batch element's largest joint log-weight. The plain
+        ``joint - logsumexp(joint)`` loses the normaliser's small part when the joint values are
+        large (a small likelihood noise makes them 1e8 and more): the weights then summed to 2 or
+        even 200, the ESS fell below 1 and the MMSE mask left [0, 1]. Shifted, the largest entry is
+        exactly 0, the normaliser ``log sum exp(shifted)`` is in ``[0, log N]`` and accurate, and
+        the weights sum to 1 up to rounding for any finite likelihood.
+
+        Args:
+            log_likelihood: checked by :meth:`_checked_log_likelihood`.
+            finite: whether all of ``log_likelihood`` is finite: then every batch element keeps a
+                particle of nonzero weight (its largest weight is at least ``1 / N``), and the check
+                for one that does not is skipped.
+
+        Raises:
+            ValueError: in a batch element, every particle of nonzero weight has zero likelihood.
+        """
+        log_weights, log_evidence = self._state()[1:]
+        joint = log_weights.to(torch.float64).add_(log_likelihood)  # a fresh float64 copy, then in place
+        peak = joint.amax(dim=-1, keepdim=True)
+        if not finite and not bool(torch.isfinite(peak).all()):
+            raise ValueError(
+                "every particle with a nonzero weight has zero likelihood (-inf) in some batch element: the "
+                "observation is impossible under the current posterior; increase the likelihood's noise scale, "
+                "or reset the filter"
+            )
+        shifted = joint.sub_(peak)  # <= 0, exactly 0 at the peak
+        relative = shifted.exp()  # in [0, 1], with a 1 at the peak
+        total = relative.sum(dim=-1, keepdim=True)  # in [1, N]
+        log_total = total.log()
+        # ESS = (sum w)^2 / sum w^2 of the unnormalised relative weights: no second logsumexp.
+        ess = total.squeeze(-1).square_().div_(relative.mul_(relative).sum(dim=-1))
+        dtype = log_weights.dtype
+        return (
+            shifted.sub_(log_total).to(dtype),
+            peak.add_(log_total).squeeze(-1).add_(log_evidence).to(log_evidence.dtype),
+            ess.clamp_(1.0, float(self._num_particles)).to(dtype),
+        )
+
+    def _commit(self, log_weights: Tensor, log_evidence: Tensor, ess: Tensor) -> None:
+        """Take the result of :meth:`_reweighted`, then resample where the ESS is low."""
+        self.log_weights, self.log_evidence, self.last_ess = log_weights, log_evidence, ess
+        self._resample_if_needed(ess)
+
+    def _resample_if_needed(self, ess: Tensor) -> None:
         particles, log_weights, _ = self._state()
         n = self._num_particles
-        need = self.last_ess < self.ess_threshold * n  # set by _apply for these weights
+        need = ess < self.ess_threshold * n
         if not bool(need.any()):
             return
         idx = resample_indices(log_weights, self.resampling, generator=self.generator)
@@ -287,6 +349,14 @@ class ParticleFilter:
         self.particles = _gather_particles(particles, idx)
         self.log_weights = new_log_weights
         self.ancestors = idx
+
+
+def _clone(value: Tensor | None, device: torch.device | None = None) -> Tensor | None:
+    """A copy of an optional tensor (on ``device`` if given)."""
+    if value is None:
+        return None
+    value = value.clone()
+    return value if device is None else value.to(device)
 
 
 def flat_particle_index(idx: Tensor, num_particles: int) -> Tensor:
@@ -445,15 +515,9 @@ class SMCDFilter(ParticleFilter):
         super().__init__(
             num_particles, resampling=resampling, ess_threshold=ess_threshold, generator=generator, device=device
         )
-        if int(mask_dim) < 1:
-            raise ValueError(f"mask_dim must be >= 1, got {mask_dim}")
-        if not 0.0 <= flip_prob <= 1.0:
-            raise ValueError(f"flip_prob must be in [0, 1], got {flip_prob}")
-        if not 0.0 < keep_prob <= 1.0:
-            raise ValueError(f"keep_prob must be in (0, 1], got {keep_prob}")
-        self.mask_dim = int(mask_dim)
-        self.flip_prob = float(flip_prob)
-        self.keep_prob = float(keep_prob)
+        self.mask_dim = check_count(mask_dim, "mask_dim")
+        self.flip_prob = check_real(flip_prob, "flip_prob", low=0.0, high=1.0)
+        self.keep_prob = check_real(keep_prob, "keep_prob", low=0.0, high=1.0, open_low=True)
         self.transition = check_transition(transition)
         self.flip_rates()  # fail now, not at the first propagate
         #: Flat positions (into ``particles.reshape(-1)``) flipped by the last transition.
@@ -468,8 +532,46 @@ class SMCDFilter(ParticleFilter):
         """
         cached = self._derived.get("mean_mask")
         if cached is None:
-            cached = self._derived["mean_mask"] = self._weighted_mean()
+            # Clamped: weights that sum to 1 up to float rounding can put a mean of bits a hair above 1.
+            cached = self._derived["mean_mask"] = self._weighted_mean().clamp_(0.0, 1.0)
         return cached
+
+    def update(self, log_likelihood_fn: Callable[[Tensor], Tensor]) -> Tensor:
+        """See :meth:`ParticleFilter.update`; a refused update also leaves :attr:`last_flips` as it was."""
+        flips = self.last_flips
+        try:
+            return super().update(log_likelihood_fn)
+        except BaseException:
+            self.last_flips = flips  # set by the refused transition: part of what a refused update undoes
+            raise
+
+    def state_dict(self) -> dict[str, Any]:
+        """A copy of the full state, generator and MMSE mask included; :meth:`load_state_dict` restores it."""
+        state = super().state_dict()
+        # The mask as it is, not recomputed later: computed again after a restore (of some rows,
+        # see restore_rows) it could take another summation path and differ in the last bits.
+        state["mean_mask"] = self.mean_mask.clone()
+        state["last_flips"] = _clone(self.last_flips)
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        self.last_flips = _clone(state.get("last_flips"), self.device)
+        if state.get("mean_mask") is not None:
+            self._derived["mean_mask"] = state["mean_mask"].clone().to(self.device)
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+        """As :meth:`ParticleFilter.restore_rows`; the restored rows' MMSE mask is restored bit for bit too.
+
+        Their mask is not computed again: with other rows' particles changed, the copies of the batch
+        change and the mean would take another summation path (float rounding in the last bits), so a
+        sub-env's mask would move when another one resets.
+        """
+        saved_mask = state.get("mean_mask")
+        super().restore_rows(state, rows)
+        if saved_mask is not None:
+            rows = torch.as_tensor(rows, device=self.device)
+            self._derived["mean_mask"] = torch.where(rows.unsqueeze(-1), saved_mask.to(self.device), self.mean_mask)
 
     def _weighted_mean(self) -> Tensor:
         particles, log_weights, _ = self._state()

@@ -155,7 +155,7 @@ class ParticleForward:
         sl = net.mask_slices[layer]
         assert sl is not None
         width = sl.stop - sl.start
-        following = net.linears[layer + 1]
+        following = _linear(net, layer + 1)
 
         # Once per distinct parent: ``representative`` is any member of each group (all are equal).
         representative = group_members(child_group, groups.numel())
@@ -190,10 +190,10 @@ class ParticleForward:
             scale = 1.0
             if later is not None:
                 # Cast into a kept buffer: a mixed-dtype in-place multiply would allocate a fresh one.
-                bits = self._buffer(-1, tuple(h.shape), h).copy_(flat_masks[:, later].view(torch.uint8))  # type: ignore[arg-type]
+                bits = self._buffer(-1, tuple(h.shape), h).copy_(flat_masks[:, later].view(torch.uint8))
                 h.mul_(bits)
                 scale = inv_keep
-            linear = net.linears[i + 1]
+            linear = _linear(net, i + 1)
             out = None if i == last else self._buffer(i - layer, (total, linear.out_features), h)
             h = torch.addmm(linear.bias, h, linear.weight.t(), alpha=scale, out=out)
         return h.reshape(*batch, n, h.shape[-1])
@@ -221,7 +221,7 @@ class ParticleForward:
         values = torch.where(bits[rows, cols], gain, -gain)
         return _bags(table, rows, cols, values, bits.shape[0]).add_(reference_pre.index_select(0, element))
 
-    def _buffer(self, slot: int, shape: tuple[int, int], like: Tensor) -> Tensor:
+    def _buffer(self, slot: int, shape: tuple[int, ...], like: Tensor) -> Tensor:
         """Workspace ``slot`` of ``shape``, reused while shape, dtype and device stay the same."""
         buffer = self._buffers.get(slot)
         if buffer is None or buffer.shape != shape or buffer.dtype != like.dtype or buffer.device != like.device:
@@ -257,6 +257,13 @@ class ParticleForward:
                 f"lineage parents {list(lineage.parents.shape)} and ancestors {list(lineage.ancestors.shape)} "
                 f"do not match masks {list(masks.shape)}"
             )
+
+
+def _linear(net: MaskedMLP, index: int) -> torch.nn.Linear:
+    """``net.linears[index]``, typed: a ModuleList hands out plain Modules."""
+    linear = net.linears[index]
+    assert isinstance(linear, torch.nn.Linear)
+    return linear
 
 
 def _floor_div(index: Tensor, divisor: int, bound: int) -> Tensor:

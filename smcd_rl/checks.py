@@ -1,0 +1,97 @@
+"""Argument checks shared by the public entry points, so that bad input fails before any work.
+
+Each check returns the value in its canonical form or raises an error whose message names the
+argument, what it got and what it needs: a ``TypeError`` for the wrong kind of value, a
+``ValueError`` for a value out of range. Nothing here touches model state.
+
+Example:
+    >>> from smcd_rl.checks import check_count
+    >>> check_count(5, "num_particles")
+    5
+    >>> check_count(2.5, "num_particles")
+    Traceback (most recent call last):
+    ...
+    TypeError: num_particles must be an int, got 2.5 (float)
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+
+__all__ = ["check_count", "check_real", "check_shape", "check_real_tensor", "check_tensordict", "check_key"]
+
+
+def check_count(value: Any, name: str, *, minimum: int = 1) -> int:
+    """``value`` as an ``int`` if it is an integer ``>= minimum``; floats (even ``2.0``) and bools are refused.
+
+    A float count is refused rather than rounded: ``num_particles=2.5`` silently becoming 2 hides a bug.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    return int(value)
+
+
+def check_real(
+    value: Any, name: str, *, low: float = -math.inf, high: float = math.inf, open_low: bool = False
+) -> float:
+    """``value`` as a ``float`` if it is a real number in ``[low, high]`` (``(low, high]`` with ``open_low``)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {value!r} ({type(value).__name__})")
+    number = float(value)
+    below = number <= low if open_low else number < low
+    if math.isnan(number) or below or number > high:
+        bounds = f"{'(' if open_low else '['}{low:g}, {high:g}]"
+        raise ValueError(f"{name} must be in {bounds}, got {value}")
+    return number
+
+
+def check_shape(value: Any, name: str) -> tuple[int, ...]:
+    """A batch shape: a sequence of ints ``>= 0`` (a ``torch.Size``, tuple or list), as a tuple."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        hint = f"; for {value} elements pass ({value},)" if isinstance(value, numbers.Integral) else ""
+        raise TypeError(f"{name} must be a sequence of ints such as (3,), got {value!r}{hint}")
+    return tuple(check_count(size, f"{name}[{i}]", minimum=0) for i, size in enumerate(value))
+
+
+def check_real_tensor(value: Any, name: str) -> Tensor:
+    """``value`` if it is a torch Tensor of a real dtype (float, int or bool); complex and non-tensors are refused."""
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}; convert it with torch.as_tensor")
+    if value.is_complex():
+        raise TypeError(f"{name} is complex ({value.dtype}); pass real values (e.g. its .real part)")
+    if value.dtype in (torch.quint8, torch.qint8, torch.qint32):
+        raise TypeError(f"{name} is a quantized tensor ({value.dtype}); pass real values")
+    return value
+
+
+def check_tensordict(td: Any, what: str) -> None:
+    """Refuse anything but a TensorDict, with a hint for the usual mistakes (a dict, a bare array)."""
+    if not isinstance(td, TensorDictBase):
+        hint = ""
+        if isinstance(td, dict):
+            hint = "; wrap it: TensorDict(that_dict, batch_size=[...])"
+        elif isinstance(td, (Tensor, np.ndarray)):
+            hint = (
+                "; pass a TensorDict that holds it under the model's keys, e.g. TensorDict({'q': x}, batch_size=[...])"
+            )
+        raise TypeError(f"{what} takes a tensordict.TensorDict, got {type(td).__name__}{hint}")
+
+
+def check_key(key: Any, name: str, *, optional: bool = False) -> None:
+    """A TensorDict key: a non-empty string or a non-empty tuple of them (``None`` if ``optional``)."""
+    if key is None and optional:
+        return
+    plain = isinstance(key, str) and key != ""
+    nested = isinstance(key, tuple) and len(key) > 0 and all(isinstance(k, str) and k for k in key)
+    if not (plain or nested):
+        raise TypeError(f"{name} must be a key (a string, or a tuple of strings for a nested key), got {key!r}")
