@@ -15,9 +15,10 @@ from __future__ import annotations
 
 from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation, make_adaptation
 from smcd_rl.envs import register_all as _register_envs
+from smcd_rl.files import FileWriteError, UnreadableFileError
 from smcd_rl.filter import ParticleFilter, SMCDFilter
 from smcd_rl.masked_mlp import MaskedMLP
-from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel, CheckpointMismatchError, load
+from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel, CheckpointMismatchError, UnfittedModelWarning, load
 from smcd_rl.training import fit, fit_dynamics, fit_reptile
 
 _register_envs()
@@ -36,6 +37,9 @@ __all__ = [
     "AdaptiveModel",
     "AdaptiveDynamicsModel",
     "CheckpointMismatchError",
+    "UnreadableFileError",
+    "FileWriteError",
+    "UnfittedModelWarning",
     "fit",
     "fit_dynamics",
     "fit_reptile",

@@ -8,6 +8,8 @@ from typing import Any, Literal
 import torch
 from torch import Tensor, nn
 
+from smcd_rl.checks import check_count, check_real, check_real_tensor
+
 __all__ = ["MaskedMLP"]
 
 Activation = Literal["relu", "tanh", "elu", "silu"]
@@ -68,23 +70,32 @@ class MaskedMLP(nn.Module):
         dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
-        hidden = tuple(int(h) for h in hidden)
-        if in_features < 1 or out_features < 1:
-            raise ValueError(f"in_features and out_features must be >= 1, got {in_features}, {out_features}")
-        if not hidden or min(hidden) < 1:
+        in_features = check_count(in_features, "in_features")
+        out_features = check_count(out_features, "out_features")
+        if isinstance(hidden, (str, bytes)) or not isinstance(hidden, Sequence):
+            hint = f"; for one layer of {hidden} units pass hidden=({hidden},)" if isinstance(hidden, int) else ""
+            raise TypeError(f"hidden must be a sequence of layer widths such as (64, 64), got {hidden!r}{hint}")
+        if not hidden:
             raise ValueError(f"hidden must list at least one positive width, got {hidden}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        hidden = tuple(check_count(h, f"hidden[{i}]") for i, h in enumerate(hidden))
+        dropout = check_real(dropout, "dropout", low=0.0, high=1.0)
+        if dropout == 1.0:
+            raise ValueError("dropout must be in [0, 1), got 1.0 (no unit would ever be kept)")
         if activation not in _ACTIVATIONS:
             raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(_ACTIVATIONS)}")
-        layers = tuple(range(len(hidden))) if masked_layers is None else tuple(sorted(set(masked_layers)))
+        if masked_layers is not None and (isinstance(masked_layers, str) or not isinstance(masked_layers, Sequence)):
+            raise TypeError(
+                f"masked_layers must be a sequence of hidden-layer indices such as (0, 1), got {masked_layers!r}"
+            )
+        chosen = range(len(hidden)) if masked_layers is None else masked_layers
+        layers = tuple(sorted({check_count(i, "masked_layers entry", minimum=0) for i in chosen}))
         if not layers or not all(0 <= i < len(hidden) for i in layers):
             raise ValueError(f"masked_layers must index hidden layers 0..{len(hidden) - 1}, got {masked_layers}")
 
-        self.in_features = int(in_features)
-        self.out_features = int(out_features)
+        self.in_features = in_features
+        self.out_features = out_features
         self.hidden = hidden
-        self.dropout = float(dropout)
+        self.dropout = dropout
         self.keep_prob = 1.0 - self.dropout
         self.activation = activation
         self.masked_layers = layers
@@ -141,6 +152,7 @@ class MaskedMLP(nn.Module):
             ``[..., N, out_features]``: one prediction per mask.
         """
         self._check_input(x)
+        check_real_tensor(masks, "masks")
         if masks.dim() < 2 or masks.shape[-1] != self.mask_dim:
             raise ValueError(
                 f"masks must have shape [..., N, {self.mask_dim}] (mask_dim={self.mask_dim}), got {list(masks.shape)}"
@@ -164,7 +176,8 @@ class MaskedMLP(nn.Module):
 
     # ------------------------------------------------------------------ helpers
     def _scaled(self, mask: Tensor, dtype: torch.dtype) -> Tensor:
-        if mask.shape[-1] != self.mask_dim:
+        check_real_tensor(mask, "mask")
+        if mask.dim() == 0 or mask.shape[-1] != self.mask_dim:
             raise ValueError(
                 f"mask must have shape [..., {self.mask_dim}] (mask_dim={self.mask_dim}), got {list(mask.shape)}"
             )
@@ -180,6 +193,11 @@ class MaskedMLP(nn.Module):
         return self.linears[-1](h)
 
     def _check_input(self, x: Tensor) -> None:
+        check_real_tensor(x, "input")
+        if not x.is_floating_point():
+            raise TypeError(
+                f"input must be a float tensor (the network's dtype), got {x.dtype}; convert it with .float()"
+            )
         if x.dim() < 1 or x.shape[-1] != self.in_features:
             raise ValueError(
                 f"input must have shape [..., {self.in_features}] (in_features={self.in_features}), got {list(x.shape)}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -14,16 +15,25 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 
 from smcd_rl.adaptation import ADAPTATIONS, Adaptation, NoAdaptation
+from smcd_rl.checks import check_key, check_real_tensor, check_shape, check_tensordict
+from smcd_rl.files import CheckpointMismatchError, UnreadableFileError, load_file, save_file
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.normalization import Normalizer
 
-__all__ = ["AdaptiveModel", "AdaptiveDynamicsModel", "load", "CheckpointMismatchError"]
+__all__ = ["AdaptiveModel", "AdaptiveDynamicsModel", "load", "CheckpointMismatchError", "UnfittedModelWarning"]
 
 _FORMAT = "smcd_rl.AdaptiveModel/1"
+#: What a model checkpoint holds besides its format (:meth:`AdaptiveModel.checkpoint`).
+_CHECKPOINT_KEYS = ("class", "net", "keys", "state_dict", "adaptation")
 
 
-class CheckpointMismatchError(ValueError):
-    """A checkpoint does not fit the model it is loaded into."""
+class UnfittedModelWarning(UserWarning):
+    """A model whose network was never fitted is reset or adapted: its predictions mean nothing yet.
+
+    Given once per model. Silence it where an untrained network is meant (a demo, a test) with
+    ``warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)``, or set
+    ``model.fitted = True`` after training the network with your own loop.
+    """
 
 
 class AdaptiveModel(TensorDictModuleBase):
@@ -48,7 +58,8 @@ class AdaptiveModel(TensorDictModuleBase):
         adaptation: the strategy (default :class:`smcd_rl.NoAdaptation`).
 
     Example:
-        >>> import torch, smcd_rl
+        >>> import torch, smcd_rl, warnings
+        >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
         >>> from tensordict import TensorDict
         >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(32, 32))
         >>> model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee",
@@ -72,8 +83,13 @@ class AdaptiveModel(TensorDictModuleBase):
         super().__init__()
         if not isinstance(net, MaskedMLP):
             raise TypeError(f"net must be a smcd_rl.MaskedMLP, got {type(net).__name__}")
+        if isinstance(in_keys, (str, tuple)) or not isinstance(in_keys, Sequence):
+            raise TypeError(f"in_keys must be a list of keys such as ['q'], got {in_keys!r}")
         if not in_keys:
             raise ValueError("in_keys must name at least one input key")
+        for name, key in [*(("in_keys", k) for k in in_keys), ("out_key", out_key), ("target_key", target_key)]:
+            check_key(key, name, optional=name == "target_key")
+        check_key(base_key, "base_key", optional=True)
         self.net = net
         self.in_keys = list(in_keys)
         self.out_keys = [out_key]
@@ -84,7 +100,23 @@ class AdaptiveModel(TensorDictModuleBase):
         self.output_norm = Normalizer(net.out_features)
         self.adaptation: Adaptation = NoAdaptation() if adaptation is None else adaptation
         self._batch_shape: tuple[int, ...] | None = None
+        self._warned_unfitted = False
         self._bind(self.adaptation)
+
+    @property
+    def fitted(self) -> bool:
+        """Whether the network was trained: set by :func:`smcd_rl.fit` (and the other trainers), saved with the model.
+
+        It is the normalisation's record of having been fitted to training data. Set it to ``True``
+        after training :attr:`net` with your own loop (the normalisation then stays the identity), so
+        that :meth:`reset` and :meth:`observe` do not warn with :class:`UnfittedModelWarning`.
+        """
+        return bool(self.input_norm.fitted)
+
+    @fitted.setter
+    def fitted(self, value: bool) -> None:
+        self.input_norm.fitted.fill_(bool(value))
+        self.output_norm.fitted.fill_(bool(value))
 
     # ------------------------------------------------------------------ adaptation
     def reset(self, batch_shape: Sequence[int] = (), *, where: Tensor | None = None) -> None:
@@ -97,20 +129,22 @@ class AdaptiveModel(TensorDictModuleBase):
                 model to have been reset with this ``batch_shape`` before.
 
         Example:
-            >>> import torch, smcd_rl
+            >>> import torch, smcd_rl, warnings
+            >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
             >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee",
             ...                               adaptation=smcd_rl.SMCD(num_particles=10))
             >>> model.reset(batch_shape=(3,))
             >>> model.reset(batch_shape=(3,), where=torch.tensor([False, True, False]))  # only env 1
         """
-        batch_shape = tuple(int(b) for b in batch_shape)
+        batch_shape = check_shape(batch_shape, "batch_shape")
+        self._warn_if_unfitted()
         if where is not None:
             if self._batch_shape is None or self._batch_shape != batch_shape:
                 raise ValueError(
                     f"reset(where=...) resets rows of the current batch {self._batch_shape}, "
                     f"not of {batch_shape}; call reset(batch_shape={batch_shape}) first"
                 )
-            where = torch.as_tensor(where, dtype=torch.bool).reshape(batch_shape)
+            where = _checked_where(where, batch_shape)
             if not bool(where.all()):
                 if bool(where.any()):  # reset all, then put back the rows that keep adapting
                     kept = self.adaptation.state_dict()
@@ -126,28 +160,53 @@ class AdaptiveModel(TensorDictModuleBase):
     def observe(self, td: TensorDictBase) -> None:
         """Adapt to real transitions (see the class docstring for batch conventions).
 
+        A sequence (batch ``[T]`` on a model reset with ``batch_shape=()``) is all or nothing: if
+        any of its transitions is refused, none of them is applied.
+
         Raises:
+            TypeError: ``td`` is not a TensorDict, or a value is not a real tensor (e.g. complex).
             KeyError: a key the model needs is missing.
-            ValueError: shapes do not match the model, or a value is NaN or infinite. The
-                adaptation state is unchanged after any error.
+            ValueError: shapes do not match the model or the TensorDict's batch, a value is NaN
+                or infinite in the model's dtype, or the observation is impossible under every
+                particle. The adaptation state is unchanged after any error.
         """
+        check_tensordict(td, "observe")
         batch_shape = self._require_reset()
-        inputs = self._inputs(td, what="observe")
-        target = self._read(td, self.target_key, self.net.out_features, what="observe")
-        outputs = self.output_norm(self._to_output(td, target))
+        self._warn_if_unfitted()
         td_batch = tuple(td.batch_size)
+        sequence = batch_shape == () and len(td_batch) == 1
+        if td_batch != batch_shape and not sequence:
+            raise ValueError(
+                f"observe got a TensorDict of batch {list(td_batch)} but the model was reset with "
+                f"batch_shape={list(batch_shape)}; call model.reset(batch_shape={list(td_batch)}) "
+                "for one adaptation state per env, or pass one transition per env"
+            )
+        inputs = self._inputs(td, what="observe", exact=True)
+        target = self._read(td, self.target_key, self.net.out_features, what="observe", exact=True)
+        outputs = self.output_norm(self._to_output(td, target, exact=True))
         with torch.no_grad():
-            if td_batch == batch_shape:
+            if not sequence or td_batch == batch_shape:
                 self.adaptation.observe(inputs, outputs)
-            elif batch_shape == () and len(td_batch) == 1:
-                for t in range(td_batch[0]):  # a sequence of transitions, in order
-                    self.adaptation.observe(inputs[t], outputs[t])
             else:
-                raise ValueError(
-                    f"observe got a TensorDict of batch {list(td_batch)} but the model was reset with "
-                    f"batch_shape={list(batch_shape)}; call model.reset(batch_shape={list(td_batch)}) "
-                    "for one adaptation state per env, or pass one transition per env"
-                )
+                self._observe_sequence(inputs, outputs)
+
+    def _observe_sequence(self, inputs: Tensor, outputs: Tensor) -> None:
+        """Observe ``inputs [T, in]``, ``outputs [T, out]`` in order, all or nothing."""
+        steps = inputs.shape[0]
+        # One update is atomic by itself; a later refused one must also undo the earlier ones.
+        saved = self.adaptation.state_dict() if steps > 1 else None
+        for t in range(steps):
+            try:
+                self.adaptation.observe(inputs[t], outputs[t])
+            except BaseException as err:
+                if saved is not None:
+                    self.adaptation.load_state_dict(saved)
+                if isinstance(err, ValueError):
+                    raise ValueError(
+                        f"observe: transition {t} of the sequence of {steps} was refused, so none of them was "
+                        f"applied and the adaptation state is unchanged: {err}"
+                    ) from err
+                raise
 
     @property
     def mask(self) -> Tensor | None:
@@ -184,11 +243,12 @@ class AdaptiveModel(TensorDictModuleBase):
                 broadcast against the inputs (e.g. one particle per planning candidate,
                 taken from :attr:`particles`).
         """
+        check_tensordict(td, "forward")
         self._require_reset()
         # No NaN check here: prediction changes no state, NaN in gives NaN out, and planners call
         # this in their inner loop (the check cost ~20% of a planning step). observe() checks.
         inputs = self._inputs(td, what="forward", check_finite=False)
-        output = self.adaptation.predict(inputs) if mask is None else self.net(inputs, mask=mask)
+        output = self._predict_normalised(inputs, mask, what="forward")
         td.set(self.out_key, self._from_output(td, self.output_norm.inverse(output)))
         return td
 
@@ -204,7 +264,8 @@ class AdaptiveModel(TensorDictModuleBase):
             mask: as in :meth:`forward`.
 
         Example:
-            >>> import torch, smcd_rl
+            >>> import torch, smcd_rl, warnings
+            >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
             >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 3, hidden=(8,)), in_keys=["q"], out_key="ee")
             >>> model.reset()
             >>> torch.func.jacrev(model.predict)(torch.zeros(2)).shape  # d ee / d q
@@ -216,11 +277,11 @@ class AdaptiveModel(TensorDictModuleBase):
                 f"predict returns the network's target, but this model predicts the change from {self.base_key!r}; "
                 "use model.step(observation, action) for dynamics models"
             )
-        if inputs.shape[-1:] != (self.net.in_features,):
+        inputs = check_real_tensor(inputs, "predict: inputs")
+        if inputs.dim() == 0 or inputs.shape[-1:] != (self.net.in_features,):
             raise ValueError(f"predict needs inputs [..., {self.net.in_features}], got {list(inputs.shape)}")
-        x = self.input_norm(inputs.to(self.input_norm.mean.dtype))
-        output = self.adaptation.predict(x) if mask is None else self.net(x, mask=mask)
-        return self.output_norm.inverse(output)
+        x = self.input_norm(self._as_model_dtype(inputs))
+        return self.output_norm.inverse(self._predict_normalised(x, mask, what="predict"))
 
     @property
     def particles(self) -> Tensor:
@@ -233,8 +294,10 @@ class AdaptiveModel(TensorDictModuleBase):
 
     def predict_particles(self, td: TensorDictBase) -> Tensor:
         """Posterior predictive samples of eq. (5): ``[*batch, N, out]``, one per particle."""
+        check_tensordict(td, "predict_particles")
         self._require_reset()
         inputs = self._inputs(td, what="predict_particles", check_finite=False)
+        self.adaptation._extra_dims(inputs)  # the batch check, before any work
         prediction = self.output_norm.inverse(self.adaptation.predict_particles(inputs))
         if self.base_key is not None:
             base = self._read(td, self.base_key, self.net.out_features, what="predict", check_finite=False)
@@ -254,17 +317,27 @@ class AdaptiveModel(TensorDictModuleBase):
         }
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Save to ``path`` (written atomically); :func:`smcd_rl.load` rebuilds the model."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        torch.save(self.checkpoint(), tmp)
-        os.replace(tmp, path)
+        """Save to ``path`` (written atomically); :func:`smcd_rl.load` rebuilds the model.
+
+        Raises:
+            smcd_rl.files.FileWriteError: the directory is read-only, the disk is full, ...
+        """
+        save_file(self.checkpoint(), path, what="model checkpoint")
 
     def load_checkpoint(self, checkpoint: dict[str, Any] | str | os.PathLike[str]) -> None:
-        """Load trained weights and normalisation into this model, after checking they fit it."""
+        """Load trained weights and normalisation into this model, after checking they fit it.
+
+        Raises:
+            CheckpointMismatchError: the checkpoint is of another architecture or keys.
+            smcd_rl.files.UnreadableFileError: the file is empty, truncated or corrupt.
+        """
         if not isinstance(checkpoint, dict):
             checkpoint = _read_checkpoint(checkpoint)
+        missing = [key for key in ("net", "keys", "state_dict") if key not in checkpoint]
+        if missing:
+            raise CheckpointMismatchError(
+                f"the checkpoint has no {missing} entries; pass a dict from model.checkpoint() or a file from model.save()"
+            )
         if checkpoint.get("net") != self.net.config:
             raise CheckpointMismatchError(
                 f"checkpoint holds a network {checkpoint.get('net')} but this model has {self.net.config}; "
@@ -274,7 +347,13 @@ class AdaptiveModel(TensorDictModuleBase):
             raise CheckpointMismatchError(
                 f"checkpoint was saved with keys {checkpoint.get('keys')} but this model uses {self._key_config()}"
             )
-        self.load_state_dict(checkpoint["state_dict"])
+        try:
+            self.load_state_dict(checkpoint["state_dict"])
+        except (RuntimeError, TypeError, AttributeError) as err:  # weights missing or of other shapes
+            detail = str(err).strip().splitlines()[0]
+            raise CheckpointMismatchError(
+                f"the checkpoint's weights do not fit its own architecture ({detail}); save the model again"
+            ) from err
 
     # ------------------------------------------------------------------ internals
     def _bind(self, adaptation: Adaptation) -> None:
@@ -295,22 +374,77 @@ class AdaptiveModel(TensorDictModuleBase):
             raise RuntimeError("call model.reset() (or model.reset(batch_shape=(B,))) before using the model")
         return self._batch_shape
 
+    def _warn_if_unfitted(self) -> None:
+        if self._warned_unfitted or self.fitted:
+            return
+        self._warned_unfitted = True
+        warnings.warn(
+            "this model's network was never fitted, so it adapts an untrained network whose predictions mean "
+            "nothing; train it first (smcd_rl.fit, fit_dynamics or fit_reptile, or smcd_rl.load a trained one), "
+            "or set model.fitted = True if you trained it with your own loop",
+            UnfittedModelWarning,
+            stacklevel=3,
+        )
+
+    def _as_model_dtype(self, value: Tensor) -> Tensor:
+        """``value`` in the model's dtype and on its device (ints and bools become floats)."""
+        param = self.input_norm.mean
+        return value.to(device=param.device, dtype=param.dtype)
+
+    def _predict_normalised(self, x: Tensor, mask: Tensor | None, *, what: str) -> Tensor:
+        """The network's normalised prediction for normalised inputs ``x``, with the adapted or the given mask."""
+        if mask is None:
+            return self.adaptation.predict(x)
+        mask = check_real_tensor(mask, f"{what}: mask")
+        if mask.dim() == 0 or mask.shape[-1] != self.net.mask_dim:
+            raise ValueError(f"{what}: mask must have shape [..., {self.net.mask_dim}], got {list(mask.shape)}")
+        try:
+            torch.broadcast_shapes(x.shape[:-1], mask.shape[:-1])
+        except RuntimeError as err:
+            raise ValueError(
+                f"{what}: mask {list(mask.shape)} does not broadcast against the inputs {list(x.shape)} "
+                "(their dims before the last must match or be 1)"
+            ) from err
+        return self.net(x, mask=mask)
+
     def _read(
-        self, td: TensorDictBase, key: NestedKey, size: int | None, *, what: str, check_finite: bool = True
+        self,
+        td: TensorDictBase,
+        key: NestedKey,
+        size: int | None,
+        *,
+        what: str,
+        check_finite: bool = True,
+        exact: bool = False,
     ) -> Tensor:
+        """``td[key]`` in the model's dtype, checked: a real tensor of ``[..., size]`` (``[*td.batch, size]`` if ``exact``).
+
+        Finiteness is checked after the conversion: a float64 1e39 is finite, but not in float32.
+        """
         value = td.get(key, None)
         if value is None:
             raise KeyError(f"{what}: the TensorDict has no key {key!r}; it has {sorted(map(str, td.keys(True, True)))}")
-        if size is not None and value.shape[-1:] != (size,):
-            raise ValueError(f"{what}: {key!r} must have shape [..., {size}], got {list(value.shape)}")
-        if not value.is_floating_point():
-            value = value.float()
-        if check_finite and not bool(torch.isfinite(value).all()):
+        value = check_real_tensor(value, f"{what}: {key!r}")
+        if value.dim() == 0 or (size is not None and value.shape[-1:] != (size,)):
+            raise ValueError(f"{what}: {key!r} must have shape [..., {size or 'features'}], got {list(value.shape)}")
+        if exact and tuple(value.shape[:-1]) != tuple(td.batch_size):
+            raise ValueError(
+                f"{what}: {key!r} has shape {list(value.shape)} but the TensorDict's batch is {list(td.batch_size)}; "
+                f"{what} takes one transition per batch element, [*batch, features]: build the TensorDict with "
+                f"batch_size={list(value.shape[:-1])}"
+            )
+        converted = self._as_model_dtype(value)
+        if check_finite and not bool(torch.isfinite(converted).all()):
+            if value.is_floating_point() and bool(torch.isfinite(value).all()):
+                raise ValueError(
+                    f"{what}: {key!r} holds values too large for the model's {converted.dtype} (they become inf); "
+                    "the adaptation state is unchanged. Rescale or drop the transition before passing it"
+                )
             raise ValueError(
                 f"{what}: {key!r} contains NaN or inf; the adaptation state is unchanged. "
                 "Drop or repair the transition before passing it"
             )
-        return value.to(self.input_norm.mean.dtype)
+        return converted
 
     def training_pairs(self, td: TensorDictBase) -> tuple[Tensor, Tensor]:
         """Raw (unnormalised) network inputs and regression targets of a batch of transitions."""
@@ -318,11 +452,11 @@ class AdaptiveModel(TensorDictModuleBase):
         target = self._read(td, self.target_key, self.net.out_features, what="fit")
         return x, self._to_output(td, target)
 
-    def _inputs(self, td: TensorDictBase, *, what: str, check_finite: bool = True) -> Tensor:
-        return self.input_norm(self._raw_inputs(td, what=what, check_finite=check_finite))
+    def _inputs(self, td: TensorDictBase, *, what: str, check_finite: bool = True, exact: bool = False) -> Tensor:
+        return self.input_norm(self._raw_inputs(td, what=what, check_finite=check_finite, exact=exact))
 
-    def _raw_inputs(self, td: TensorDictBase, *, what: str, check_finite: bool = True) -> Tensor:
-        parts = [self._read(td, key, None, what=what, check_finite=check_finite) for key in self.in_keys]
+    def _raw_inputs(self, td: TensorDictBase, *, what: str, check_finite: bool = True, exact: bool = False) -> Tensor:
+        parts = [self._read(td, key, None, what=what, check_finite=check_finite, exact=exact) for key in self.in_keys]
         try:
             x = torch.cat(parts, dim=-1) if len(parts) > 1 else parts[0]
         except RuntimeError as err:
@@ -335,10 +469,15 @@ class AdaptiveModel(TensorDictModuleBase):
             )
         return x
 
-    def _to_output(self, td: TensorDictBase, target: Tensor) -> Tensor:
+    def _to_output(self, td: TensorDictBase, target: Tensor, *, exact: bool = False) -> Tensor:
         if self.base_key is None:
             return target
-        return target - self._read(td, self.base_key, self.net.out_features, what="target")
+        base = self._read(td, self.base_key, self.net.out_features, what="target", exact=exact)
+        if base.shape != target.shape:  # [..., out] both; other leading dims would broadcast silently
+            raise ValueError(
+                f"{self.base_key!r} {list(base.shape)} and {self.target_key!r} {list(target.shape)} must have the same shape"
+            )
+        return target - base
 
     def _from_output(self, td: TensorDictBase, output: Tensor) -> Tensor:
         if self.base_key is None:
@@ -352,7 +491,8 @@ class AdaptiveDynamicsModel(AdaptiveModel):
     The network predicts the change of observation (``predict_delta=True``, the default).
 
     Example:
-        >>> import torch, smcd_rl
+        >>> import torch, smcd_rl, warnings
+        >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
         >>> from tensordict import TensorDict
         >>> net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=(32, 32))
         >>> model = smcd_rl.AdaptiveDynamicsModel(net, adaptation=smcd_rl.SMCD(num_particles=50))
@@ -398,23 +538,28 @@ class AdaptiveDynamicsModel(AdaptiveModel):
             mask: as in :meth:`forward`.
 
         Example:
-            >>> import torch, smcd_rl
+            >>> import torch, smcd_rl, warnings
+            >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
             >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(3 + 1, 3, hidden=(32,)))
             >>> model.reset()
             >>> model.step(torch.zeros(5, 3), torch.ones(5, 1)).shape
             torch.Size([5, 3])
         """
         self._require_reset()
-        if observation.shape[-1:] != (self.observation_dim,) or action.shape[-1:] != (self.action_dim,):
+        observation = check_real_tensor(observation, "step: observation")
+        action = check_real_tensor(action, "step: action")
+        if (
+            observation.shape[-1:] != (self.observation_dim,)
+            or action.shape[-1:] != (self.action_dim,)
+            or observation.shape[:-1] != action.shape[:-1]
+        ):
             raise ValueError(
-                f"step needs observation [..., {self.observation_dim}] and action [..., {self.action_dim}], "
-                f"got {list(observation.shape)} and {list(action.shape)}"
+                f"step needs observation [..., {self.observation_dim}] and action [..., {self.action_dim}] "
+                f"with the same batch dims, got {list(observation.shape)} and {list(action.shape)}"
             )
-        dtype = self.input_norm.mean.dtype
-        observation, action = observation.to(dtype), action.to(dtype)
+        observation, action = self._as_model_dtype(observation), self._as_model_dtype(action)
         inputs = self.input_norm(torch.cat([observation, action], dim=-1))
-        output = self.adaptation.predict(inputs) if mask is None else self.net(inputs, mask=mask)
-        prediction = self.output_norm.inverse(output)
+        prediction = self.output_norm.inverse(self._predict_normalised(inputs, mask, what="step"))
         return observation + prediction if self.base_key is not None else prediction
 
     @property
@@ -435,13 +580,29 @@ _CLASSES: dict[str, type[AdaptiveModel]] = {
 
 
 def _read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}")
-    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != _FORMAT:
-        raise CheckpointMismatchError(f"{path} is not an smcd_rl model checkpoint (expected format {_FORMAT})")
-    return checkpoint
+    return load_file(
+        path,
+        what="smcd_rl model checkpoint",
+        expect_format=_FORMAT,
+        expect_keys=_CHECKPOINT_KEYS,
+        fix="save the model again (model.save), or delete the file and rerun what wrote it",
+    )
+
+
+def _checked_where(where: Any, batch_shape: tuple[int, ...]) -> Tensor:
+    """``where`` of ``reset(where=...)`` as a bool tensor of ``batch_shape``, or a ValueError naming the mismatch."""
+    try:
+        rows = torch.as_tensor(where)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(f"reset(where=...) needs a bool tensor or array, got {type(where).__name__}") from err
+    if rows.dtype != torch.bool:
+        raise TypeError(f"reset(where=...) needs bools (True: reset that element), got {rows.dtype}")
+    # [*batch, 1] too: torchrl's "_reset" flags have the shape of its done flags.
+    if tuple(rows.shape) not in (batch_shape, (*batch_shape, 1)):
+        raise ValueError(
+            f"reset(where=...) needs one bool per batch element, shape {list(batch_shape)}, got {list(rows.shape)}"
+        )
+    return rows.reshape(batch_shape)
 
 
 def _key(value: Any) -> NestedKey | None:
@@ -464,11 +625,19 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
         'AdaptiveModel'
     """
     checkpoint = _read_checkpoint(path)
-    net = MaskedMLP(**checkpoint["net"])
-    if adaptation is None:
-        saved = checkpoint["adaptation"]
-        adaptation = ADAPTATIONS[saved["name"]](**saved["config"])
-    model = _assemble(_CLASSES[checkpoint["class"]], net, checkpoint["keys"], adaptation)
+    try:
+        net = MaskedMLP(**checkpoint["net"])
+        if adaptation is None:
+            saved = checkpoint["adaptation"]
+            adaptation = ADAPTATIONS[saved["name"]](**saved["config"])
+        cls = _CLASSES[checkpoint["class"]]
+    except (TypeError, ValueError, KeyError) as err:  # a configuration this version cannot rebuild
+        raise UnreadableFileError(
+            f"smcd_rl model checkpoint {path} holds a configuration this version of smcd_rl cannot rebuild "
+            f"({type(err).__name__}: {err}); save the model again with this version",
+            Path(path),
+        ) from err
+    model = _assemble(cls, net, checkpoint["keys"], adaptation)
     model.load_checkpoint(checkpoint)
     return model
 

@@ -15,7 +15,8 @@ from tensordict import TensorDictBase
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel, CheckpointMismatchError
+from smcd_rl.files import CheckpointMismatchError, load_file, save_file
+from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel
 
 __all__ = ["fit", "fit_dynamics", "fit_reptile"]
 
@@ -52,6 +53,9 @@ def fit(
     With ``checkpoint``, the model, optimiser and loss history are saved after every epoch, and a
     later call with the same path resumes after the last finished epoch: the result is identical
     to an uninterrupted run, because each epoch's shuffling and masks depend on (seed, epoch) only.
+    The same holds for a call with more ``epochs`` than the checkpoint has finished: it trains on
+    from there, as the longer run would have. A call with fewer epochs, other settings or other
+    data raises :class:`smcd_rl.CheckpointMismatchError`, which says how to go on.
 
     Args:
         model: the model whose network is trained (its strategy is irrelevant here).
@@ -340,7 +344,9 @@ def _train(
     reseeded from (seed, epoch) before each epoch, which is what makes a resumed run identical
     to an uninterrupted one. ``trained`` is the module put in train mode meanwhile (and in
     eval mode after); ``model`` is what the checkpoint saves and restores. The checkpoint records
-    a digest of ``data``, so that a run on other data never resumes it.
+    a digest of ``data``, so that a run on other data never resumes it, and its finished epochs:
+    a run of more epochs trains on from there (no setting depends on the planned number of
+    epochs), one of fewer is refused, since the checkpoint's model is trained further than asked.
     """
     net = trained
     device = next(net.parameters()).device
@@ -349,7 +355,7 @@ def _train(
     path = Path(checkpoint) if checkpoint is not None else None
     digest = _data_digest(data) if path is not None else ""
     if path is not None and path.is_file():
-        start, history = _resume(path, model, optimizer, settings, digest)
+        start, history = _resume(path, model, optimizer, settings, digest, epochs)
     generator = torch.Generator(device=device)
     bar = tqdm(range(start, epochs), desc=desc, unit="epoch", disable=not progress, initial=start, total=epochs)
     for epoch in bar:
@@ -374,8 +380,6 @@ def _save(
     settings: dict,
     digest: str,
 ) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
     state = {
         "format": _FORMAT,
         "model": model.checkpoint(),
@@ -385,16 +389,24 @@ def _save(
         "settings": settings,
         "data": digest,
     }
-    torch.save(state, tmp)
-    os.replace(tmp, path)  # atomic: an interruption never leaves a half-written checkpoint
+    save_file(state, path, what="training checkpoint")  # atomic: an interruption never leaves half a checkpoint
 
 
 def _resume(
-    path: Path, model: _Checkpointable, optimizer: torch.optim.Optimizer | None, settings: dict, digest: str
+    path: Path,
+    model: _Checkpointable,
+    optimizer: torch.optim.Optimizer | None,
+    settings: dict,
+    digest: str,
+    epochs: int,
 ) -> tuple[int, list[float]]:
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(state, dict) or state.get("format") != _FORMAT:
-        raise CheckpointMismatchError(f"{path} is not an smcd_rl training checkpoint; delete it or pick another path")
+    state = load_file(
+        path,
+        what="smcd_rl training checkpoint",
+        expect_format=_FORMAT,
+        expect_keys=("model", "optimizer", "epoch", "history", "settings"),
+        fix="delete it to train afresh, or pass another checkpoint path",
+    )
     if state["settings"] != settings:
         raise CheckpointMismatchError(
             f"{path} was written with training settings {state['settings']}, not {settings}; "
@@ -405,10 +417,17 @@ def _resume(
             f"{path} was trained on other data (or written before checkpoints recorded their data); "
             "resume with the same data, delete it to train afresh, or use another checkpoint path"
         )
+    finished = int(state["epoch"])
+    if finished > epochs:
+        raise CheckpointMismatchError(
+            f"{path} holds a model trained for {finished} epochs, more than the epochs={epochs} asked for; "
+            f"pass epochs >= {finished} to use it (epochs={finished} loads it as it is), or delete it or use "
+            f"another checkpoint path to train {epochs} epochs afresh"
+        )
     model.load_checkpoint(state["model"])
     if optimizer is not None:
         optimizer.load_state_dict(state["optimizer"])
-    return int(state["epoch"]), list(state["history"])
+    return finished, list(state["history"])
 
 
 def _data_digest(data: TensorDictBase) -> str:

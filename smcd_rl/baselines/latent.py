@@ -21,7 +21,8 @@ from tensordict.utils import NestedKey
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from smcd_rl.model import CheckpointMismatchError
+from smcd_rl.checks import check_key, check_real_tensor, check_shape, check_tensordict
+from smcd_rl.files import CheckpointMismatchError, load_file
 from smcd_rl.normalization import Normalizer
 from smcd_rl.training import _normalised_pairs, _require_samples, _shuffled_epoch, _train
 
@@ -106,8 +107,13 @@ class LatentVariableModel(TensorDictModuleBase):
         bad = {k: v for k, v in sizes.items() if isinstance(v, bool) or not isinstance(v, int) or v < 1}
         if bad:
             raise ValueError(f"sizes must be positive ints, got {bad}")
+        if isinstance(in_keys, (str, tuple)) or not isinstance(in_keys, Sequence):
+            raise TypeError(f"in_keys must be a list of keys such as ['q'], got {in_keys!r}")
         if not in_keys:
             raise ValueError("in_keys must name at least one input key")
+        for key in in_keys:
+            check_key(key, "in_keys")
+        check_key(out_key, "out_key")
         self.in_keys = list(in_keys)
         self.out_keys = [out_key]
         self.out_key = out_key
@@ -138,21 +144,23 @@ class LatentVariableModel(TensorDictModuleBase):
     # ------------------------------------------------------------------ online use
     def reset(self, batch_shape: Sequence[int] = ()) -> None:
         """Forget all observations: ``h = 0`` for each element of ``batch_shape``."""
+        batch_shape = check_shape(batch_shape, "batch_shape")
         self.eval()
         weight = self.cell.weight_hh
-        self._h = weight.new_zeros(*(int(b) for b in batch_shape), self.state_dim)
+        self._h = weight.new_zeros(*batch_shape, self.state_dim)
 
     @torch.no_grad()
     def observe(self, td: TensorDictBase) -> None:
         """Update ``h`` from one (input, target) pair per batch element (``td`` has the reset batch)."""
+        check_tensordict(td, "observe")
         h = self._require_reset()
         if tuple(td.batch_size) != tuple(h.shape[:-1]):
             raise ValueError(
                 f"observe got a TensorDict of batch {list(td.batch_size)} but the model was reset with "
                 f"batch_shape={list(h.shape[:-1])}; pass one pair per batch element or reset with that shape"
             )
-        x = self.input_norm(self._inputs(td, "observe", check_finite=True))
-        y = self.output_norm(self._read(td, self.out_key, self.out_features, "observe", check_finite=True))
+        x = self.input_norm(self._inputs(td, "observe", check_finite=True, exact=True))
+        y = self.output_norm(self._read(td, self.out_key, self.out_features, "observe", check_finite=True, exact=True))
         fx, fy = self.phi_x(x), self.phi_y(y)
         z, _ = _gaussian(self.posterior(torch.cat([fx, fy, h], -1)))
         self._h = self._advance(fx, fy, self.phi_z(z), h)
@@ -160,6 +168,7 @@ class LatentVariableModel(TensorDictModuleBase):
     @torch.no_grad()
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         """Write the prediction for ``td``'s inputs (batch dims beyond the reset batch broadcast)."""
+        check_tensordict(td, "forward")
         h = self._require_reset()
         x = self.input_norm(self._inputs(td, "forward", check_finite=False))
         extra = x.dim() - h.dim()
@@ -218,11 +227,19 @@ class LatentVariableModel(TensorDictModuleBase):
         }
 
     def load_checkpoint(self, checkpoint: dict[str, Any] | str | os.PathLike[str]) -> None:
-        """Load weights and normalisation saved by :meth:`checkpoint` (a dict or a ``torch.save`` file)."""
+        """Load weights and normalisation saved by :meth:`checkpoint` (a dict or a file written by ``save_file``)."""
         if not isinstance(checkpoint, dict):
-            checkpoint = torch.load(checkpoint, map_location="cpu", weights_only=False)
+            checkpoint = load_file(
+                checkpoint,
+                what="LatentVariableModel checkpoint",
+                expect_format=_FORMAT,
+                expect_keys=("config", "keys", "state_dict"),
+            )
         if not isinstance(checkpoint, dict) or checkpoint.get("format") != _FORMAT:
             raise CheckpointMismatchError(f"not a LatentVariableModel checkpoint (expected format {_FORMAT})")
+        missing = [key for key in ("config", "keys", "state_dict") if key not in checkpoint]
+        if missing:
+            raise CheckpointMismatchError(f"the LatentVariableModel checkpoint has no {missing} entries")
         if checkpoint["config"] != self.config or checkpoint["keys"] != self._key_config():
             raise CheckpointMismatchError(
                 f"checkpoint holds a model {checkpoint['config']} with keys {checkpoint['keys']} but this one is "
@@ -248,10 +265,22 @@ class LatentVariableModel(TensorDictModuleBase):
         return {"in_keys": [plain(k) for k in self.in_keys], "out_key": plain(self.out_key)}
 
     def _inputs(
-        self, td: TensorDictBase, what: str, *, keys: Sequence[NestedKey] | None = None, check_finite: bool = True
+        self,
+        td: TensorDictBase,
+        what: str,
+        *,
+        keys: Sequence[NestedKey] | None = None,
+        check_finite: bool = True,
+        exact: bool = False,
     ) -> Tensor:
-        parts = [self._read(td, key, None, what, check_finite=check_finite) for key in keys or self.in_keys]
-        x = torch.cat(parts, -1) if len(parts) > 1 else parts[0]
+        parts = [
+            self._read(td, key, None, what, check_finite=check_finite, exact=exact) for key in keys or self.in_keys
+        ]
+        try:
+            x = torch.cat(parts, -1) if len(parts) > 1 else parts[0]
+        except RuntimeError as err:
+            shapes = {str(k): list(p.shape) for k, p in zip(keys or self.in_keys, parts, strict=True)}
+            raise ValueError(f"{what}: cannot concatenate inputs {shapes} along the last dim") from err
         if x.shape[-1] != self.in_features:
             raise ValueError(
                 f"{what}: the inputs {keys or self.in_keys} give {x.shape[-1]} features, "
@@ -260,14 +289,28 @@ class LatentVariableModel(TensorDictModuleBase):
         return x
 
     def _read(
-        self, td: TensorDictBase, key: NestedKey, size: int | None, what: str, *, check_finite: bool = True
+        self,
+        td: TensorDictBase,
+        key: NestedKey,
+        size: int | None,
+        what: str,
+        *,
+        check_finite: bool = True,
+        exact: bool = False,
     ) -> Tensor:
         value = td.get(key, None)
         if value is None:
             raise KeyError(f"{what}: the TensorDict has no key {key!r}; it has {sorted(map(str, td.keys(True, True)))}")
-        if size is not None and value.shape[-1:] != (size,):
-            raise ValueError(f"{what}: {key!r} must have shape [..., {size}], got {list(value.shape)}")
-        value = value.to(self.input_norm.mean.dtype)
+        value = check_real_tensor(value, f"{what}: {key!r}")
+        if value.dim() == 0 or (size is not None and value.shape[-1:] != (size,)):
+            raise ValueError(f"{what}: {key!r} must have shape [..., {size or 'features'}], got {list(value.shape)}")
+        if exact and tuple(value.shape[:-1]) != tuple(td.batch_size):
+            raise ValueError(
+                f"{what}: {key!r} has shape {list(value.shape)} but the TensorDict's batch is {list(td.batch_size)}; "
+                f"{what} takes one pair per batch element, [*batch, features]"
+            )
+        # Converted first: finiteness counts in the model's dtype (a float64 1e39 is inf in float32).
+        value = value.to(device=self.input_norm.mean.device, dtype=self.input_norm.mean.dtype)
         if check_finite and not bool(torch.isfinite(value).all()):
             raise ValueError(f"{what}: {key!r} contains NaN or inf; drop or repair that transition")
         return value

@@ -11,6 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from smcd_rl.checks import check_real, check_real_tensor, check_shape, check_tensordict
 from smcd_rl.filter import ParticleFilter
 from smcd_rl.resampling import ResamplingScheme
 
@@ -117,22 +118,35 @@ class OracleModel(TensorDictModuleBase):
         generator: torch.Generator | None = None,
     ) -> None:
         super().__init__()
-        if noise_std <= 0:
-            raise ValueError(f"noise_std must be > 0, got {noise_std}")
+        self.noise_std = check_real(noise_std, "noise_std", low=0.0, open_low=True)
+        if not in_keys or isinstance(in_keys, (str, tuple)):
+            raise TypeError(f"in_keys must be a non-empty list of keys such as ['q'], got {in_keys!r}")
         self.in_keys = list(in_keys)
         self.out_keys = [out_key]
         self.predict_fn = predict
-        self.noise_std = float(noise_std)
         self.filter = ParameterFilter(prior, num_particles, jitter_std=jitter_std, lower=lower, generator=generator)
         self._batch_shape: tuple[int, ...] = ()
 
     def reset(self, batch_shape: Sequence[int] = ()) -> None:
-        self._batch_shape = tuple(int(b) for b in batch_shape)
+        self._batch_shape = check_shape(batch_shape, "batch_shape")
         self.filter.reset(self._batch_shape)
 
     def observe(self, td: TensorDictBase) -> None:
+        check_tensordict(td, "observe")
+        if tuple(td.batch_size) != self._batch_shape:
+            raise ValueError(
+                f"observe got a TensorDict of batch {list(td.batch_size)} but the oracle was reset with "
+                f"batch_shape={list(self._batch_shape)}; pass one transition per batch element"
+            )
         inputs = self._inputs(td)
-        target = td.get(self.out_keys[0])
+        target = self._read(td, self.out_keys[0])
+        for key, value in (("inputs", inputs), (self.out_keys[0], target)):
+            if tuple(value.shape[:-1]) != tuple(td.batch_size):
+                raise ValueError(
+                    f"observe: {key!r} has shape {list(value.shape)} but the TensorDict's batch is "
+                    f"{list(td.batch_size)}; pass one transition per batch element, [*batch, features]"
+                )
+        # Checked in float32, the dtype the physics runs in: a float64 1e39 would be inf there.
         if not (bool(torch.isfinite(inputs).all()) and bool(torch.isfinite(target).all())):
             raise ValueError("observe: NaN or inf in the transition; the filter state is unchanged")
         sigma = self.noise_std
@@ -145,6 +159,7 @@ class OracleModel(TensorDictModuleBase):
         self.filter.update(log_likelihood)
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
+        check_tensordict(td, "forward")
         inputs = self._inputs(td)
         extra = inputs.dim() - 1 - len(self._batch_shape)
         params = self.filter.particles
@@ -156,6 +171,19 @@ class OracleModel(TensorDictModuleBase):
         td.set(self.out_keys[0], mean)
         return td
 
+    def _read(self, td: TensorDictBase, key: NestedKey) -> Tensor:
+        value = td.get(key, None)
+        if value is None:
+            raise KeyError(f"the TensorDict has no key {key!r}; it has {sorted(map(str, td.keys(True, True)))}")
+        value = check_real_tensor(value, repr(key))
+        if value.dim() == 0:
+            raise ValueError(f"{key!r} must have shape [..., features], got a scalar")
+        return value.to(torch.float32)
+
     def _inputs(self, td: TensorDictBase) -> Tensor:
-        parts = [td.get(k).float() for k in self.in_keys]
-        return torch.cat(parts, -1) if len(parts) > 1 else parts[0]
+        parts = [self._read(td, k) for k in self.in_keys]
+        try:
+            return torch.cat(parts, -1) if len(parts) > 1 else parts[0]
+        except RuntimeError as err:
+            shapes = {str(k): list(p.shape) for k, p in zip(self.in_keys, parts, strict=True)}
+            raise ValueError(f"cannot concatenate inputs {shapes} along the last dim") from err

@@ -162,7 +162,12 @@ class ResultCache:
         self.fingerprint = settings_fingerprint(settings)
         self._entries: dict[str, Any] = {}
         if self.path.is_file():
-            saved = load_file(self.path, what="result cache", fix="delete it and rerun: its pieces are computed again")
+            saved = load_file(
+                self.path,
+                what="result cache",
+                expect_keys=("fingerprint", "entries"),
+                fix="delete it and rerun: its pieces are computed again",
+            )
             if isinstance(saved, dict) and saved.get("fingerprint") == self.fingerprint:
                 self._entries = saved["entries"]
 

@@ -1,0 +1,205 @@
+"""Reading and writing the files smcd_rl saves: one loader and one atomic saver for all of them.
+
+Model checkpoints (:meth:`smcd_rl.AdaptiveModel.save`), training checkpoints (``fit(...,
+checkpoint=)``) and the experiments' result caches are all dicts written with :func:`torch.save`.
+They go through :func:`save_file` and :func:`load_file`, so that every way a file can be bad gives
+one clear error naming the file and the fix, instead of a pickle or zip traceback:
+
+=========================================  ============================================================
+what went wrong                            error
+=========================================  ============================================================
+no such file                               ``FileNotFoundError``
+empty, truncated, corrupt, not a dict,     :class:`UnreadableFileError` (a ``ValueError``)
+keys missing
+another kind of smcd_rl file               :class:`CheckpointMismatchError` (a ``ValueError``)
+directory read-only, disk full on write    :class:`FileWriteError` (an ``OSError`` and a ``ValueError``)
+=========================================  ============================================================
+
+Writes are atomic: the data goes to a temporary file with a name of its own in the same directory,
+is flushed to disk, and replaces the target in one ``os.replace``. An interruption never leaves a
+half-written file, and two runs writing into one directory never touch each other's temporary files.
+
+Example:
+    >>> import tempfile, torch
+    >>> from smcd_rl.files import load_file, save_file
+    >>> path = tempfile.mkdtemp() + "/state.pt"
+    >>> save_file({"format": "demo/1", "weights": torch.ones(2)}, path, what="demo file")
+    >>> load_file(path, what="demo file", expect_format="demo/1", expect_keys=["weights"])["weights"]
+    tensor([1., 1.])
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import secrets
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+__all__ = ["load_file", "save_file", "UnreadableFileError", "FileWriteError", "CheckpointMismatchError"]
+
+
+class CheckpointMismatchError(ValueError):
+    """A checkpoint does not fit the model or the training run it is loaded into."""
+
+
+class UnreadableFileError(ValueError):
+    """A file cannot be read back: it is empty, truncated, corrupt or incomplete.
+
+    Attributes:
+        path: the file.
+    """
+
+    def __init__(self, message: str, path: Path) -> None:
+        super().__init__(message)
+        self.path = path
+
+
+class FileWriteError(OSError, ValueError):
+    """A file could not be written (read-only directory, disk full, ...).
+
+    An ``OSError``, since the operating system refused; also a ``ValueError``, so that the
+    ``smcd-rl`` command reports it in one line like any other problem with its options.
+
+    Attributes:
+        path: the file that was to be written.
+    """
+
+    def __init__(self, message: str, path: Path, errno_: int | None = None) -> None:
+        super().__init__(message)
+        self.path = path
+        self.errno = errno_
+
+
+def load_file(
+    path: str | os.PathLike[str],
+    *,
+    what: str,
+    expect_format: str | None = None,
+    expect_keys: Iterable[str] = (),
+    fix: str | None = None,
+) -> dict[str, Any]:
+    """Read a dict written by :func:`save_file`, or raise an error that names the file and the fix.
+
+    Args:
+        path: the file.
+        what: what the file is, for messages (``"model checkpoint"``).
+        expect_format: the dict's ``"format"`` entry must be this; another value (another kind of
+            smcd_rl file) raises :class:`CheckpointMismatchError`.
+        expect_keys: entries the dict must have.
+        fix: what to do about an unreadable file (default: delete it and rerun).
+
+    Returns:
+        The dict, with tensors on the CPU.
+
+    Raises:
+        FileNotFoundError: there is no file at ``path``.
+        UnreadableFileError: the file is empty, truncated, corrupt, not a dict or lacks ``expect_keys``.
+        CheckpointMismatchError: the file is another kind of smcd_rl file than ``expect_format``.
+    """
+    path = Path(path)
+    fix = fix or "delete it and rerun the command that wrote it"
+    if not path.exists():
+        raise FileNotFoundError(f"no {what} at {path}")
+    if not path.is_file():
+        raise UnreadableFileError(f"{what} {path} is not a file; pass the path of a file", path)
+    try:
+        if path.stat().st_size == 0:
+            raise UnreadableFileError(f"{what} {path} is empty (its write was interrupted?); {fix}", path)
+        # weights_only=False: the files hold configs, histories and generator states besides tensors,
+        # and are the project's own (never load one from a source you do not trust).
+        loaded = torch.load(path, map_location="cpu", weights_only=False)
+    except UnreadableFileError:
+        raise
+    except PermissionError as err:  # the file is there but the system will not let us read it
+        raise UnreadableFileError(
+            f"cannot read {what} {path}: {err.strerror or err}; check its permissions", path
+        ) from err
+    # A damaged file can raise almost anything: EOFError, KeyError, RuntimeError from the zip reader,
+    # even OSError (EINVAL) when a truncated archive seeks past its end.
+    except Exception as err:
+        detail = str(err).strip().splitlines()[0] if str(err).strip() else "no detail"
+        raise UnreadableFileError(
+            f"{what} {path} is corrupt or truncated ({type(err).__name__}: {detail}); {fix}", path
+        ) from err
+    if not isinstance(loaded, Mapping):
+        raise UnreadableFileError(f"{what} {path} holds a {type(loaded).__name__}, not a {what}; {fix}", path)
+    if expect_format is not None and loaded.get("format") != expect_format:
+        found = loaded.get("format")
+        kind = f"a file of format {found!r}" if found is not None else "a file without a format entry"
+        raise CheckpointMismatchError(
+            f"{path} is not a {what}: it is {kind}, expected {expect_format!r}; pass the right file, or delete it "
+            "and rerun to write a new one"
+        )
+    missing = [key for key in expect_keys if key not in loaded]
+    if missing:
+        raise UnreadableFileError(f"{what} {path} is incomplete: it has no {missing} entries; {fix}", path)
+    return dict(loaded)
+
+
+def save_file(obj: Mapping[str, Any], path: str | os.PathLike[str], *, what: str = "file") -> None:
+    """Write ``obj`` to ``path`` atomically with :func:`torch.save`; :func:`load_file` reads it back.
+
+    The parent directories are created. The data goes to a temporary file of a unique name in the
+    same directory, reaches the disk, then replaces ``path`` in one step.
+
+    Args:
+        obj: the dict to save.
+        path: the file to write (replaced if it exists).
+        what: what the file is, for messages.
+
+    Raises:
+        FileWriteError: the directory cannot be created or written (read-only, disk full, ...);
+            ``path`` is then unchanged and no temporary file is left behind.
+    """
+    path = Path(path)
+    directory = path.parent
+    tmp: Path | None = None
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        tmp, handle = _create_unique(directory, path.name)
+        with handle:
+            torch.save(dict(obj), handle)
+            handle.flush()
+            os.fsync(handle.fileno())  # on disk before the rename, so a crash never leaves an empty file
+        os.replace(tmp, path)
+    except BaseException as err:  # also KeyboardInterrupt: never leave a stray temporary file
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        if isinstance(err, (OSError, RuntimeError)):  # RuntimeError: torch's own writer errors
+            code = err.errno if isinstance(err, OSError) else None
+            raise FileWriteError(f"cannot write {what} {path}: {_write_problem(err, directory)}", path, code) from err
+        raise
+
+
+def _create_unique(directory: Path, name: str) -> tuple[Path, Any]:
+    """Create and open a new temporary file for ``name`` in ``directory``, a name no other writer uses.
+
+    Not ``tempfile.mkstemp``: it creates files readable by their owner only, and the replaced file
+    would lose the permissions the umask gives every other file the project writes.
+    """
+    while True:
+        tmp = directory / f".{name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+        except FileExistsError:  # astronomically unlikely; draw another name
+            continue
+        return tmp, os.fdopen(fd, "wb")
+
+
+def _write_problem(err: BaseException, directory: Path) -> str:
+    """Why a write into ``directory`` failed, and what to do about it, in words."""
+    code = err.errno if isinstance(err, OSError) else None
+    if code in (errno.EACCES, errno.EPERM, errno.EROFS) or (code is None and not os.access(directory, os.W_OK)):
+        return f"the directory {directory} is read-only or not writable; make it writable or write to another directory"
+    if code in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
+        return f"no space left on the disk of {directory}; free some space or write to another directory"
+    if code in (errno.ENOTDIR, errno.EEXIST) or (code is None and directory.exists() and not directory.is_dir()):
+        return f"{directory} (or a folder above it) is a file, not a directory; remove it or write elsewhere"
+    reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err).strip().splitlines()[0]
+    return f"{reason} (in {directory}); check the directory, or write to another one"
