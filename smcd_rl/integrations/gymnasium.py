@@ -118,7 +118,7 @@ class _Hook:
             return space
         low = np.concatenate([space.low, self.context_low]).astype(self.obs_dtype)
         high = np.concatenate([space.high, self.context_high]).astype(self.obs_dtype)
-        return spaces.Box(low, high, dtype=self.obs_dtype)  # type: ignore[arg-type]
+        return spaces.Box(low, high, dtype=self.obs_dtype)
 
     def tensor(self, value: Any) -> Tensor:
         param = next(self.model.net.parameters())
@@ -221,7 +221,8 @@ class AdaptationWrapper(
             ``context`` is not a positive int.
 
     Example:
-        >>> import gymnasium, torch, smcd_rl
+        >>> import gymnasium, torch, smcd_rl, warnings
+        >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
         >>> from smcd_rl.integrations.gymnasium import AdaptationWrapper
         >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(4 + 2, 4, hidden=(16,)),
         ...                                       adaptation=smcd_rl.SMCD(num_particles=20))
@@ -315,7 +316,8 @@ class AdaptationVectorWrapper(VectorWrapper):
         info_key: key of the summary in ``info``.
 
     Example:
-        >>> import gymnasium, smcd_rl
+        >>> import gymnasium, smcd_rl, warnings
+        >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
         >>> from smcd_rl.integrations.gymnasium import AdaptationVectorWrapper
         >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(4 + 2, 4, hidden=(16,)),
         ...                                       adaptation=smcd_rl.SMCD(num_particles=20))
@@ -365,7 +367,9 @@ class AdaptationVectorWrapper(VectorWrapper):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         options = dict(options) if options is not None else None  # the vector env pops "reset_mask"
         partial = None if options is None else options.get("reset_mask")
-        obs, info = self.env.reset(seed=seed, options=options)
+        # Sync and async vector envs take one seed per sub-env, though VectorEnv.reset's hint says int only.
+        reset: Callable[..., tuple[np.ndarray, dict[str, Any]]] = self.env.reset
+        obs, info = reset(seed=seed, options=options)
         next_obs = self._hook.tensor(obs)
         if partial is None or self._last_obs is None:
             first_seed = seed[0] if isinstance(seed, list) else seed
@@ -482,9 +486,9 @@ def collect_transitions(
         rows["obs"].append(_original(obs, strip))
         rows["action"].append(np.asarray(action, dtype=np.float32))
         rows["next"].append(_original(next_obs, strip))
-        rows["reward"].append(np.float32(reward))
-        rows["term"].append(np.bool_(terminated))
-        rows["trunc"].append(np.bool_(truncated))
+        rows["reward"].append(np.asarray(reward, dtype=np.float32))
+        rows["term"].append(np.asarray(terminated, dtype=np.bool_))
+        rows["trunc"].append(np.asarray(truncated, dtype=np.bool_))
         obs = env.reset()[0] if terminated or truncated else next_obs
     term = torch.as_tensor(np.stack(rows["term"])).unsqueeze(-1)
     trunc = torch.as_tensor(np.stack(rows["trunc"])).unsqueeze(-1)
