@@ -118,14 +118,27 @@ def make_config(command: str, given: dict[str, Any]) -> Any:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    given = {k: v for k, v in vars(args).items() if k != "command" and not k.startswith("_")}
-    config = make_config(args._command, given)
-    module = importlib.import_module(COMMANDS[args._command][0])
+    """Run one ``smcd-rl`` command; returns the exit status.
+
+    Problems the user can fix (bad options, unreadable or unwritable files, a missing extra) print
+    one line on stderr and return 2; Ctrl-C prints one line saying how to resume and returns 130
+    (``128 + SIGINT``, what shells report for an interrupted command).
+    """
+    name = "smcd-rl"
     try:
+        args = build_parser().parse_args(argv)
+        name = f"smcd-rl {args._command}"
+        given = {k: v for k, v in vars(args).items() if k != "command" and not k.startswith("_")}
+        config = make_config(args._command, given)
+        module = importlib.import_module(COMMANDS[args._command][0])
         module.run(config)
-    except (ValueError, KeyError, FileNotFoundError, ImportError) as err:  # ImportError: a missing extra
-        print(f"smcd-rl {args._command}: error: {err}", file=sys.stderr)
+    except KeyboardInterrupt:
+        # Experiments save each finished piece (trained models, caches) as they go, atomically.
+        print(f"{name}: interrupted; run the same command again to resume (finished work is kept)", file=sys.stderr)
+        return 130
+    # ValueError includes smcd_rl.files' unreadable-file and failed-write errors; ImportError: a missing extra.
+    except (ValueError, KeyError, FileNotFoundError, ImportError) as err:
+        print(f"{name}: error: {err}", file=sys.stderr)
         return 2
     return 0
 
