@@ -172,7 +172,8 @@ def save_file(obj: Mapping[str, Any], path: str | os.PathLike[str], *, what: str
             with contextlib.suppress(OSError):
                 tmp.unlink()
         if isinstance(err, (OSError, RuntimeError)):  # RuntimeError: torch's own writer errors
-            code = err.errno if isinstance(err, OSError) else None
+            cause = _os_error(err)
+            code = cause.errno if cause is not None else None
             raise FileWriteError(f"cannot write {what} {path}: {_write_problem(err, directory)}", path, code) from err
         raise
 
@@ -192,14 +193,27 @@ def _create_unique(directory: Path, name: str) -> tuple[Path, Any]:
         return tmp, os.fdopen(fd, "wb")
 
 
+def _os_error(err: BaseException) -> OSError | None:
+    """The OSError behind ``err``: itself, or the one torch's writer met (its RuntimeError hides the errno)."""
+    seen: set[int] = set()
+    current: BaseException | None = err
+    while current is not None and id(current) not in seen:
+        if isinstance(current, OSError):
+            return current
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return None
+
+
 def _write_problem(err: BaseException, directory: Path) -> str:
     """Why a write into ``directory`` failed, and what to do about it, in words."""
-    code = err.errno if isinstance(err, OSError) else None
+    cause = _os_error(err)
+    code = cause.errno if cause is not None else None
     if code in (errno.EACCES, errno.EPERM, errno.EROFS) or (code is None and not os.access(directory, os.W_OK)):
         return f"the directory {directory} is read-only or not writable; make it writable or write to another directory"
     if code in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
         return f"no space left on the disk of {directory}; free some space or write to another directory"
     if code in (errno.ENOTDIR, errno.EEXIST) or (code is None and directory.exists() and not directory.is_dir()):
         return f"{directory} (or a folder above it) is a file, not a directory; remove it or write elsewhere"
-    reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err).strip().splitlines()[0]
+    reason = cause.strerror if cause is not None and cause.strerror else str(err).strip().splitlines()[0]
     return f"{reason} (in {directory}); check the directory, or write to another one"
