@@ -160,11 +160,12 @@ def top_k_neighbour_accuracy(masks: Tensor, properties: Tensor, ks: Sequence[int
         raise ValueError(f"masks has {n} items but properties has {properties.shape[0]}; one row per item in both")
     if n < 2:
         raise ValueError(f"need at least 2 items to find neighbours, got {n}")
-    ks = [int(k) for k in ks]
+    ks = list(ks)
     if not ks:
         raise ValueError("ks must list at least one k")
     for k in ks:
-        _check_k(k, n - 1, "other items (n - 1)")
+        _check_k(k, n - 1, "other items (n - 1)")  # refuses k = 2.5 rather than truncating it
+    ks = [int(k) for k in ks]
     eye = torch.eye(n, dtype=torch.bool, device=masks.device)
     property_distance = torch.cdist(properties.double(), properties.double()).masked_fill(eye, float("inf"))
     nearest = property_distance.argmin(-1)  # [n]

@@ -7,6 +7,8 @@ from typing import Literal, get_args
 import torch
 from torch import Tensor
 
+from smcd_rl.checks import check_count
+
 __all__ = ["ResamplingScheme", "RESAMPLING_SCHEMES", "resample_indices", "check_scheme"]
 
 ResamplingScheme = Literal["systematic", "multinomial", "stratified", "residual"]
@@ -50,7 +52,7 @@ def resample_indices(
     """
     check_scheme(scheme)
     n = log_weights.shape[-1]
-    m = n if num_samples is None else int(num_samples)
+    m = n if num_samples is None else check_count(num_samples, "num_samples")
     if n < 1 or m < 1:
         raise ValueError(f"need at least one particle and one sample, got N={n}, M={m}")
     batch = log_weights.shape[:-1]
