@@ -185,10 +185,10 @@ class AdaptiveModel(TensorDictModuleBase):
         target = self._read(td, self.target_key, self.net.out_features, what="observe", exact=True)
         outputs = self.output_norm(self._to_output(td, target, exact=True))
         with torch.no_grad():
-            if not sequence or td_batch == batch_shape:
-                self.adaptation.observe(inputs, outputs)
-            else:
+            if sequence:
                 self._observe_sequence(inputs, outputs)
+            else:
+                self.adaptation.observe(inputs, outputs)
 
     def _observe_sequence(self, inputs: Tensor, outputs: Tensor) -> None:
         """Observe ``inputs [T, in]``, ``outputs [T, out]`` in order, all or nothing."""
