@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import hashlib
 import math
 import os
 from collections.abc import Callable
@@ -15,6 +14,7 @@ from tensordict import TensorDictBase
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from smcd_rl.digests import content_digest
 from smcd_rl.files import CheckpointMismatchError, load_file, save_file
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel
 
@@ -353,7 +353,7 @@ def _train(
     history: list[float] = []
     start = 0
     path = Path(checkpoint) if checkpoint is not None else None
-    digest = _data_digest(data) if path is not None else ""
+    digest = content_digest(data) if path is not None else ""
     if path is not None and path.is_file():
         start, history = _resume(path, model, optimizer, settings, digest, epochs)
     generator = torch.Generator(device=device)
@@ -428,17 +428,3 @@ def _resume(
     if optimizer is not None:
         optimizer.load_state_dict(state["optimizer"])
     return finished, list(state["history"])
-
-
-def _data_digest(data: TensorDictBase) -> str:
-    """A digest of every entry of ``data`` (keys, dtypes, shapes and values): equal only for the same data."""
-    digest = hashlib.sha256(repr(tuple(data.batch_size)).encode())
-    for key in sorted(data.keys(include_nested=True, leaves_only=True), key=repr):
-        value = data.get(key)
-        if not isinstance(value, Tensor):  # non-tensor data: its repr
-            digest.update(f"{key!r}{value!r}".encode())
-            continue
-        value = value.detach().cpu().contiguous()
-        digest.update(f"{key!r}{value.dtype}{tuple(value.shape)}".encode())
-        digest.update(value.reshape(-1).view(torch.uint8).numpy().tobytes())
-    return digest.hexdigest()

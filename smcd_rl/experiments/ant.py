@@ -11,8 +11,8 @@ its 95% bootstrap interval, and its spread), ``trials.csv`` (every episode), ``c
 (each adaptation paired with no adaptation and with the other over the same episodes, per planner
 and condition), ``results.json``, ``ant.png`` (Fig. 15: healthy and crippled panels, bars per
 planner grouped by adaptation, error bars the 95% intervals) and ``report.md``. The collected
-data (``data.pt``), the training (``train-<digest>.ckpt``) and finished cells (``partial.pt``,
-keyed by the trained model's digest and the settings) are reused by a rerun.
+data and the finished cells (in ``partial/``, keyed by the data settings, and by the trained
+model's digest and the settings) and the training (``train-<digest>.ckpt``) are reused by a rerun.
 
 Choices the paper leaves open, made here:
 
@@ -58,9 +58,10 @@ import numpy as np
 import torch
 
 import smcd_rl
+from smcd_rl.digests import model_digest
 from smcd_rl.experiments.ant_episodes import ACTION_DIM, OBS_DIM, TASKS, collect, run_cell, validation_error
-from smcd_rl.experiments.common import ResultCache, format_table
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, model_digest, setting
+from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 
 __all__ = ["AntConfig", "FULL", "PLANNERS", "ADAPTATIONS", "CONDITIONS", "CELLS", "TASKS", "run", "table"]
@@ -173,11 +174,11 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the experiment and write its files; returns the JSON payload."""
     with Experiment(config, progress=progress) as ex:
         # --- seed, data from the healthy Ant ----------------------------------------------------
-        data_cache = ResultCache(ex.out / "data.pt", {k: getattr(config, k) for k in DATA_SETTINGS})
-        collected = data_cache.get("transitions")
+        data_key = {k: getattr(config, k) for k in DATA_SETTINGS}
+        collected = ex.store.get("data", data_key)
         if collected is None:
             collected = collect(config, progress=progress)
-            data_cache.put("transitions", collected)
+            ex.store.put("data", data_key, collected)
         n_val = max(1, int(round(config.validation * config.transitions)))
         train, val = collected["data"][:-n_val].to(ex.device), collected["data"][-n_val:].to(ex.device)
         episode_seeds = [config.seed + 1_000_003 + k for k in range(config.episodes)]  # the same in every cell

@@ -17,13 +17,10 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from smcd_rl.files import load_file, save_file
-
 __all__ = [
     "option",
     "config_dict",
     "machine_info",
-    "ResultCache",
     "write_csv",
     "write_json",
     "format_table",
@@ -139,44 +136,6 @@ def training_checkpoint(out: Path, name: str, settings: Mapping[str, Any]) -> Pa
         'train-de7d7744ccd7.ckpt'
     """
     return Path(out) / f"{name}-{settings_fingerprint(settings)[:12]}.ckpt"
-
-
-class ResultCache:
-    """Finished pieces of an experiment, saved as they complete so a rerun skips them.
-
-    The cache is tied to a fingerprint of the settings that determine the results; a rerun
-    with other settings starts afresh instead of mixing results.
-
-    Example:
-        >>> import tempfile
-        >>> cache = ResultCache(tempfile.mkdtemp() + "/cache.pt", {"seed": 0})
-        >>> cache.get("M+S") is None
-        True
-        >>> cache.put("M+S", {"rmse": 0.1})
-        >>> ResultCache(cache.path, {"seed": 0}).get("M+S")
-        {'rmse': 0.1}
-    """
-
-    def __init__(self, path: str | os.PathLike[str], settings: Mapping[str, Any]) -> None:
-        self.path = Path(path)
-        self.fingerprint = settings_fingerprint(settings)
-        self._entries: dict[str, Any] = {}
-        if self.path.is_file():
-            saved = load_file(
-                self.path,
-                what="result cache",
-                expect_keys=("fingerprint", "entries"),
-                fix="delete it and rerun: its pieces are computed again",
-            )
-            if isinstance(saved, dict) and saved.get("fingerprint") == self.fingerprint:
-                self._entries = saved["entries"]
-
-    def get(self, key: str) -> Any:
-        return self._entries.get(key)
-
-    def put(self, key: str, value: Any) -> None:
-        self._entries[key] = value
-        save_file({"fingerprint": self.fingerprint, "entries": self._entries}, self.path, what="result cache")
 
 
 def write_csv(path: str | os.PathLike[str], rows: Sequence[Mapping[str, Any]]) -> None:

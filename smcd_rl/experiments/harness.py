@@ -19,7 +19,6 @@ file name, so no rerun ever picks up a stale result.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import time
 import typing
@@ -29,13 +28,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-import smcd_rl
+from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.common import (
-    ResultCache,
     config_dict,
     machine_info,
     resolve_device,
@@ -45,13 +42,12 @@ from smcd_rl.experiments.common import (
     write_csv,
     write_json,
 )
+from smcd_rl.experiments.result_store import ResultStore
 
 __all__ = [
     "ExperimentConfig",
     "Experiment",
     "setting",
-    "content_digest",
-    "model_digest",
     "OUTPUT_ONLY",
 ]
 
@@ -168,59 +164,6 @@ def _check_item(flag: str, value: Any, kind: Any, metadata: Mapping[str, Any]) -
         raise ValueError(f"{flag}: unknown value {value!r}; choose from {list(choices)}")
 
 
-def content_digest(value: Any) -> str:
-    """A hex digest of tensors, TensorDicts, modules' states and plain values: equal only for equal content.
-
-    Example:
-        >>> import torch
-        >>> content_digest(torch.ones(3)) == content_digest(torch.ones(3)) != content_digest(torch.zeros(3))
-        True
-        >>> import numpy as np
-        >>> a = np.zeros(10_000); b = a.copy(); b[5000] = 1  # repr shows neither element
-        >>> content_digest(a) != content_digest(b)
-        True
-    """
-    digest = hashlib.sha256()
-    _feed(digest, value)
-    return digest.hexdigest()
-
-
-def model_digest(model: torch.nn.Module) -> str:
-    """The digest of a module's class, structure and every parameter and buffer (what it predicts)."""
-    return content_digest({"class": type(model).__qualname__, "repr": repr(model), "state": model.state_dict()})
-
-
-def _feed(digest: Any, value: Any) -> None:
-    from tensordict import TensorDictBase  # tensordict is heavy; only digests of data need it
-
-    if isinstance(value, np.ndarray):  # by every element: repr elides the middle of large arrays
-        if value.dtype.kind not in "biuf":
-            digest.update(f"A{value.dtype}{value.shape}{value.tolist()!r}".encode())
-            return
-        value = torch.from_numpy(np.ascontiguousarray(value))
-    if isinstance(value, torch.Tensor):
-        tensor = value.detach().cpu().contiguous()
-        digest.update(f"T{tensor.dtype}{tuple(tensor.shape)}".encode())
-        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
-    elif isinstance(value, TensorDictBase):
-        digest.update(f"TD{tuple(value.batch_size)}".encode())
-        for key in sorted(value.keys(include_nested=True, leaves_only=True), key=str):
-            digest.update(repr(key).encode())
-            _feed(digest, value.get(key))
-    elif isinstance(value, Mapping):
-        digest.update(b"{")
-        for key in sorted(value, key=str):
-            digest.update(repr(key).encode())
-            _feed(digest, value[key])
-        digest.update(b"}")
-    elif isinstance(value, (list, tuple)):
-        digest.update(f"[{len(value)}".encode())
-        for item in value:
-            _feed(digest, item)
-    else:
-        digest.update(repr(value).encode())
-
-
 class Experiment:
     """One run of an experiment command: its output directory, seeded generator, device and caches.
 
@@ -241,6 +184,7 @@ class Experiment:
         self.device = torch.device("cpu")
         self.generator = torch.Generator()
         self.timings: dict[str, float] = {}
+        self.store = ResultStore(self.out / "partial", what="finished result")  # pieces a rerun skips
         self.written: list[str] = []  # the files :meth:`write` wrote
         self.result: dict[str, Any] = {}  # what :meth:`write` returned
         self._stack = ExitStack()
@@ -296,37 +240,35 @@ class Experiment:
         evaluate: Callable[[str, T], Mapping[str, Any]],
         *,
         content: Mapping[str, Any] | Callable[[str], Mapping[str, Any]],
-        cache: str = "partial.pt",
+        kind: str = "method",
     ) -> dict[str, dict[str, Any]]:
         """Run ``evaluate(name, methods[name]())`` for every method, skipping those a rerun already has.
 
-        Each method's results are cached under a key of everything that determines them: the
-        package version, the config's settings (less :attr:`ExperimentConfig.SELECTION`) and
-        ``content``. Nothing is keyed by a file name, so a changed model file or dataset is
-        evaluated afresh.
+        Each method's results are stored in ``out/partial/`` (a :class:`ResultStore`) under a key
+        of everything that determines them: the method's name, the config's settings (less
+        :attr:`ExperimentConfig.SELECTION`) and ``content``. Nothing is keyed by a file name, so a
+        changed model file or dataset is evaluated afresh.
 
         Args:
             methods: method name -> a factory of what ``evaluate`` runs (built only when needed).
             evaluate: runs one method over all trials and returns its results (tensors, numbers).
             content: what determines the results besides the settings, e.g. the digests of the
                 trained models; a function of the method's name where methods use different models.
-            cache: the cache file's name in ``out``.
+            kind: what the results are (the stored files' prefix); parts of one experiment that
+                evaluate different things under the same method names use a kind each.
 
         Returns:
             method name -> its results, each with ``"seconds"`` (wall time of its evaluation).
         """
         settings = self.config.settings(exclude=self.config.SELECTION)
-        store = ResultCache(self.out / cache, {"cache": "methods"})
         results: dict[str, dict[str, Any]] = {}
         for name, factory in methods.items():
-            # The package version stands for the code: an upgrade recomputes rather than reuse old numbers.
-            key = {"version": smcd_rl.__version__, "settings": settings, "content": _content(content, name)}
-            entry = f"{name}|{content_digest(key)[:16]}"
-            done = store.get(entry)
+            key = {"method": name, "settings": settings, "content": _content(content, name)}
+            done = self.store.get(kind, key)
             if done is None:
                 started = time.perf_counter()
                 done = {**evaluate(name, factory()), "seconds": time.perf_counter() - started}
-                store.put(entry, done)
+                self.store.put(kind, key, done)
             results[name] = done
             self.timings[f"evaluate {name}"] = done["seconds"]
         return results

@@ -39,11 +39,12 @@ from typing import Any
 import torch
 
 import smcd_rl
+from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.envs.drone_operators import save_dataset
 from smcd_rl.experiments import interpret_drone as drone
 from smcd_rl.experiments import interpret_links as links
 from smcd_rl.experiments import interpret_lookahead as lookahead
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, content_digest, model_digest, setting
+from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
 from smcd_rl.experiments.interpret_masks import shared_prior, smcd_filter
 from smcd_rl.experiments.multipart import PartsReport
 from smcd_rl.experiments.stats import verdict_table
@@ -193,7 +194,7 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                 {name: partial(links.smcd_model, m, config, ex.device) for name, m in two_link.items()},
                 lambda name, adaptive: {"hits": links.mask_hits(adaptive, arms, config, desc=name, progress=progress)},
                 content={name: model_digest(m) for name, m in two_link.items()},
-                cache="partial-fig9.pt",
+                kind="fig9",
             )
             accuracy = {
                 (k,): {
@@ -242,7 +243,7 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                     s, model.with_adaptation(strategy), sets[s], prior, config, ex.device, progress=progress
                 ),
                 content={"M": model_digest(model), "dataset": dataset},
-                cache="partial-confidence.pt",
+                kind="confidence",
             )
             confidence_scores = {
                 (s, label, cls, n): by_method
@@ -298,7 +299,7 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                     for s, test in tests.items()
                 },
                 content={**{key: model_digest(m) for key, m in bases.items()}, "dataset": dataset},
-                cache="partial-lookahead.pt",
+                kind="lookahead",
             )
             cell = ("set", "burn_in", "horizon")
             rmse = report.add(

@@ -18,7 +18,7 @@ Writes ``results.csv`` (success rate per method and n: mean and 95 % CI over all
 seeds), ``trials.csv`` (every arm: reached, steps, final distance, tool), ``comparisons.csv``
 (every adaptive method paired with M+N and the others over the same arms), ``results.json``,
 ``panda.png`` (success rate against n) and ``report.md``. Finished (method, n) runs are kept in
-``partial.pt`` and skipped by a rerun with the same network and settings (methods, particle
+``partial/`` and skipped by a rerun with the same network and settings (methods, particle
 counts and intervals aside).
 
 Choices the paper leaves open, made here:
@@ -56,6 +56,7 @@ from tensordict import TensorDict
 from torch import Tensor
 
 import smcd_rl
+from smcd_rl.digests import model_digest
 from smcd_rl.envs.panda_reach import (
     DEFAULT_DT,
     GOAL_TOLERANCE,
@@ -64,7 +65,7 @@ from smcd_rl.envs.panda_reach import (
     panda_kinematics_data,
 )
 from smcd_rl.experiments.common import format_table
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, model_digest, setting
+from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
 from smcd_rl.experiments.panda_reaching import method_kinematics, reach, sample_tasks
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 

@@ -1,10 +1,9 @@
 """Finished pieces of a long experiment, one file each, named by the digest of what determines them.
 
-The harness's per-method cache holds a few entries in one file, rewritten whole on every new
-entry. An experiment of thousands of pieces (``smcd-rl sweep``: one per grid point, each with its
-per-trial scores) would rewrite that file thousands of times, so this store keeps each piece in a
-file of its own, ``{kind}-{digest}.pt``, the digest that of the piece's key (every setting and
-input digest its result depends on). A changed setting or input gives another file, so a rerun
+Each piece (a method's results over all trials, a sweep's grid point, collected data) is a file
+of its own, ``{kind}-{digest}.pt``, the digest that of the piece's key (every setting and input
+digest its result depends on, and the package version, which stands for the code), so saving one
+piece never rewrites another, even among thousands. A changed setting or input gives another file, so a rerun
 never reads a stale result, and a grown grid reuses every finished piece; a key that names an
 input file holds its :func:`file_digest`, so new data at the same path is never mistaken for the
 old. Files are written and read through :mod:`smcd_rl.files` (atomic writes; a damaged file is
@@ -22,14 +21,13 @@ Example:
 
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import smcd_rl
-from smcd_rl.experiments.harness import content_digest
+from smcd_rl.digests import content_digest, file_digest
 from smcd_rl.files import load_file, save_file
 
 __all__ = ["ResultStore", "file_digest"]
@@ -72,12 +70,3 @@ class ResultStore:
 def _digest(key: Mapping[str, Any]) -> str:
     # The package version stands for the code, as in the harness's method cache: an upgrade recomputes.
     return content_digest({"version": smcd_rl.__version__, "key": dict(key)})
-
-
-def file_digest(path: str | os.PathLike[str]) -> str:
-    """The SHA-256 of a file's bytes (read in 1 MiB blocks, so a large dataset is never held whole)."""
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()

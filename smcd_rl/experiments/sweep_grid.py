@@ -18,9 +18,9 @@ import itertools
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
+from smcd_rl.digests import file_digest
 from smcd_rl.experiments.common import config_dict, resolve_device
 from smcd_rl.experiments.harness import ExperimentConfig
-from smcd_rl.experiments.result_store import file_digest
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.sweep import SweepConfig

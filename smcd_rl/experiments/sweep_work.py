@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from tqdm.auto import tqdm
 
-from smcd_rl.experiments.harness import content_digest
+from smcd_rl.digests import content_digest
 from smcd_rl.experiments.result_store import ResultStore
 from smcd_rl.experiments.sweep_grid import EVALUATION_KEYS
 from smcd_rl.experiments.sweep_trials import REFERENCES, arm_means, evaluate, timed_evaluate, train

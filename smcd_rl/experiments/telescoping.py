@@ -16,9 +16,8 @@ Writes ``results.csv`` (the table: mean error and 95 % CI over the episodes at t
 and over the whole episode), ``trials.csv`` (every episode's errors), ``comparisons.csv`` (every
 adaptive method paired with M+N and with the others over the same episodes), ``curves.csv``
 (mean and std of the error at every step), ``results.json``, ``tracking.png`` and ``report.md``.
-Finished methods are cached by the digest of the model they use (``partial.pt`` for the true
-kinematics and the oracle, ``partial-M.pt`` and ``partial-R.pt``), so a rerun skips them and a
-new ``--model`` file is never mistaken for the old one.
+Finished methods are kept in ``partial/``, keyed by the digest of the model they use, so a rerun
+skips them and a new ``--model`` file is never mistaken for the old one.
 """
 
 from __future__ import annotations
@@ -34,10 +33,11 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 import smcd_rl
+from smcd_rl.digests import model_digest
 from smcd_rl.envs.two_link_arm import motor_babbling
 from smcd_rl.envs.two_link_telescoping import TARGET_ANGULAR_SPEED, TELESCOPING_DT
 from smcd_rl.experiments.common import format_table, write_csv
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, model_digest, setting
+from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.telescoping_tracking import make_method, sample_episodes, track
 

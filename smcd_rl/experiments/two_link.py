@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 
 import smcd_rl
 from smcd_rl.baselines import LatentVariableModel, OracleModel, fit_latent
+from smcd_rl.digests import model_digest
 from smcd_rl.envs.two_link_arm import (
     DEFAULT_DT,
     integrate_joints,
@@ -29,7 +30,7 @@ from smcd_rl.envs.two_link_arm import (
     two_link_fk,
 )
 from smcd_rl.experiments.common import format_table
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, model_digest, setting
+from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "run", "table"]

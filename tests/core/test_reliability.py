@@ -25,7 +25,7 @@ from tensordict import TensorDict
 import smcd_rl
 from smcd_rl import cli
 from smcd_rl.baselines import LatentVariableModel
-from smcd_rl.experiments.common import ResultCache
+from smcd_rl.experiments.result_store import ResultStore
 
 pytestmark = pytest.mark.filterwarnings("ignore::smcd_rl.UnfittedModelWarning")  # toy networks, untrained on purpose
 PACKAGE = Path(smcd_rl.__file__).parent
@@ -178,7 +178,7 @@ def _training_file(path: Path) -> None:
 
 
 def _cache_file(path: Path) -> None:
-    ResultCache(path, {"seed": 0}).put("M+S", {"rmse": 0.1})
+    ResultStore(path.parent).put("cache", {"seed": 0}, {"rmse": 0.1})
 
 
 def _latent_file(path: Path) -> None:
@@ -196,11 +196,16 @@ def _read_training(path: Path) -> None:
 
 
 def _read_cache(path: Path) -> None:
-    ResultCache(path, {"seed": 0})
+    ResultStore(path.parent).get("cache", {"seed": 0})
 
 
 def _read_latent(path: Path) -> None:
     LatentVariableModel(2, 2, in_keys=["q"], out_key="ee", width=8).load_checkpoint(path)
+
+
+def _path(directory: Path, kind: str) -> Path:
+    """Where the file of ``kind`` goes: a result's path is named by its key."""
+    return ResultStore(directory).path("cache", {"seed": 0}) if kind == "cache" else directory / f"{kind}.pt"
 
 
 FILES = {
@@ -230,7 +235,7 @@ def _damage(path: Path, how: str) -> None:
 @pytest.mark.parametrize("kind", sorted(FILES))
 def test_a_damaged_file_names_itself_and_the_fix(tmp_path: Path, kind: str, how: str) -> None:
     write, read = FILES[kind]
-    path = tmp_path / f"{kind}.pt"
+    path = _path(tmp_path, kind)
     write(path)
     read(path)  # intact, it reads
     _damage(path, how)
@@ -272,7 +277,7 @@ def test_a_failed_write_names_the_directory_and_leaves_nothing_behind(tmp_path: 
         if os.access(readonly, os.W_OK):
             pytest.skip("running as root: a read-only directory is still writable")
         with pytest.raises(smcd_rl.FileWriteError, match=r"readonly is read-only or not writable"):
-            ResultCache(readonly / "cache.pt", {}).put("x", 1)
+            ResultStore(readonly).put("cache", {}, {"x": 1})
         assert list(readonly.iterdir()) == []
     finally:
         readonly.chmod(0o700)
@@ -282,7 +287,7 @@ def test_a_failed_write_names_the_directory_and_leaves_nothing_behind(tmp_path: 
 def test_a_save_never_touches_another_writers_temporary_file(tmp_path: Path, kind: str) -> None:
     """Two runs on one output directory used to share the fixed name ``<file>.tmp``: one
     replaced the other's half-written file and died with FileNotFoundError."""
-    path = tmp_path / f"{kind}.pt"
+    path = _path(tmp_path, kind)
     other = path.with_suffix(path.suffix + ".tmp")  # the other run's file in progress
     other.write_bytes(b"another run, half-way through its write")
     FILES[kind][0](path)

@@ -47,8 +47,9 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     assert re.search(r"\| -?\d+\.\d \[-?\d+\.\d, -?\d+\.\d\] +\|", printed)  # mean [95% CI] cells
     assert "| SMCD   | none    |" in printed and "| SMCD   | GD      |" in printed  # the headline verdicts
     names = ("results.csv", "trials.csv", "comparisons.csv", "results.json", "report.md", "ant.png", "model.pt")
-    for name in (*names, "data.pt", "partial.pt"):
+    for name in names:
         assert (out / name).is_file(), name
+    assert len(list((out / "partial").glob("data-*.pt"))) == 1
     assert len(list(out.glob("train-*.ckpt"))) == 1
 
     rows = list(csv.DictReader(open(out / "results.csv")))
@@ -114,10 +115,11 @@ def test_other_data_under_the_same_settings_retrains_and_reruns_the_cells(tmp_pa
     its cells instead of resuming the old training or reusing cells of the old model."""
     out = tmp_path / "run"
     assert cli.main(["ant", "--out", str(out), *TINY, *ONE_CELL]) == 0
-    saved = torch.load(out / "data.pt", weights_only=False)
-    data = saved["entries"]["transitions"]["data"]
+    (path,) = (out / "partial").glob("data-*.pt")
+    saved = torch.load(path, weights_only=False)
+    data = saved["value"]["data"]
     data.set("observation", data.get("observation") + 0.1)
-    torch.save(saved, out / "data.pt")
+    torch.save(saved, path)
     calls = []
     run_cell = ant.run_cell
     monkeypatch.setattr(ant, "run_cell", lambda *args, **kwargs: calls.append(args[1]) or run_cell(*args, **kwargs))

@@ -59,7 +59,15 @@ def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> 
     assert cli.main(["two-link", "--out", str(out), *SMALL]) == 0
     printed = capsys.readouterr().out
     assert "| M+S" in printed and "H=10" in printed
-    for name in ("results.csv", "trials.csv", "comparisons.csv", "results.json", "lookahead.png", "report.md", "model.pt"):
+    for name in (
+        "results.csv",
+        "trials.csv",
+        "comparisons.csv",
+        "results.json",
+        "lookahead.png",
+        "report.md",
+        "model.pt",
+    ):
         assert (out / name).is_file(), name
     rows = {
         (r["method"], int(r["burn_in"]), int(r["horizon"])): float(r["rmse_mean"])
@@ -153,5 +161,7 @@ def test_reptile_and_latent_methods_leave_the_multitask_rows_unchanged(tmp_path,
     alone, together = _rows(tmp_path / "m"), _rows(tmp_path / "all")
     assert alone and all(together[key] == value for key, value in alone.items())
     assert {m for m, _, _ in together} == {"M+N", "M+S", "R+S", "LV+N"}
-    assert len(list((tmp_path / "all").glob("reptile-*.ckpt"))) == len(list((tmp_path / "all").glob("latent-*.ckpt"))) == 1
+    assert (
+        len(list((tmp_path / "all").glob("reptile-*.ckpt"))) == len(list((tmp_path / "all").glob("latent-*.ckpt"))) == 1
+    )
     assert not list((tmp_path / "m").glob("reptile-*.ckpt"))  # no Reptile method, no Reptile training
