@@ -288,8 +288,6 @@ class Experiment:
         comparisons: Sequence[Mapping[str, Any]] = (),
         plots: Mapping[str, Callable[[Path], None]] | None = None,
         files: Sequence[str] = (),
-        plot: Callable[[Path], None] | None = None,  # TODO(lead): drop once every caller passes plots
-        plot_name: str = "results.png",
     ) -> dict[str, Any]:
         """Write the results, the plots and ``report.md``, print the tables, and return the JSON payload.
 
@@ -309,7 +307,7 @@ class Experiment:
             plots: file name -> a function drawing that figure at the given path.
             files: other files the command wrote in ``out``, listed with these.
         """
-        plots = dict(plots or {}) | ({plot_name: plot} if plot is not None else {})
+        plots = dict(plots or {})
         written = ["results.csv"]
         write_csv(self.out / "results.csv", rows)
         if trials:
