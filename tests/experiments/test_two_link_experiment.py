@@ -165,3 +165,16 @@ def test_reptile_and_latent_methods_leave_the_multitask_rows_unchanged(tmp_path,
         len(list((tmp_path / "all").glob("reptile-*.ckpt"))) == len(list((tmp_path / "all").glob("latent-*.ckpt"))) == 1
     )
     assert not list((tmp_path / "m").glob("reptile-*.ckpt"))  # no Reptile method, no Reptile training
+
+
+def test_a_rerun_with_fewer_epochs_trains_that_many_instead_of_reusing_the_longer_model(tmp_path, capsys) -> None:
+    """The checkpoint used to be ``train.ckpt`` whatever the epochs, so ``--epochs 1`` after a
+    2-epoch run in the same ``--out`` silently evaluated the 2-epoch model."""
+    out = tmp_path / "run"
+    methods = ["--methods", "M+N"]
+    with torch_threads(1):
+        assert cli.main(["two-link", "--out", str(out), *TINY, *methods]) == 0
+        assert cli.main(["two-link", "--out", str(out), *TINY, *methods, "--epochs", "1"]) == 0
+    payload = json.loads((out / "results.json").read_text())
+    assert payload["config"]["epochs"] == 1 and len(payload["train_loss"]) == 1
+    assert len(list(out.glob("train-*.ckpt"))) == 2
