@@ -82,6 +82,7 @@ def model_reward_objective(
         >>> import torch, smcd_rl
         >>> from smcd_rl.agents.mpc import model_reward_objective
         >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(2 + 1, 2, hidden=(16,)))
+        >>> model.fitted = True  # a random stand-in for a trained network
         >>> model.reset()
         >>> objective = model_reward_objective(model, torch.zeros(2), lambda o, a, n: -n.square().sum(-1))
         >>> objective(torch.zeros(8, 5, 1)).shape  # 8 candidates, horizon 5
@@ -184,6 +185,7 @@ class MPCAgent:
         >>> from smcd_rl.agents.planners import CEM
         >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(2 + 1, 2, hidden=(16,)),
         ...                                       adaptation=smcd_rl.SMCD(num_particles=10))
+        >>> model.fitted = True  # a random stand-in for a trained network
         >>> model.reset()
         >>> planner = CEM(action_low=-1.0, action_high=1.0, horizon=5, num_candidates=20, num_elites=4)
         >>> agent = MPCAgent(model, planner, lambda o, a, n: -n[..., 0].abs(), ensemble="particles")

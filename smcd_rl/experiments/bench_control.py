@@ -201,6 +201,7 @@ def _model_and_world(
     # Zero epochs only fit the normalisers: inputs in radians, outputs in metres as for a trained model.
     smcd_rl.fit(model, panda_kinematics_data(4096, generator=generator).to(device), epochs=0, progress=False)
     scale_to_unit_spread(net, generator)
+    model.fitted = True  # random weights on purpose: the benchmark times the loop, not the predictions
     true_mask = (torch.rand(config.batch, net.mask_dim, generator=generator) < net.keep_prob).to(device)
 
     def world(q: Tensor) -> Tensor:

@@ -111,6 +111,7 @@ def run(config: BenchPlannersConfig, *, progress: bool = True) -> dict[str, Any]
             else smcd_rl.NoAdaptation()
         )
         model = smcd_rl.AdaptiveDynamicsModel(net, adaptation)
+        model.fitted = True  # random weights on purpose: the benchmark times forwards, not predictions
         model.reset()
         obs = torch.randn(obs_dim, generator=generator).to(device)
 

@@ -238,6 +238,7 @@ def test_action_sequences_of_the_wrong_shape_are_named() -> None:
     from smcd_rl.agents.mpc import model_reward_objective
 
     model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(2 + 1, 2, hidden=(8,)))
+    model.fitted = True  # random weights on purpose: only the shape checks are tested
     model.reset()
     objective = model_reward_objective(model, torch.zeros(2), lambda o, a, n: -n.square().sum(-1))
     with pytest.raises(ValueError, match=r"\[\*batch, P, H, A\]"):

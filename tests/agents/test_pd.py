@@ -43,6 +43,7 @@ def test_network_jacobian_is_per_row_and_matches_finite_differences(strategy) ->
     torch.manual_seed(0)
     net = smcd_rl.MaskedMLP(2, 2, hidden=(32, 32), dropout=0.5).double()
     model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee").double().with_adaptation(strategy())
+    model.fitted = True  # random weights on purpose: any network has a Jacobian to check
     model.reset(batch_shape=(3,))
     # Different observations per row give each row its own adapted network (masks or weights).
     model.observe(TensorDict({"q": torch.randn(3, 2), "ee": 3 * torch.randn(3, 2)}, [3]).double())
@@ -86,10 +87,12 @@ def test_bad_shapes_and_settings_are_named() -> None:
 
 def test_predict_refuses_delta_models_and_wrong_widths() -> None:
     dynamics = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(3, 2, hidden=(8,)))
+    dynamics.fitted = True  # random networks on purpose: only the refusals are tested
     dynamics.reset()
     with pytest.raises(ValueError, match="use model.step"):
         dynamics.predict(torch.zeros(3))
     model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+    model.fitted = True
     model.reset()
     with pytest.raises(ValueError, match=r"inputs \[\.\.\., 2\]"):
         model.predict(torch.zeros(3))

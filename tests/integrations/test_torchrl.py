@@ -12,6 +12,7 @@ must be large to hide:
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 
 import gymnasium
@@ -48,13 +49,19 @@ def _one_thread() -> None:
     torch.set_num_threads(threads)
 
 
-def smcd_model(obs_dim: int, action_dim: int, *, seed: int = 0) -> smcd_rl.AdaptiveDynamicsModel:
+def smcd_model(obs_dim: int, action_dim: int, *, seed: int = 0, fitted: bool = True) -> smcd_rl.AdaptiveDynamicsModel:
+    """A random network with SMCD, marked fitted: the tests check plumbing, not predictions.
+
+    ``fitted=False`` for a test that trains it, whose fitting then sets the normalisers from its data.
+    """
     torch.manual_seed(seed)
     net = smcd_rl.MaskedMLP(obs_dim + action_dim, obs_dim, hidden=(32, 32))
     generator = torch.Generator().manual_seed(seed)
-    return smcd_rl.AdaptiveDynamicsModel(
+    model = smcd_rl.AdaptiveDynamicsModel(
         net, smcd_rl.SMCD(num_particles=N_PARTICLES, noise_std=0.5, generator=generator)
     )
+    model.fitted = fitted
+    return model
 
 
 def point_mass_model() -> smcd_rl.AdaptiveDynamicsModel:
@@ -68,6 +75,7 @@ def point_mass_model() -> smcd_rl.AdaptiveDynamicsModel:
         net.linears[1].weight.copy_(torch.tensor([[1.0, -1.0, 0.0, 0.0], [0.0, 0.0, 1.0, -1.0]]))
         net.linears[1].bias.zero_()
     model = smcd_rl.AdaptiveDynamicsModel(net, smcd_rl.NoAdaptation())
+    model.fitted = True  # trained by hand above
     model.reset()
     return model
 
@@ -272,12 +280,15 @@ def test_fit_from_replay_buffer_reduces_the_loss_on_collected_data() -> None:
     model = smcd_rl.AdaptiveDynamicsModel(net, smcd_rl.SMCD(num_particles=N_PARTICLES))
     env = TransformedEnv(SerialEnv(2, lambda: GymEnv(ARM)), AdaptationTransform(model))
     env.set_seed(0)
-    collector = Collector(env, None, frames_per_batch=256, total_frames=256)
     buffer = ReplayBuffer(storage=LazyTensorStorage(1000))
-    for batch in collector:
-        assert batch.shape == (2, 128) and "smcd_ess" in batch["next"].keys()
-        buffer.extend(batch.reshape(-1))
-    collector.shutdown()
+    with warnings.catch_warnings():
+        # The first data is collected before the model is fitted on it: adapting the untrained network is expected.
+        warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)
+        collector = Collector(env, None, frames_per_batch=256, total_frames=256)
+        for batch in collector:
+            assert batch.shape == (2, 128) and "smcd_ess" in batch["next"].keys()
+            buffer.extend(batch.reshape(-1))
+        collector.shutdown()
     losses = fit_from_replay_buffer(model, buffer, epochs=20, batch_size=32, lr=3e-3)
     # Targets are standardised, so a net that learns nothing stays near 1 (the first epoch is ~1.0);
     # on this data 20 epochs end at 0.45-0.51 of the first epoch's loss (seeds 0-4).
@@ -300,7 +311,7 @@ def test_mbrl_loop_runs_collect_fit_plan_adapt(planner: str) -> None:
         angle = torch.atan2(obs[..., 1], obs[..., 0])
         return -(angle**2 + 0.1 * obs[..., 2] ** 2 + 0.001 * action[..., 0] ** 2)
 
-    model = smcd_model(3, 1)
+    model = smcd_model(3, 1, fitted=False)  # the loop fits it
     env = GymEnv("Pendulum-v1")
     returns = mbrl_loop(
         env,

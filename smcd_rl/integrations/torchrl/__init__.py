@@ -27,6 +27,7 @@ Example:
     >>> torch.manual_seed(0)  # doctest: +ELLIPSIS
     <torch._C.Generator object at ...>
     >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(3, 2, hidden=(32,)), smcd_rl.SMCD(num_particles=10))
+    >>> model.fitted = True  # a random stand-in for a trained network
     >>> model.reset()
     >>> world = AdaptiveWorldModelEnv(
     ...     model, lambda obs, act, next_obs: -next_obs.square().sum(-1), action_low=-1.0, action_high=1.0)

@@ -70,6 +70,7 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         >>> from smcd_rl.integrations.torchrl import AdaptiveWorldModelEnv
         >>> net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=(32,))
         >>> model = smcd_rl.AdaptiveDynamicsModel(net, smcd_rl.SMCD(num_particles=10))
+        >>> model.fitted = True  # a random stand-in for a trained network
         >>> model.reset()
         >>> world = AdaptiveWorldModelEnv(
         ...     model, lambda obs, act, next_obs: -next_obs.square().sum(-1), action_low=-2.0, action_high=2.0)

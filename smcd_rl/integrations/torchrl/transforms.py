@@ -42,6 +42,7 @@ class AdaptationTransform(Transform):
         >>> from smcd_rl.integrations.torchrl import AdaptationTransform
         >>> net = smcd_rl.MaskedMLP(4 + 2, 4, hidden=(32,))
         >>> model = smcd_rl.AdaptiveDynamicsModel(net, smcd_rl.SMCD(num_particles=10))
+        >>> model.fitted = True  # a random stand-in for a trained network
         >>> env = TransformedEnv(GymEnv("smcd_rl/TwoLinkArm-v0"), AdaptationTransform(model))
         >>> td = env.rollout(3)
         >>> td["next", "smcd_ess"].shape, td["smcd_log_evidence"][0].item()
