@@ -82,7 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
         if group and group not in groups:  # "bench planners": a "bench" command with its own sub-commands
             parent = commands.add_parser(group, help=f"{group} commands", description=f"{group} commands.")
             groups[group] = parent.add_subparsers(dest="_" + group, required=True, metavar="COMMAND")
-        sub = (groups[group] if group else commands).add_parser(leaf, help=summary, description=summary + ".")
+        sub = (groups[group] if group else commands).add_parser(
+            leaf, help=_escape_percent(summary), description=summary + "."
+        )
         _add_config_arguments(sub, config_cls)
         sub.set_defaults(_command=name)
     return parser
@@ -95,7 +97,7 @@ def _add_config_arguments(parser: argparse.ArgumentParser, config_cls: type) -> 
         flag = "--" + field.name.replace("_", "-")
         kind = hints[field.name]
         default = getattr(defaults, field.name)
-        help_text = f"{field.metadata.get('help', '')} (default: {default})"
+        help_text = _escape_percent(f"{field.metadata.get('help', '')} (default: {default})")
         # SUPPRESS: only options the user typed reach the config, so --full can fill the rest.
         if kind is bool:
             parser.add_argument(flag, action="store_true", default=argparse.SUPPRESS, help=help_text)
@@ -104,6 +106,11 @@ def _add_config_arguments(parser: argparse.ArgumentParser, config_cls: type) -> 
             parser.add_argument(flag, type=item, nargs="+", default=argparse.SUPPRESS, help=help_text)
         else:
             parser.add_argument(flag, type=kind, default=argparse.SUPPRESS, help=help_text)
+
+
+def _escape_percent(text: str) -> str:
+    """``text`` as argparse help: it %-formats help strings, so a bare ``%`` ("50% of ...") would crash ``--help``."""
+    return text.replace("%", "%%")
 
 
 def make_config(command: str, given: dict[str, Any]) -> Any:
