@@ -62,6 +62,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 import torch
@@ -75,6 +76,7 @@ from smcd_rl.envs.drone_landing import (
     landing_success,
     platform_tensor,
 )
+from smcd_rl.files import write_atomic
 
 __all__ = [
     "SKILLS",
@@ -263,6 +265,13 @@ def _label(name: str, values: object, length: int, kind: str) -> np.ndarray:
 def save_dataset(dataset: TrajectoryDataset, path: str | os.PathLike[str]) -> None:
     """Write ``dataset`` to a compressed ``.npz`` in the format of the module docstring.
 
+    The write is atomic (:func:`smcd_rl.files.write_atomic`): an interrupted or failed save leaves
+    ``path`` as it was, never a truncated file. The parent directories are created.
+
+    Raises:
+        smcd_rl.files.FileWriteError: the file cannot be written (read-only directory, disk full,
+            ``path`` is a directory, ...); the message names the path and the reason.
+
     Example:
         >>> import tempfile
         >>> data = simulate_operators(num_operators=2, trajectories_per_operator=2)
@@ -280,12 +289,13 @@ def save_dataset(dataset: TrajectoryDataset, path: str | os.PathLike[str]) -> No
     arrays.update({f"step/{k}": v for k, v in dataset.step_labels.items()})
     arrays.update({f"traj/{k}": v for k, v in dataset.trajectory_labels.items()})
     arrays.update({f"names/{k}": np.array(v, dtype=str) for k, v in dataset.label_names.items()})
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as handle:  # a file handle: np.savez would append .npz to other names
+
+    def write(handle: IO[bytes]) -> None:  # a file handle: np.savez would append .npz to other names
         # mypy matches **arrays against the stubs' allow_pickle: bool; no key here has that name, and
         # passing the flag would store an array named allow_pickle on numpy 1.26, which has no such flag.
         np.savez_compressed(handle, **arrays)  # type: ignore[arg-type]
+
+    write_atomic(path, write, what="dataset")
 
 
 def load_dataset(path: str | os.PathLike[str]) -> TrajectoryDataset:

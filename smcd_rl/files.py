@@ -18,6 +18,7 @@ directory read-only, disk full on write    :class:`FileWriteError` (an ``OSError
 Writes are atomic: the data goes to a temporary file with a name of its own in the same directory,
 is flushed to disk, and replaces the target in one ``os.replace``. An interruption never leaves a
 half-written file, and two runs writing into one directory never touch each other's temporary files.
+Files in other formats (an ``.npz`` dataset, say) are written the same way by :func:`write_atomic`.
 
 Example:
     >>> import tempfile, torch
@@ -34,13 +35,20 @@ import contextlib
 import errno
 import os
 import secrets
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import torch
 
-__all__ = ["load_file", "save_file", "UnreadableFileError", "FileWriteError", "CheckpointMismatchError"]
+__all__ = [
+    "load_file",
+    "save_file",
+    "write_atomic",
+    "UnreadableFileError",
+    "FileWriteError",
+    "CheckpointMismatchError",
+]
 
 
 class CheckpointMismatchError(ValueError):
@@ -156,6 +164,34 @@ def save_file(obj: Mapping[str, Any], path: str | os.PathLike[str], *, what: str
         FileWriteError: the directory cannot be created or written (read-only, disk full, ...);
             ``path`` is then unchanged and no temporary file is left behind.
     """
+    write_atomic(path, lambda handle: torch.save(dict(obj), handle), what=what)
+
+
+def write_atomic(path: str | os.PathLike[str], write: Callable[[IO[bytes]], object], *, what: str = "file") -> None:
+    """Write a file of any format atomically: ``write(handle)`` fills a temporary file that then replaces ``path``.
+
+    The parent directories are created. ``write`` gets a binary handle open on a new temporary file
+    of a unique name in the same directory; when it returns, the data reaches the disk and replaces
+    ``path`` in one step. If anything fails, ``path`` is unchanged and the temporary file is removed.
+
+    Args:
+        path: the file to write (replaced if it exists).
+        write: writes the file's bytes to the handle it is given (e.g. ``np.savez_compressed``).
+        what: what the file is, for messages.
+
+    Raises:
+        FileWriteError: the directory cannot be created or written (read-only, disk full, ``path``
+            is a directory, ...), or ``write`` raised an ``OSError`` or ``RuntimeError``. Other
+            errors of ``write`` propagate as they are, also with ``path`` unchanged.
+
+    Example:
+        >>> import tempfile
+        >>> from smcd_rl.files import write_atomic
+        >>> path = tempfile.mkdtemp() + "/notes.txt"
+        >>> write_atomic(path, lambda handle: handle.write(b"hello"), what="notes")
+        >>> open(path).read()
+        'hello'
+    """
     path = Path(path)
     directory = path.parent
     tmp: Path | None = None
@@ -163,7 +199,7 @@ def save_file(obj: Mapping[str, Any], path: str | os.PathLike[str], *, what: str
         directory.mkdir(parents=True, exist_ok=True)
         tmp, handle = _create_unique(directory, path.name)
         with handle:
-            torch.save(dict(obj), handle)
+            write(handle)
             handle.flush()
             os.fsync(handle.fileno())  # on disk before the rename, so a crash never leaves an empty file
         os.replace(tmp, path)
@@ -174,7 +210,7 @@ def save_file(obj: Mapping[str, Any], path: str | os.PathLike[str], *, what: str
         if isinstance(err, (OSError, RuntimeError)):  # RuntimeError: torch's own writer errors
             cause = _os_error(err)
             code = cause.errno if cause is not None else None
-            raise FileWriteError(f"cannot write {what} {path}: {_write_problem(err, directory)}", path, code) from err
+            raise FileWriteError(f"cannot write {what} {path}: {_write_problem(err, path)}", path, code) from err
         raise
 
 
@@ -205,10 +241,13 @@ def _os_error(err: BaseException) -> OSError | None:
     return None
 
 
-def _write_problem(err: BaseException, directory: Path) -> str:
-    """Why a write into ``directory`` failed, and what to do about it, in words."""
+def _write_problem(err: BaseException, path: Path) -> str:
+    """Why writing ``path`` failed, and what to do about it, in words."""
+    directory = path.parent
     cause = _os_error(err)
     code = cause.errno if cause is not None else None
+    if code == errno.EISDIR or (code is None and path.is_dir()):
+        return f"{path} is a directory; pass the path of a file, or remove the directory"
     if code in (errno.EACCES, errno.EPERM, errno.EROFS) or (code is None and not os.access(directory, os.W_OK)):
         return f"the directory {directory} is read-only or not writable; make it writable or write to another directory"
     if code in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import math
 import pickle
+import re
 import warnings
 
 import gymnasium
@@ -35,6 +37,7 @@ from smcd_rl.envs.drone_operators import (
     simulate_operators,
     split_dataset,
 )
+from smcd_rl.files import FileWriteError
 
 ENV_ID = "smcd_rl/DroneLanding-v0"
 
@@ -310,6 +313,39 @@ def test_dataset_round_trips_through_npz(tmp_path, population: TrajectoryDataset
     assert np.array_equal(loaded.state, population.state) and np.array_equal(loaded.trajectory, population.trajectory)
     assert loaded.label_names == population.label_names
     assert all(np.array_equal(loaded.labels[k], v) for k, v in population.labels.items())
+
+
+def test_a_save_that_fails_midway_keeps_the_old_file_and_leaves_no_partial_one(
+    tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    small = simulate_operators(num_operators=2, trajectories_per_operator=2)
+    path = tmp_path / "drone.npz"
+    save_dataset(small, path)
+    before = path.read_bytes()
+
+    def full_disk(handle, **arrays) -> None:
+        handle.write(b"PK\x03\x04 half an archive")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", full_disk)
+    with pytest.raises(
+        FileWriteError, match=re.escape(f"cannot write dataset {path}: no space left on the disk of {tmp_path}")
+    ):
+        save_dataset(small, path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["drone.npz"]  # no temporary file left behind
+
+
+def test_saving_onto_a_directory_or_under_a_file_names_the_path_and_leaves_nothing(tmp_path) -> None:
+    small = simulate_operators(num_operators=2, trajectories_per_operator=2)
+    (tmp_path / "taken.npz").mkdir()
+    with pytest.raises(FileWriteError, match=re.escape(f"{tmp_path / 'taken.npz'} is a directory")):
+        save_dataset(small, tmp_path / "taken.npz")
+    (tmp_path / "file").write_text("")
+    with pytest.raises(FileWriteError, match=re.escape(f"{tmp_path / 'file'} (or a folder above it) is a file")):
+        save_dataset(small, tmp_path / "file" / "drone.npz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "taken.npz"]
+    assert not any((tmp_path / "taken.npz").iterdir())
 
 
 def test_select_keeps_trajectories_and_labels(population: TrajectoryDataset) -> None:
