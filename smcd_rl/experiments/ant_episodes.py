@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 import smcd_rl
 from smcd_rl.agents.mpc import MPCAgent
 from smcd_rl.agents.planners import CEM, MPPI, Planner, RandomShooting
+from smcd_rl.experiments.adaptations import make_adaptation
 from smcd_rl.integrations.gymnasium import AdaptationWrapper, collect_transitions
 
 if TYPE_CHECKING:
@@ -135,16 +136,10 @@ def _make_planner(name: str, config: AntConfig, generator: torch.Generator, devi
 
 
 def _make_adaptation(name: str, config: AntConfig, noise_std: torch.Tensor, device: torch.device) -> smcd_rl.Adaptation:
-    if name == "gd":
-        return smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
-    if name == "smcd":
-        return smcd_rl.SMCD(
-            num_particles=config.particles,
-            flip_prob=config.flip_prob,
-            noise_std=noise_std.tolist(),
-            generator=torch.Generator(device=device).manual_seed(config.seed + 11),
-        )
-    return smcd_rl.NoAdaptation()
+    letter = {"none": "N", "gd": "G", "smcd": "S"}[name]
+    return make_adaptation(
+        letter, config, particles=config.particles, noise_std=noise_std.tolist(), seed=config.seed + 11, device=device
+    )
 
 
 def run_cell(

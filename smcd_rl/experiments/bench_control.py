@@ -57,6 +57,7 @@ from smcd_rl.envs.panda_reach import (
     sample_goals,
     sample_tool_lengths,
 )
+from smcd_rl.experiments.adaptations import make_adaptation
 from smcd_rl.experiments.benchmarking import BenchConfig, machine_line, publish, scale_to_unit_spread
 from smcd_rl.experiments.common import config_dict, format_table, interleaved_times, machine_info
 from smcd_rl.experiments.harness import Experiment, setting
@@ -160,16 +161,9 @@ def run(config: BenchControlConfig, *, progress: bool = True) -> dict[str, Any]:
 
 
 def _strategy(name: str, config: BenchControlConfig, device: torch.device) -> smcd_rl.Adaptation:
-    if name == "M+S":
-        return smcd_rl.SMCD(
-            num_particles=config.particles,
-            flip_prob=config.flip_prob,
-            noise_std=config.noise_std,
-            generator=torch.Generator(device=device).manual_seed(config.seed + 1),
-        )
-    if name == "M+G":
-        return smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
-    return smcd_rl.NoAdaptation()
+    return make_adaptation(
+        name[2], config, particles=config.particles, noise_std=config.noise_std, seed=config.seed + 1, device=device
+    )
 
 
 def _timing_row(name: str, samples: list[float]) -> dict[str, Any]:

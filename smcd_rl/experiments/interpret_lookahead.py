@@ -22,9 +22,10 @@ from tqdm.auto import tqdm
 
 import smcd_rl
 from smcd_rl.envs.drone_operators import TrajectoryDataset
+from smcd_rl.experiments.adaptations import make_adaptation
 from smcd_rl.experiments.common import format_table
 from smcd_rl.experiments.interpret_drone import SETS, noise_std
-from smcd_rl.experiments.interpret_masks import padded, smcd_filter
+from smcd_rl.experiments.interpret_masks import padded
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.interpret import InterpretConfig
@@ -57,18 +58,11 @@ def make_method(
 
     SMCD's likelihood noise is ``noise_scale`` times that network's own training RMSE.
     """
-    base, strategy = bases[name[0]], name[2]
-    adaptation: smcd_rl.Adaptation = smcd_rl.NoAdaptation()
-    if strategy == "G":
-        adaptation = smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
-    elif strategy == "S":
-        adaptation = smcd_filter(
-            particles=config.particles,
-            flip_prob=config.flip_prob,
-            noise_std=noise_std(base, train, config, device),
-            seed=config.seed + 41,
-            device=device,
-        )
+    base, letter = bases[name[0]], name[2]
+    noise = noise_std(base, train, config, device) if letter == "S" else 0.0
+    adaptation = make_adaptation(
+        letter, config, particles=config.particles, noise_std=noise, seed=config.seed + 41, device=device
+    )
     return base.with_adaptation(adaptation)
 
 

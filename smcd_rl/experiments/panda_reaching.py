@@ -23,6 +23,7 @@ from smcd_rl.envs.panda_reach import (
     sample_goals,
     sample_tool_lengths,
 )
+from smcd_rl.experiments.adaptations import make_adaptation
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.panda import PandaConfig
@@ -48,18 +49,15 @@ def method_kinematics(
     """The controller's kinematics and, for adaptive models, what a measurement updates."""
     if label == "FK":
         return (lambda q: panda_fk(q, 0.0)), None  # the tool is unknown: assume none
-    if label == "M+N":
-        strategy: smcd_rl.Adaptation = smcd_rl.NoAdaptation()
-    elif label == "M+G":
-        strategy = smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
-    else:
-        particles = int(label.split("N=")[1].rstrip(")"))
-        strategy = smcd_rl.SMCD(
-            num_particles=particles,
-            flip_prob=config.flip_prob,
-            noise_std=config.noise_std,
-            generator=torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + seed),
-        )
+    particles = int(label.split("N=")[1].rstrip(")")) if "N=" in label else 0  # "M+S (N=100)"
+    strategy = make_adaptation(
+        label[2],
+        config,
+        particles=particles,
+        noise_std=config.noise_std,
+        seed=config.seed * 1_000_003 + seed,
+        device=device,
+    )
     adapted = model.with_adaptation(strategy)
     adapted.reset(batch_shape=(tools.shape[0],))
 

@@ -34,12 +34,12 @@ from torch import Tensor
 
 import smcd_rl
 from smcd_rl.digests import model_digest
-from smcd_rl.envs.two_link_arm import motor_babbling
 from smcd_rl.envs.two_link_telescoping import TARGET_ANGULAR_SPEED, TELESCOPING_DT
 from smcd_rl.experiments.common import format_table, write_csv
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
+from smcd_rl.experiments.harness import Experiment, setting
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.telescoping_tracking import make_method, sample_episodes, track
+from smcd_rl.experiments.two_link_family import TwoLinkFamilyConfig, babbling_data, fit_settings, network, train_reptile
 
 __all__ = ["TelescopingConfig", "FULL", "METHODS", "run", "table"]
 
@@ -52,7 +52,7 @@ ADAPTIVE = ("M+S", "M+G", "R+S", "R+G", "R+N", "O+P", "true")
 
 
 @dataclass
-class TelescopingConfig(ExperimentConfig):
+class TelescopingConfig(TwoLinkFamilyConfig):
     """Settings of ``smcd-rl telescoping``; the defaults finish in minutes on 2 CPU cores.
 
     Example:
@@ -66,24 +66,10 @@ class TelescopingConfig(ExperimentConfig):
         "",
         "use this trained M model (e.g. runs/two-link/model.pt) instead of training one; --hidden etc. then shape R only",
     )
-    tasks: int = setting(200, "training arms (link-length draws)", low=1)
-    episodes: int = setting(50, "motor-babbling episodes per training arm", low=1)
-    steps: int = setting(10, "steps per motor-babbling episode", low=2)
     hidden: int = setting(
         256, "width of each hidden layer (the paper's latent dimension; 256 keeps the default run short)", low=1
     )
-    depth: int = setting(2, "number of hidden layers", low=1)
-    dropout: float = setting(0.5, "dropout probability p used in training", above=0.0, below=1.0)
-    epochs: int = setting(20, "training epochs of the multi-task (M) model", low=1)
-    batch_size: int = setting(256, "training batch size of the M model", low=1)
-    lr: float = setting(1e-3, "Adam learning rate of the M model", above=0.0)
-    reptile_epochs: int = setting(20, "Reptile (R) training epochs (passes over all tasks)", low=1)
-    reptile_batch_size: int = setting(64, "samples per inner SGD step of Reptile", low=1)
-    reptile_lr: float = setting(0.1, "Reptile outer (meta) step size", above=0.0)
-    inner_lr: float = setting(0.02, "Reptile inner SGD learning rate (the paper's 0.02)", above=0.0)
-    inner_epochs: int = setting(1, "Reptile inner epochs per task (the paper's 1)", low=1)
-    tasks_per_batch: int = setting(5, "tasks per Reptile meta step", low=1)
-    measurement_noise: float = setting(0.01, "std of the end-effector measurement noise (m), data and trials", low=0.0)
+    reptile_tasks_per_batch: int = setting(5, "tasks per Reptile meta step", low=1)
     trials: int = setting(100, "tracking episodes per method (all run as one batch)", low=2)
     horizon: int = setting(100, "steps per tracking episode (the paper's 100)", low=1)
     dt: float = setting(TELESCOPING_DT, "step (s) of the joint double integrator", above=0.0)
@@ -101,14 +87,6 @@ class TelescopingConfig(ExperimentConfig):
     methods: tuple[str, ...] = setting(
         METHODS, "methods: true, O+P (oracle PF), M+N, M+G, M+S, R+N, R+G, R+S", choices=METHODS
     )
-    particles: int = setting(1000, "SMCD mask particles", low=1)
-    flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
-    noise_std: float = setting(0.05, "likelihood noise std (m) of SMCD and the oracle", above=0.0)
-    gd_lr: float = setting(0.01, "online gradient-descent learning rate (normalised units)", above=0.0)
-    gd_steps: int = setting(5, "gradient steps per observation", low=1)
-    gd_window: int = setting(10, "recent transitions in the gradient-descent loss", low=1)
-    oracle_particles: int = setting(1000, "oracle particle count over link lengths", low=1)
-    oracle_jitter: float = setting(0.005, "oracle random-walk std of link lengths per step", low=0.0)
     full: bool = setting(False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials")
 
     NON_EMPTY = ("report_steps", "methods")
@@ -150,23 +128,19 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
     with Experiment(config, progress=progress) as ex:
         # --- seed, data, models -------------------------------------------------------------------
         families = {_family(name) for name in config.methods} - {""}
-        data = None
-        if families - ({"M"} if config.model else set()):
-            data = motor_babbling(
-                config.tasks,
-                config.episodes,
-                config.steps,
-                measurement_noise=config.measurement_noise,
-                generator=ex.generator,
-            ).to(ex.device)
+        trains = families - ({"M"} if config.model else set())
+        data = babbling_data(config, ex) if trains else None
         models: dict[str, smcd_rl.AdaptiveModel] = {}
         losses: dict[str, list[float]] = {}
-        if "M" in families:
-            models["M"] = (
-                _load_model(config.model, ex.device) if config.model else _train(ex, config, "M", data, losses)
-            )
+        if "M" in families and config.model:
+            models["M"] = _load_model(config.model, ex.device)
+        elif "M" in families:
+            assert data is not None
+            models["M"], losses["M"] = _train_m(ex, config, data)
         if "R" in families:
-            models["R"] = _train(ex, config, "R", data, losses)
+            assert data is not None
+            models["R"], losses["R"] = train_reptile(ex, config, data, init_seed=config.seed + 1)
+            models["R"].save(ex.out / "reptile.pt")
 
         # --- every method on the same episodes, cached by the digest of the model it adapts ---------
         episodes, noise = sample_episodes(config, ex.device)
@@ -245,38 +219,16 @@ def _family(name: str) -> str:
     return name[0] if name[0] in "MR" else ""
 
 
-def _train(
-    ex: Experiment, config: TelescopingConfig, family: str, data: TensorDictBase | None, losses: dict[str, list[float]]
-) -> smcd_rl.AdaptiveModel:
-    """Train (or resume) the M (multi-task, :func:`smcd_rl.fit`) or R (:func:`smcd_rl.fit_reptile`) model."""
-    assert data is not None, "the data is made whenever a model is trained"
-    # Own initial weights per family, so a run that trains only one of them trains the same one;
-    # the global RNG is left as it was.
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed + (0 if family == "M" else 1))
-        net = smcd_rl.MaskedMLP(2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=ex.device)
-        model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
-    if family == "M":
-        fit = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
-        losses["M"] = ex.train("train", smcd_rl.fit, model, data, **fit)
-        model.save(ex.out / "model.pt")
-    else:
-        # Reptile samples by task: motor_babbling's first batch dim is the task.
-        losses["R"] = ex.train(
-            "reptile",
-            smcd_rl.fit_reptile,
-            model,
-            data,
-            epochs=config.reptile_epochs,
-            batch_size=config.reptile_batch_size,
-            lr=config.reptile_lr,
-            inner_lr=config.inner_lr,
-            inner_epochs=config.inner_epochs,
-            tasks_per_batch=config.tasks_per_batch,
-            seed=config.seed,
-        )
-        model.save(ex.out / "reptile.pt")
-    return model
+def _train_m(
+    ex: Experiment, config: TelescopingConfig, data: TensorDictBase
+) -> tuple[smcd_rl.AdaptiveModel, list[float]]:
+    """Train (or resume) the M (multi-task, :func:`smcd_rl.fit`) network from initial weights of its own."""
+    with torch.random.fork_rng(devices=[]):  # a run that trains only M trains the same M; the global RNG is kept
+        torch.manual_seed(config.seed)
+        model = smcd_rl.AdaptiveModel(network(config, ex.device), in_keys=["q"], out_key="ee")
+    losses = ex.train("train", smcd_rl.fit, model, data, **fit_settings(config))
+    model.save(ex.out / "model.pt")
+    return model, losses
 
 
 def _load_model(path: str, device: torch.device) -> smcd_rl.AdaptiveModel:

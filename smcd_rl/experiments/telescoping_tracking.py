@@ -18,13 +18,15 @@ from tqdm.auto import tqdm
 import smcd_rl
 from smcd_rl.agents.pd import JacobianPD
 from smcd_rl.baselines import OracleModel
-from smcd_rl.envs.two_link_arm import sample_link_lengths, two_link_fk
+from smcd_rl.envs.two_link_arm import two_link_fk
 from smcd_rl.envs.two_link_telescoping import (
     circle_target,
     integrate_acceleration,
     sample_initial_state,
     telescoping_link_lengths,
 )
+from smcd_rl.experiments.adaptations import make_adaptation
+from smcd_rl.experiments.two_link_family import oracle
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.telescoping import TelescopingConfig
@@ -54,30 +56,11 @@ def make_method(
     if name == "true":
         return None
     if name == "O+P":
-        # The oracle knows the two-link kinematics but not that l2 telescopes: its link lengths
-        # follow a random walk, the particle filter's usual model of slowly changing parameters.
-        return OracleModel(
-            lambda lengths, q: two_link_fk(q, lengths),
-            lambda shape, g: sample_link_lengths(shape, generator=g, device=g.device),
-            in_keys=["q"],
-            out_key="ee",
-            noise_std=config.noise_std,
-            num_particles=config.oracle_particles,
-            jitter_std=config.oracle_jitter,
-            lower=0.1,
-            generator=torch.Generator(device=device).manual_seed(config.seed + 7),
-        )
-    family, adaptation = name.split("+")
-    strategy = {
-        "N": lambda: smcd_rl.NoAdaptation(),
-        "G": lambda: smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window),
-        "S": lambda: smcd_rl.SMCD(
-            num_particles=config.particles,
-            flip_prob=config.flip_prob,
-            noise_std=config.noise_std,
-            generator=torch.Generator(device=device).manual_seed(config.seed + 11),
-        ),
-    }[adaptation]()
+        return oracle(config, device)
+    family, letter = name.split("+")
+    strategy = make_adaptation(
+        letter, config, particles=config.particles, noise_std=config.noise_std, seed=config.seed + 11, device=device
+    )
     return models[family].with_adaptation(strategy)
 
 

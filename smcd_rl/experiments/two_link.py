@@ -20,18 +20,21 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 import smcd_rl
-from smcd_rl.baselines import LatentVariableModel, OracleModel, fit_latent
+from smcd_rl.baselines import LatentVariableModel, fit_latent
 from smcd_rl.digests import model_digest
-from smcd_rl.envs.two_link_arm import (
-    DEFAULT_DT,
-    integrate_joints,
-    motor_babbling,
-    sample_link_lengths,
-    two_link_fk,
-)
+from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, sample_link_lengths, two_link_fk
+from smcd_rl.experiments.adaptations import make_adaptation
 from smcd_rl.experiments.common import format_table
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
+from smcd_rl.experiments.harness import Experiment, setting
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.two_link_family import (
+    TwoLinkFamilyConfig,
+    babbling_data,
+    fit_settings,
+    network,
+    oracle,
+    train_reptile,
+)
 
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "run", "table"]
 
@@ -40,20 +43,10 @@ METHODS = ("O+P", "M+N", "M+G", "M+S", "R+N", "R+G", "R+S", "LV+N")
 
 
 @dataclass
-class TwoLinkConfig(ExperimentConfig):
+class TwoLinkConfig(TwoLinkFamilyConfig):
     """Settings of ``smcd-rl two-link``; the defaults finish in minutes on 2 CPU cores."""
 
     out: str = setting("runs/two-link", "output directory (results, plot, report, trained models)")
-    tasks: int = setting(200, "training arms (link-length draws)", low=1)
-    episodes: int = setting(50, "motor-babbling episodes per training arm", low=1)
-    steps: int = setting(10, "steps per motor-babbling episode", low=2)
-    hidden: int = setting(512, "width of each hidden layer (the paper's latent dimension)", low=1)
-    depth: int = setting(2, "number of hidden layers", low=1)
-    dropout: float = setting(0.5, "dropout probability p used in training", above=0.0, below=1.0)
-    epochs: int = setting(20, "training epochs", low=1)
-    batch_size: int = setting(256, "training batch size", low=1)
-    lr: float = setting(1e-3, "Adam learning rate", above=0.0)
-    measurement_noise: float = setting(0.01, "std of the end-effector measurement noise (m), data and trials", low=0.0)
     trials: int = setting(500, "held-out arms to evaluate on", low=2)
     chunk: int = setting(100, "trials evaluated at once (bounds memory: chunk x particles x hidden)", low=1)
     burn_in: tuple[int, ...] = setting((1, 5, 10, 20), "burn-in (adaptation) steps T", low=1)
@@ -63,23 +56,10 @@ class TwoLinkConfig(ExperimentConfig):
         "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G or S; LV+N (VRNN)",
         choices=METHODS,
     )
-    reptile_epochs: int = setting(20, "Reptile epochs (passes over all tasks) of the R network", low=1)
-    reptile_batch_size: int = setting(64, "Reptile inner mini-batch size", low=1)
-    reptile_lr: float = setting(0.1, "Reptile outer (meta) step size", above=0.0)
-    reptile_inner_lr: float = setting(0.02, "Reptile inner SGD learning rate (the paper's 0.02)", above=0.0)
-    reptile_tasks_per_batch: int = setting(1, "tasks per Reptile meta step", low=1)
     lv_epochs: int = setting(20, "training epochs of the latent-variable (VRNN) model", low=1)
     lv_width: int = setting(128, "width of the VRNN's layers (its recurrent state h has 8 dims)", low=1)
     lv_batch_size: int = setting(256, "VRNN batch size (two-step windows)", low=1)
     lv_lr: float = setting(1e-3, "VRNN Adam learning rate", above=0.0)
-    particles: int = setting(1000, "SMCD mask particles", low=1)
-    flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
-    noise_std: float = setting(0.05, "likelihood noise std (m) of SMCD and the oracle", above=0.0)
-    gd_lr: float = setting(0.01, "online gradient-descent learning rate (normalised units)", above=0.0)
-    gd_steps: int = setting(5, "gradient steps per observation", low=1)
-    gd_window: int = setting(10, "recent transitions in the gradient-descent loss", low=1)
-    oracle_particles: int = setting(1000, "oracle particle count over link lengths", low=1)
-    oracle_jitter: float = setting(0.005, "oracle random-walk std of link lengths per step", low=0.0)
     full: bool = setting(
         False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials, Reptile 1000 and LV 200 epochs"
     )
@@ -111,15 +91,9 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the experiment and write its files; returns the JSON payload."""
     with Experiment(config, progress=progress) as ex:
         # --- seed, data, models -----------------------------------------------------------------
-        data = motor_babbling(
-            config.tasks,
-            config.episodes,
-            config.steps,
-            measurement_noise=config.measurement_noise,
-            generator=ex.generator,
-        ).to(ex.device)
-        model = smcd_rl.AdaptiveModel(_network(config, ex.device), in_keys=["q"], out_key="ee")
-        losses = {"train_loss": ex.train("train", smcd_rl.fit, model, data, **_fit_settings(config))}
+        data = babbling_data(config, ex)
+        model = smcd_rl.AdaptiveModel(network(config, ex.device), in_keys=["q"], out_key="ee")
+        losses = {"train_loss": ex.train("train", smcd_rl.fit, model, data, **fit_settings(config))}
         model.save(ex.out / "model.pt")
         reptile, latent = _train_baselines(ex, config, data, losses)
 
@@ -167,14 +141,6 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
     return ex.result
 
 
-def _network(config: TwoLinkConfig, device: torch.device) -> smcd_rl.MaskedMLP:
-    return smcd_rl.MaskedMLP(2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
-
-
-def _fit_settings(config: TwoLinkConfig) -> dict[str, Any]:
-    return {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
-
-
 def table(rows: list[dict[str, Any]], config: TwoLinkConfig) -> str:
     """RMSE (mean [95% CI] over arms) with burn-in T down and horizon H across, one block per method."""
     header = ["method", "T", *[f"H={h}" for h in config.horizons]]
@@ -213,21 +179,7 @@ def _train_baselines(
     """
     reptile = latent = None
     if any(name.startswith("R+") for name in config.methods):
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(config.seed + 17)
-            reptile = smcd_rl.AdaptiveModel(_network(config, ex.device), in_keys=["q"], out_key="ee")
-        losses["reptile_train_loss"] = ex.train(
-            "reptile",
-            smcd_rl.fit_reptile,
-            reptile,
-            data,
-            epochs=config.reptile_epochs,
-            batch_size=config.reptile_batch_size,
-            lr=config.reptile_lr,
-            inner_lr=config.reptile_inner_lr,
-            tasks_per_batch=config.reptile_tasks_per_batch,
-            seed=config.seed,
-        )
+        reptile, losses["reptile_train_loss"] = train_reptile(ex, config, data, init_seed=config.seed + 17)
         reptile.save(ex.out / "reptile_model.pt")
     if "LV+N" in config.methods:
         with torch.random.fork_rng(devices=[]):
@@ -256,30 +208,18 @@ def _method(
     if name == "LV+N":
         return latent
     if name == "O+P":
-        return OracleModel(
-            lambda lengths, q: two_link_fk(q, lengths),
-            lambda shape, g: sample_link_lengths(shape, generator=g),
-            in_keys=["q"],
-            out_key="ee",
-            noise_std=config.noise_std,
-            num_particles=config.oracle_particles,
-            jitter_std=config.oracle_jitter,
-            lower=0.1,
-            generator=torch.Generator().manual_seed(config.seed + 7),
-        )
+        return oracle(config, "cpu")
     # M and R differ only in how the network was trained; they adapt with identical strategies.
     trained = {"M": model, "R": reptile}[name[0]]
     assert trained is not None
-    strategy = {
-        "N": lambda: smcd_rl.NoAdaptation(),
-        "G": lambda: smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window),
-        "S": lambda: smcd_rl.SMCD(
-            num_particles=config.particles,
-            flip_prob=config.flip_prob,
-            noise_std=config.noise_std,
-            generator=torch.Generator(device=config.device).manual_seed(config.seed + 11),
-        ),
-    }[name[2]]()
+    strategy = make_adaptation(
+        name[2],
+        config,
+        particles=config.particles,
+        noise_std=config.noise_std,
+        seed=config.seed + 11,
+        device=config.device,
+    )
     return trained.with_adaptation(strategy)
 
 
