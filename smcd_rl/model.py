@@ -27,6 +27,12 @@ _FORMAT = "smcd_rl.AdaptiveModel/1"
 _CHECKPOINT_KEYS = ("class", "net", "keys", "state_dict", "adaptation")
 
 
+class _FitRecord:
+    """Whether a user declared a model's network trained (``model.fitted = True``)."""
+
+    fitted = False
+
+
 class UnfittedModelWarning(UserWarning):
     """A model whose network was never fitted is reset or adapted: its predictions mean nothing yet.
 
@@ -101,22 +107,23 @@ class AdaptiveModel(TensorDictModuleBase):
         self.adaptation: Adaptation = NoAdaptation() if adaptation is None else adaptation
         self._batch_shape: tuple[int, ...] | None = None
         self._warned_unfitted = False
+        self._declared = _FitRecord()  # shared with with_adaptation's copies, like the network
         self._bind(self.adaptation)
 
     @property
     def fitted(self) -> bool:
-        """Whether the network was trained: set by :func:`smcd_rl.fit` (and the other trainers), saved with the model.
+        """Whether the network was trained: by :func:`smcd_rl.fit` (or another trainer), or as declared.
 
-        It is the normalisation's record of having been fitted to training data. Set it to ``True``
-        after training :attr:`net` with your own loop (the normalisation then stays the identity), so
-        that :meth:`reset` and :meth:`observe` do not warn with :class:`UnfittedModelWarning`.
+        The trainers' record is the normalisation fitted to the training data. Set ``fitted = True``
+        after training :attr:`net` with your own loop (or for a network random on purpose), so that
+        :meth:`reset` and :meth:`observe` do not warn with :class:`UnfittedModelWarning`; it is
+        saved with the model, and a later :func:`smcd_rl.fit` still fits the normalisation.
         """
-        return bool(self.input_norm.fitted)
+        return bool(self.input_norm.fitted) or self._declared.fitted
 
     @fitted.setter
     def fitted(self, value: bool) -> None:
-        self.input_norm.fitted.fill_(bool(value))
-        self.output_norm.fitted.fill_(bool(value))
+        self._declared.fitted = bool(value)
 
     # ------------------------------------------------------------------ adaptation
     def reset(self, batch_shape: Sequence[int] = (), *, where: Tensor | None = None) -> None:
@@ -231,6 +238,7 @@ class AdaptiveModel(TensorDictModuleBase):
         other = _assemble(type(self), self.net, self._key_config(), adaptation)
         other.input_norm = self.input_norm
         other.output_norm = self.output_norm
+        other._declared = self._declared
         return other
 
     # ------------------------------------------------------------------ prediction
@@ -314,6 +322,7 @@ class AdaptiveModel(TensorDictModuleBase):
             "keys": self._key_config(),
             "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
             "adaptation": {"name": self.adaptation.name, "config": self.adaptation.config()},
+            "declared_fitted": self._declared.fitted,
         }
 
     def save(self, path: str | os.PathLike[str]) -> None:
@@ -349,6 +358,7 @@ class AdaptiveModel(TensorDictModuleBase):
             )
         try:
             self.load_state_dict(checkpoint["state_dict"])
+            self._declared.fitted = bool(checkpoint.get("declared_fitted", False))
         except (RuntimeError, TypeError, AttributeError) as err:  # weights missing or of other shapes
             detail = str(err).strip().splitlines()[0]
             raise CheckpointMismatchError(

@@ -445,6 +445,19 @@ def test_an_unfitted_model_warns_once_and_a_fitted_or_loaded_one_never(tmp_path:
             m.observe(TensorDict({"q": q, "ee": ee}, [2]))
 
 
+def test_declaring_a_model_fitted_keeps_the_normalisation_unfitted_and_survives_a_save(tmp_path: Path) -> None:
+    """``model.fitted = True`` used to mark the normalisers fitted too, so a later fit skipped
+    standardising the data and trained on raw units."""
+    model = _model()
+    model.fitted = True
+    assert model.fitted and not bool(model.input_norm.fitted)
+    model.save(tmp_path / "declared.pt")
+    assert smcd_rl.load(tmp_path / "declared.pt").fitted
+    q, ee = _arm(64)
+    smcd_rl.fit(model, TensorDict({"q": q, "ee": 10 + ee}, [64]), epochs=1, batch_size=16, progress=False)
+    assert bool(model.output_norm.fitted) and float(model.output_norm.mean.min()) > 5
+
+
 # ---------------------------------------------------------------------------- Ctrl-C
 def test_ctrl_c_prints_one_line_and_exits_130(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A real SIGINT, 1.5 s into a two-link run that takes minutes."""
