@@ -339,6 +339,10 @@ class Experiment:
         return result
 
 
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
 def _content(content: Mapping[str, Any] | Callable[[str], Mapping[str, Any]], name: str) -> Mapping[str, Any]:
     return content(name) if callable(content) else content
 
@@ -360,7 +364,7 @@ def write_report(path: Path, result: Mapping[str, Any], tables: Mapping[str, str
     seconds = result["seconds"]["total"]
     lines += [
         f"Wall time {int(seconds // 60)} min {seconds % 60:.0f} s on {machine['processor']} "
-        f"({machine['cpus']} CPUs, {machine['torch_threads']} torch threads, torch {machine['torch']}"
+        f"({machine['cpus']} CPUs, {_count(machine['torch_threads'], 'torch thread')}, torch {machine['torch']}"
         + (f", {machine['gpu']}" if "gpu" in machine else "")
         + ").",
         "",
