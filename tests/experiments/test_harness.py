@@ -115,7 +115,7 @@ def test_the_report_carries_the_tables_and_a_fingerprint_of_the_settings(tmp_pat
         return report.split("fingerprint `")[1][:12]
 
     report = write(ToyConfig(out=str(tmp_path / "one")))
-    assert "# toy" in report and "**Scores**" in report and "| 1 |" in report and "torch threads" in report
+    assert "# toy" in report and "**Scores**" in report and "| 1 |" in report and "1 torch thread," in report
     assert fingerprint(report) == fingerprint(write(ToyConfig(out=str(tmp_path / "two"))))  # out is no setting
     assert fingerprint(report) != fingerprint(write(ToyConfig(out=str(tmp_path / "three"), particles=3)))
 
