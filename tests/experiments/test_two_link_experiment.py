@@ -178,3 +178,11 @@ def test_a_rerun_with_fewer_epochs_trains_that_many_instead_of_reusing_the_longe
     payload = json.loads((out / "results.json").read_text())
     assert payload["config"]["epochs"] == 1 and len(payload["train_loss"]) == 1
     assert len(list(out.glob("train-*.ckpt"))) == 2
+
+
+def test_the_same_seed_and_thread_count_repeat_every_trial_bit_for_bit(tmp_path, capsys) -> None:
+    """Two fresh runs (nothing cached) with the same seed and one thread: identical per-arm errors."""
+    with torch_threads(1):
+        for name in ("a", "b"):
+            assert cli.main(["two-link", "--out", str(tmp_path / name), *TINY, "--methods", "M+G", "M+S", "O+P"]) == 0
+    assert (tmp_path / "a" / "trials.csv").read_text() == (tmp_path / "b" / "trials.csv").read_text()
