@@ -161,9 +161,8 @@ def _bounds(samples: Tensor, level: float) -> tuple[float, float]:
 
 
 def _number(value: float) -> str:
-    if not math.isfinite(value) or (value != 0 and not 1e-3 <= abs(value) < 1e4):
-        return f"{value:.3g}"
-    return f"{value:.3f}"
+    # Three decimals keep a column of differences aligned and comparable; only huge values need 'g'.
+    return f"{value:.3f}" if math.isfinite(value) and abs(value) < 1e4 else f"{value:.4g}"
 
 
 def cell_statistics(
