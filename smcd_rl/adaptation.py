@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Literal
 
 import torch
@@ -35,8 +35,12 @@ class Adaptation(ABC):
         self._batch_shape: tuple[int, ...] = ()
 
     # -------------------------------------------------------------- called by the model
-    def bind(self, net: MaskedMLP, output_scale: Tensor) -> None:
-        """Attach to ``net``; ``output_scale`` converts the target's units to normalised ones."""
+    def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
+        """Attach to ``net``; ``output_scale`` converts the target's units to normalised ones.
+
+        ``calibration`` is the model's :attr:`smcd_rl.AdaptiveModel.calibration` (``None`` if it has
+        none), for strategies whose settings come from it.
+        """
         self._net = net
 
     @abstractmethod
@@ -139,9 +143,14 @@ class SMCD(Adaptation):
 
     Args:
         num_particles: masks in the particle set.
-        flip_prob: per-bit flip probability of the transition.
+        flip_prob: per-bit flip probability of the transition, or ``"auto"``: the one
+            :func:`smcd_rl.calibrate` stored with the model this strategy is attached to.
         noise_std: measurement noise of the Gaussian likelihood, in the target's own units;
-            a scalar or one value per output dimension.
+            a scalar or one value per output dimension, or ``"auto"``: the noise
+            :func:`smcd_rl.calibrate` stored with the model. Calibration chooses noise and
+            flip probability together, so pass both as ``"auto"`` unless you fixed the flip
+            probability when calibrating. :meth:`reset` raises ``ValueError`` if the model has
+            no calibration.
         resampling: resampling scheme (see :class:`smcd_rl.SMCDFilter`).
         ess_threshold: resample when ESS < ``ess_threshold * N``.
         generator: random source of the filter (default: seeded from torch's global generator).
@@ -158,6 +167,12 @@ class SMCD(Adaptation):
         >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(8, 8))
         >>> smcd = smcd_rl.SMCD(num_particles=100, flip_prob=0.01, noise_std=0.05)
         >>> model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee", adaptation=smcd)
+        >>> model.calibration = {"noise_std": [0.02, 0.03], "flip_prob": 0.003}  # as smcd_rl.calibrate stores it
+        >>> model.fitted = True  # a toy network: declare it trained
+        >>> auto = model.with_adaptation(smcd_rl.SMCD(num_particles=100, noise_std="auto", flip_prob="auto"))
+        >>> auto.reset()
+        >>> auto.adaptation.filter.flip_prob
+        0.003
     """
 
     name = "smcd"
@@ -165,8 +180,8 @@ class SMCD(Adaptation):
     def __init__(
         self,
         num_particles: int = 1000,
-        flip_prob: float = 0.01,
-        noise_std: float | Sequence[float] = 0.05,
+        flip_prob: float | Literal["auto"] = 0.01,
+        noise_std: float | Sequence[float] | Literal["auto"] = 0.05,
         resampling: ResamplingScheme = "systematic",
         ess_threshold: float = 1.0,
         generator: torch.Generator | None = None,
@@ -176,9 +191,11 @@ class SMCD(Adaptation):
         super().__init__()
         check_scheme(resampling)
         self.num_particles = check_count(num_particles, "num_particles")
-        self.flip_prob = check_real(flip_prob, "flip_prob", low=0.0, high=1.0)
+        self.flip_prob: float | Literal["auto"] = (
+            "auto" if _is_auto(flip_prob) else check_real(flip_prob, "flip_prob", low=0.0, high=1.0)
+        )
         self.ess_threshold = check_real(ess_threshold, "ess_threshold", low=0.0, high=1.0)
-        noise = _checked_noise(noise_std)
+        noise = torch.tensor(1.0) if _is_auto(noise_std) else _checked_noise(noise_std)
         if generator is not None and not isinstance(generator, torch.Generator):
             raise TypeError(f"generator must be a torch.Generator or None, got {type(generator).__name__}")
         self.noise_std = noise_std
@@ -192,9 +209,11 @@ class SMCD(Adaptation):
         self.particle_forward: ParticleForward | None = None
         self._sigma = noise
         self._log_norm = torch.tensor(0.0)
+        #: Why the strategy cannot run (an ``"auto"`` setting on a model without calibration), else None.
+        self._unresolved: str | None = None
 
     def config(self) -> dict[str, Any]:
-        noise = self.noise_std if isinstance(self.noise_std, (int, float)) else list(self.noise_std)
+        noise = self.noise_std if isinstance(self.noise_std, (int, float, str)) else list(self.noise_std)
         return {
             "num_particles": self.num_particles,
             "flip_prob": self.flip_prob,
@@ -205,9 +224,24 @@ class SMCD(Adaptation):
             "forward_path": self.forward_path,
         }
 
-    def bind(self, net: MaskedMLP, output_scale: Tensor) -> None:
-        super().bind(net, output_scale)
-        noise = torch.as_tensor(self.noise_std, dtype=output_scale.dtype, device=output_scale.device)
+    def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
+        super().bind(net, output_scale, calibration=calibration)
+        noise_std, flip_prob = self.noise_std, self.flip_prob
+        auto = [name for name, value in (("noise_std", noise_std), ("flip_prob", flip_prob)) if _is_auto(value)]
+        if auto and calibration is None:
+            # Not raised here: a model is built (and smcd_rl.load rebuilds one) before its
+            # calibration is known; reset() raises it.
+            self._unresolved = (
+                f"SMCD({', '.join(f'{name}=' + repr('auto') for name in auto)}) takes its settings from the "
+                "model's calibration, but this model has none; run smcd_rl.calibrate(model, episodes) first "
+                "(or pass numbers)"
+            )
+            return
+        self._unresolved = None
+        calibrated = calibration or {}
+        noise_value = calibrated["noise_std"] if _is_auto(noise_std) else noise_std
+        flip = float(calibrated["flip_prob"] if _is_auto(flip_prob) else flip_prob)
+        noise = torch.as_tensor(noise_value, dtype=output_scale.dtype, device=output_scale.device)
         if noise.dim() == 1 and noise.shape[0] not in (1, net.out_features):
             raise ValueError(f"noise_std has {noise.shape[0]} values but the model predicts {net.out_features} outputs")
         noise = noise.expand(net.out_features)
@@ -224,13 +258,14 @@ class SMCD(Adaptation):
             # Keep the filter object (and its generator) across resets: references stay valid and
             # a seeded run is one random stream, not a reseed per episode.
             old.keep_prob = net.keep_prob
+            old.flip_prob = flip  # a calibrated ("auto") one may have changed since
             old.flip_rates()  # the new keep_prob may not admit flip_prob
             old._num_particles = self.num_particles  # a reset undoes any online resize()
             return
         self.filter = SMCDFilter(
             net.mask_dim,
             num_particles=self.num_particles,
-            flip_prob=self.flip_prob,
+            flip_prob=flip,
             keep_prob=net.keep_prob,
             resampling=self.resampling,
             ess_threshold=self.ess_threshold,
@@ -293,6 +328,8 @@ class SMCD(Adaptation):
 
     @property
     def _filter(self) -> SMCDFilter:
+        if self._unresolved is not None:
+            raise ValueError(self._unresolved)
         if self.filter is None:
             raise RuntimeError("SMCD is not attached to a model; pass it to AdaptiveModel(...)")
         return self.filter
@@ -396,12 +433,18 @@ class GradientDescent(Adaptation):
         return out.reshape(*inputs.shape[:-1], out.shape[-1])
 
 
+def _is_auto(value: Any) -> bool:
+    return isinstance(value, str) and value == "auto"
+
+
 def _checked_noise(noise_std: Any) -> Tensor:
     """``noise_std`` as a float tensor if it is a positive finite scalar or 1-d sequence, else a clear error."""
     try:
         noise = torch.as_tensor(noise_std)
     except (TypeError, ValueError, RuntimeError) as err:
-        raise TypeError(f"noise_std must be a positive number or a sequence of them, got {noise_std!r}") from err
+        raise TypeError(
+            f"noise_std must be a positive number, a sequence of them or 'auto', got {noise_std!r}"
+        ) from err
     if noise.dtype == torch.bool or noise.is_complex() or not (noise.is_floating_point() or noise.dtype.is_signed):
         raise TypeError(f"noise_std must be a positive number or a sequence of them, got {noise_std!r}")
     noise = noise.to(torch.float32)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import os
 import warnings
 from collections.abc import Sequence
@@ -14,8 +15,8 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from smcd_rl.adaptation import ADAPTATIONS, Adaptation, NoAdaptation
-from smcd_rl.checks import check_key, check_real_tensor, check_shape, check_tensordict
+from smcd_rl.adaptation import ADAPTATIONS, Adaptation, NoAdaptation, _checked_noise
+from smcd_rl.checks import check_key, check_real, check_real_tensor, check_shape, check_tensordict
 from smcd_rl.files import CheckpointMismatchError, UnreadableFileError, load_file, save_file
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.normalization import Normalizer
@@ -28,9 +29,16 @@ _CHECKPOINT_KEYS = ("class", "net", "keys", "state_dict", "adaptation")
 
 
 class _FitRecord:
-    """Whether a user declared a model's network trained (``model.fitted = True``)."""
+    """What is known about a model's trained network besides its weights, shared by its :meth:`with_adaptation` copies.
 
-    fitted = False
+    Whether a user declared it trained (``model.fitted = True``), the residual scale its trainer
+    measured and the noise and flip probability :func:`smcd_rl.calibrate` chose for it.
+    """
+
+    def __init__(self) -> None:
+        self.fitted = False
+        self.residual_scale: Tensor | None = None
+        self.calibration: dict[str, Any] | None = None
 
 
 class UnfittedModelWarning(UserWarning):
@@ -124,6 +132,42 @@ class AdaptiveModel(TensorDictModuleBase):
     @fitted.setter
     def fitted(self, value: bool) -> None:
         self._declared.fitted = bool(value)
+
+    @property
+    def residual_scale(self) -> Tensor | None:
+        """RMS residual per output dimension of the trained network with dropout off, in the target's units.
+
+        :func:`smcd_rl.fit` (and :func:`smcd_rl.fit_reptile`) measure it after training, on their
+        ``validation`` data if given, else on the training data (then it is optimistic: the network
+        has seen those samples). :func:`smcd_rl.calibrate` starts its search for the likelihood
+        noise there. ``None`` if the model was never fitted by them (set it yourself after your own
+        training loop, a 1-d tensor of ``out_features`` positive values). Saved with the model.
+        For a model with a ``base_key`` the units are those of the change the network predicts,
+        which are also those of :class:`smcd_rl.SMCD`'s ``noise_std``.
+        """
+        scale = self._declared.residual_scale
+        return None if scale is None else scale.clone()
+
+    @residual_scale.setter
+    def residual_scale(self, value: Tensor | Sequence[float] | None) -> None:
+        self._declared.residual_scale = None if value is None else _checked_scale(value, self.net.out_features)
+
+    @property
+    def calibration(self) -> dict[str, Any] | None:
+        """The likelihood settings :func:`smcd_rl.calibrate` chose for this network, or ``None``.
+
+        A dict with ``noise_std`` (a float, or one per output dimension) and ``flip_prob``, plus
+        what they were chosen from (``log_evidence`` per episode, ``episodes``, ``steps``,
+        ``num_particles``). ``SMCD(noise_std="auto", flip_prob="auto")`` takes its settings from
+        here. Saved with the model; :func:`smcd_rl.fit` clears it, since it belonged to the old
+        weights.
+        """
+        calibration = self._declared.calibration
+        return None if calibration is None else copy.deepcopy(calibration)
+
+    @calibration.setter
+    def calibration(self, value: dict[str, Any] | None) -> None:
+        self._declared.calibration = None if value is None else _checked_calibration(value, self.net.out_features)
 
     # ------------------------------------------------------------------ adaptation
     def reset(self, batch_shape: Sequence[int] = (), *, where: Tensor | None = None) -> None:
@@ -323,6 +367,8 @@ class AdaptiveModel(TensorDictModuleBase):
             "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
             "adaptation": {"name": self.adaptation.name, "config": self.adaptation.config()},
             "declared_fitted": self._declared.fitted,
+            "residual_scale": None if self._declared.residual_scale is None else self._declared.residual_scale.tolist(),
+            "calibration": self.calibration,
         }
 
     def save(self, path: str | os.PathLike[str]) -> None:
@@ -356,6 +402,15 @@ class AdaptiveModel(TensorDictModuleBase):
             raise CheckpointMismatchError(
                 f"checkpoint was saved with keys {checkpoint.get('keys')} but this model uses {self._key_config()}"
             )
+        # Files written before these were recorded have neither: the model then has none.
+        scale, calibration = checkpoint.get("residual_scale"), checkpoint.get("calibration")
+        try:
+            scale = None if scale is None else _checked_scale(scale, self.net.out_features)
+            calibration = None if calibration is None else _checked_calibration(calibration, self.net.out_features)
+        except (TypeError, ValueError) as err:
+            raise CheckpointMismatchError(
+                f"the checkpoint's residual scale or calibration does not fit its network ({err}); save the model again"
+            ) from err
         try:
             self.load_state_dict(checkpoint["state_dict"])
             self._declared.fitted = bool(checkpoint.get("declared_fitted", False))
@@ -364,12 +419,13 @@ class AdaptiveModel(TensorDictModuleBase):
             raise CheckpointMismatchError(
                 f"the checkpoint's weights do not fit its own architecture ({detail}); save the model again"
             ) from err
+        self._declared.residual_scale, self._declared.calibration = scale, calibration
 
     # ------------------------------------------------------------------ internals
     def _bind(self, adaptation: Adaptation) -> None:
         if not isinstance(adaptation, Adaptation):
             raise TypeError(f"adaptation must be a smcd_rl.Adaptation, got {type(adaptation).__name__}")
-        adaptation.bind(self.net, self.output_norm.std)
+        adaptation.bind(self.net, self.output_norm.std, calibration=self._declared.calibration)
 
     def _key_config(self) -> dict[str, Any]:
         return {
@@ -613,6 +669,31 @@ def _checked_where(where: Any, batch_shape: tuple[int, ...]) -> Tensor:
             f"reset(where=...) needs one bool per batch element, shape {list(batch_shape)}, got {list(rows.shape)}"
         )
     return rows.reshape(batch_shape)
+
+
+def _checked_scale(value: Any, size: int) -> Tensor:
+    """A residual scale as a float32 CPU tensor of ``size`` positive finite values, or a clear error."""
+    try:
+        scale = torch.as_tensor(value).detach().to("cpu", torch.float32).clone()
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(f"residual_scale must be a tensor or sequence of {size} numbers, got {value!r}") from err
+    if scale.shape != (size,) or not bool((scale > 0).all()) or not bool(torch.isfinite(scale).all()):
+        raise ValueError(f"residual_scale must hold {size} positive finite values (one per output), got {value!r}")
+    return scale
+
+
+def _checked_calibration(value: Any, size: int) -> dict[str, Any]:
+    """A calibration dict with a valid ``noise_std`` (scalar or ``size`` values) and ``flip_prob``, copied."""
+    if not isinstance(value, dict) or "noise_std" not in value or "flip_prob" not in value:
+        raise TypeError(f"calibration must be a dict with 'noise_std' and 'flip_prob', got {value!r}")
+    noise: Any = value["noise_std"]
+    noise = noise.tolist() if isinstance(noise, Tensor) else noise
+    checked = _checked_noise(noise)  # float32: the stored values are the caller's, as float64 Python floats
+    if checked.dim() == 1 and checked.shape[0] not in (1, size):
+        raise ValueError(f"calibration noise_std has {checked.shape[0]} values but the model predicts {size} outputs")
+    flip = check_real(value["flip_prob"], "calibration flip_prob", low=0.0, high=1.0)
+    plain = [float(v) for v in noise] if checked.dim() == 1 else float(noise)
+    return {**value, "noise_std": plain, "flip_prob": flip}
 
 
 def _key(value: Any) -> NestedKey | None:
