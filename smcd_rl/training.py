@@ -14,6 +14,7 @@ from tensordict import TensorDictBase
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from smcd_rl.checks import check_tensordict
 from smcd_rl.digests import content_digest
 from smcd_rl.files import CheckpointMismatchError, load_file, save_file
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel
@@ -21,6 +22,8 @@ from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel
 __all__ = ["fit", "fit_dynamics", "fit_reptile"]
 
 _FORMAT = "smcd_rl.fit/1"
+#: Rows per forward pass when measuring the residual scale (bounds its memory, not its result much).
+_RESIDUAL_CHUNK = 65536
 
 
 class _Checkpointable(Protocol):
@@ -43,6 +46,7 @@ def fit(
     checkpoint: str | os.PathLike[str] | None = None,
     progress: bool = True,
     callback: Callable[[int, float], None] | None = None,
+    validation: TensorDictBase | None = None,
 ) -> list[float]:
     """Train ``model.net`` with dropout on ``data`` (multi-task training: samples drawn at random).
 
@@ -57,6 +61,13 @@ def fit(
     from there, as the longer run would have. A call with fewer epochs, other settings or other
     data raises :class:`smcd_rl.CheckpointMismatchError`, which says how to go on.
 
+    After training, the network with dropout off is run once over ``validation`` (else over
+    ``data``) to record :attr:`smcd_rl.AdaptiveModel.residual_scale`, the RMS residual per output,
+    where :func:`smcd_rl.calibrate` starts its noise search; measured on ``data`` it is optimistic
+    (the network has seen those samples). This pass draws no random numbers, so the weights and
+    losses are those of a run without it. A previous :attr:`~smcd_rl.AdaptiveModel.calibration`
+    is cleared: it belonged to the old weights.
+
     Args:
         model: the model whose network is trained (its strategy is irrelevant here).
         data: transitions with the model's input and target keys; any batch shape.
@@ -68,6 +79,8 @@ def fit(
         checkpoint: file to save to after each epoch and to resume from.
         progress: show a progress bar.
         callback: called as ``callback(epoch, mean_loss)`` after each epoch.
+        validation: held-out transitions (the model's keys, any batch shape) for the residual
+            scale; never trained on.
 
     Returns:
         Mean training loss (MSE in normalised units) of every epoch, resumed ones included.
@@ -85,6 +98,7 @@ def fit(
     if epochs < 0 or batch_size < 1 or lr <= 0:
         raise ValueError(f"need epochs >= 0, batch_size >= 1 and lr > 0, got {epochs}, {batch_size}, {lr}")
     _require_samples(data, "fit")
+    _check_validation(validation, "fit")
     net = model.net
     device = next(net.parameters()).device
     x, y = _normalised_pairs(model, data.reshape(-1), device)
@@ -99,7 +113,7 @@ def fit(
 
         return _shuffled_epoch(n, batch_size, optimizer, generator, batch_loss)
 
-    return _train(
+    history = _train(
         model,
         one_epoch,
         data,
@@ -113,6 +127,8 @@ def fit(
         progress=progress,
         callback=callback,
     )
+    _record_residual_scale(model, (x, y) if validation is None else validation)
+    return history
 
 
 def fit_dynamics(model: AdaptiveDynamicsModel, data: TensorDictBase, **kwargs: Any) -> list[float]:
@@ -146,6 +162,7 @@ def fit_reptile(
     checkpoint: str | os.PathLike[str] | None = None,
     progress: bool = True,
     callback: Callable[[int, float], None] | None = None,
+    validation: TensorDictBase | None = None,
 ) -> list[float]:
     """Train ``model.net`` with Reptile (first-order meta-learning, Nichol et al. 2018) and dropout.
 
@@ -167,8 +184,8 @@ def fit_reptile(
     per epoch grows with ``lr / tasks_per_batch`` and with the inner steps per task
     (samples / ``batch_size``).
 
-    Normalisation, repeatability from ``seed`` and checkpoint/resume behave exactly as in
-    :func:`fit`. (The tasks of a meta step are trained one after the other: on CPU a
+    Normalisation, repeatability from ``seed``, checkpoint/resume and the residual scale
+    recorded after training (on ``validation`` if given) behave exactly as in :func:`fit`. (The tasks of a meta step are trained one after the other: on CPU a
     ``torch.func.vmap`` over them measured no faster.)
 
     Args:
@@ -185,6 +202,7 @@ def fit_reptile(
         checkpoint: file to save to after each epoch and to resume from.
         progress: show a progress bar.
         callback: called as ``callback(epoch, mean_loss)`` after each epoch.
+        validation: held-out transitions for the residual scale, as in :func:`fit`.
 
     Returns:
         Mean inner-loop training loss (MSE in normalised units, before each SGD step) of every
@@ -211,6 +229,7 @@ def fit_reptile(
             f"{list(data.batch_size)}; e.g. data.reshape(num_tasks, -1), or smcd_rl.fit for pooled multi-task training"
         )
     _require_samples(data, "fit_reptile")
+    _check_validation(validation, "fit_reptile")
     num_tasks = data.batch_size[0]
     if tasks_per_batch > num_tasks:
         raise ValueError(
@@ -265,7 +284,7 @@ def fit_reptile(
                     p.add_(s / len(chosen) - p, alpha=lr)
         return total / (num_tasks * n * inner_epochs)
 
-    return _train(
+    history = _train(
         model,
         one_epoch,
         data,
@@ -279,6 +298,10 @@ def fit_reptile(
         progress=progress,
         callback=callback,
     )
+    _record_residual_scale(
+        model, (x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])) if validation is None else validation
+    )
+    return history
 
 
 def _shuffled_epoch(
@@ -308,6 +331,41 @@ def _shuffled_epoch(
 def _require_samples(data: TensorDictBase, what: str) -> None:
     if math.prod(data.batch_size) == 0:  # TensorDict.numel() reports 1 for batch [0]
         raise ValueError(f"{what} got an empty dataset (no transitions); collect data before training")
+
+
+def _check_validation(validation: Any, what: str) -> None:
+    if validation is None:
+        return
+    check_tensordict(validation, f"{what}(validation=...)")
+    _require_samples(validation, f"{what}(validation=...)")
+
+
+def _record_residual_scale(model: AdaptiveModel, data: TensorDictBase | tuple[Tensor, Tensor]) -> None:
+    """Set ``model.residual_scale`` from the network with dropout off; clear a stale calibration.
+
+    ``data`` is a TensorDict of transitions or the normalised ``(inputs, targets)`` already
+    computed for training. Draws no random numbers and changes no weights.
+    """
+    net = model.net
+    if isinstance(data, TensorDictBase):
+        device = next(net.parameters()).device
+        x, y = model.training_pairs(data.reshape(-1).to(device))
+        x, y = model.input_norm(x), model.output_norm(y)
+    else:
+        x, y = data
+    was_training = net.training
+    net.eval()
+    squared = torch.zeros(net.out_features, dtype=torch.float64, device=y.device)
+    with torch.no_grad():
+        for begin in range(0, x.shape[0], _RESIDUAL_CHUNK):
+            residual = net(x[begin : begin + _RESIDUAL_CHUNK]) - y[begin : begin + _RESIDUAL_CHUNK]
+            squared += residual.to(torch.float64).square().sum(0)
+    net.train(was_training)
+    rms = (squared / x.shape[0]).sqrt() * model.output_norm.std.to(torch.float64)
+    # A dimension the network fits exactly (a constant target) gets a small positive scale, not 0.
+    floor = 1e-6 * model.output_norm.std.to(torch.float64)
+    model.residual_scale = torch.maximum(rms, floor).to(torch.float32).cpu()
+    model.calibration = None
 
 
 def _normalised_pairs(model: Any, data: TensorDictBase, device: torch.device) -> tuple[Tensor, Tensor]:
