@@ -14,6 +14,7 @@ Example:
 from __future__ import annotations
 
 from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation, make_adaptation
+from smcd_rl.calibration import Calibration, calibrate
 from smcd_rl.envs import register_all as _register_envs
 from smcd_rl.files import FileWriteError, UnreadableFileError
 from smcd_rl.filter import ParticleFilter, SMCDFilter
@@ -44,4 +45,6 @@ __all__ = [
     "fit_dynamics",
     "fit_reptile",
     "load",
+    "calibrate",
+    "Calibration",
 ]

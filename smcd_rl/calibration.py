@@ -1,0 +1,511 @@
+"""Calibration by evidence (empirical Bayes): the likelihood noise and flip probability of SMCD.
+
+The likelihood noise ``Σ`` of eq. (1) and the flip probability ``d`` of the mask transition are
+parameters of the state-space model the filter assumes, and the filter already estimates that
+model's marginal likelihood as it runs, ``log p(z_1:T) = Σ_t log p(z_t | z_<t)`` (its log
+evidence, :attr:`smcd_rl.SMCDFilter.log_evidence`). :func:`calibrate` runs the filter over
+held-out episodes of the *training* tasks for a few candidate settings and keeps the one of
+highest summed log evidence: too small a noise punishes every residual the network cannot
+explain, too large a one spreads the likelihood over masks that predict nothing.
+
+Example:
+    >>> import torch, smcd_rl
+    >>> from tensordict import TensorDict
+    >>> _ = torch.manual_seed(0)
+    >>> q = torch.rand(40, 2)
+    >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(16,)), in_keys=["q"], out_key="ee")
+    >>> _ = smcd_rl.fit(model, TensorDict({"q": q, "ee": q.cos()}, [40]), epochs=2, lr=1e-2, progress=False)
+    >>> episodes = TensorDict({"q": q.reshape(4, 10, 2), "ee": q.cos().reshape(4, 10, 2)}, [4, 10])
+    >>> result = smcd_rl.calibrate(model, episodes, base=smcd_rl.SMCD(num_particles=20), progress=False)
+    >>> len(result.candidates) >= 15, model.calibration["flip_prob"] == result.flip_prob
+    (True, True)
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from smcd_rl.adaptation import SMCD, NoAdaptation
+from smcd_rl.checks import check_count, check_real, check_tensordict
+from smcd_rl.filter import SMCDFilter
+from smcd_rl.model import AdaptiveModel
+
+__all__ = ["calibrate", "evidence", "Calibration", "Candidate"]
+
+#: Factors of the residual scale tried first: 1/8 .. 8 in doublings.
+_BRACKET = tuple(range(-3, 4))
+#: At most this many doublings past either end of a bracket whose best value lies at that end.
+_EXTEND = 6
+_LOG2 = math.log(2.0)
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+Stage = Literal["bracket", "flip", "rebracket", "refine"]
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One filter run of :func:`calibrate`: a setting and how well it explains the episodes."""
+
+    #: Which part of the search proposed it: ``bracket``, ``flip``, ``rebracket`` or ``refine``.
+    stage: Stage
+    #: The noise as a multiple of the residual scale the search started from.
+    factor: float
+    #: The likelihood noise (a float, or one per output dimension), in the target's units.
+    noise_std: float | tuple[float, ...]
+    flip_prob: float
+    #: Mean log evidence per episode, ``log p(z_1:T)`` (``-inf`` if the filter refused an observation).
+    log_evidence: float
+    #: RMSE (target units, all dimensions pooled) of the filter's prediction of each step from the
+    #: steps before it (the MMSE mask before its update), over every episode's steps 2..T.
+    one_step_rmse: float
+
+
+@dataclass
+class Calibration:
+    """What :func:`calibrate` chose and every candidate it tried; ``print`` it for the table."""
+
+    #: A fresh :class:`smcd_rl.SMCD` with the chosen settings (and the other settings of ``base``).
+    strategy: SMCD = field(compare=False)
+    noise_std: float | list[float]
+    flip_prob: float
+    #: Every filter run, in the order run.
+    candidates: list[Candidate]
+    #: The residual scale per output dimension the search started from.
+    residual_scale: list[float]
+    #: Where it came from: the model's fit (``"fit"``) or, without one, the episodes themselves.
+    residual_source: Literal["fit", "episodes"]
+    #: Whether the noise kept the residual's proportions (else a scalar, the factor times its RMS).
+    per_dimension: bool
+    #: The flip probabilities tried, sorted.
+    flip_probs: list[float]
+    episodes: int
+    steps: int
+    num_particles: int
+    #: Wall time of the search.
+    seconds: float = field(compare=False)
+
+    @property
+    def best(self) -> Candidate:
+        """The chosen candidate: the one of highest log evidence (the first of equals)."""
+        return max(self.candidates, key=lambda c: c.log_evidence)
+
+    def table(self) -> str:
+        """Every candidate's setting, log evidence and one-step error; the chosen one marked ``*``."""
+        scale = "[" + ", ".join(f"{s:.4g}" for s in self.residual_scale) + "]"
+        if not self.per_dimension:
+            scale = f"RMS of {scale}"
+        lines = [
+            f"calibrate: {self.episodes} episodes x {self.steps} steps, {self.num_particles} particles; "
+            f"noise = factor x residual scale {scale} (from {self.residual_source})",
+            f"{'':1} {'run':>3}  {'stage':<9}  {'factor':>8}  {'noise(rms)':>10}  {'flip_prob':>9}  "
+            f"{'log evidence/ep':>15}  {'1-step RMSE':>11}",
+        ]
+        best = self.best
+        for i, c in enumerate(self.candidates, 1):
+            noise = (
+                c.noise_std
+                if isinstance(c.noise_std, float)
+                else math.sqrt(sum(v * v for v in c.noise_std) / len(c.noise_std))
+            )
+            lines.append(
+                f"{'*' if c is best else ' '} {i:>3}  {c.stage:<9}  {c.factor:>8.4g}  {noise:>10.4g}  "
+                f"{c.flip_prob:>9.4g}  {c.log_evidence:>15.6g}  {c.one_step_rmse:>11.4g}"
+            )
+        noise_text = (
+            f"{self.noise_std:.4g}"
+            if isinstance(self.noise_std, float)
+            else str([float(f"{v:.4g}") for v in self.noise_std])
+        )
+        lines.append(
+            f"chosen: noise_std={noise_text}, flip_prob={self.flip_prob:g} "
+            f"({len(self.candidates)} filter runs, {self.seconds:.1f} s)"
+        )
+        if len(self.flip_probs) > 1 and self.flip_prob in (self.flip_probs[0], self.flip_probs[-1]):
+            lines.append(
+                f"note: flip_prob {self.flip_prob:g} is at the end of the flip_probs tried {self.flip_probs}; "
+                "a wider range may explain the episodes better"
+            )
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.table()
+
+
+def calibrate(
+    model: AdaptiveModel,
+    episodes: TensorDictBase | Sequence[TensorDictBase],
+    *,
+    base: SMCD | None = None,
+    flip_probs: Sequence[float] = (0.001, 0.003, 0.01, 0.03),
+    per_dimension: bool = True,
+    refine: int = 5,
+    seed: int = 0,
+    progress: bool = True,
+) -> Calibration:
+    """Choose SMCD's ``noise_std`` and ``flip_prob`` by the filter's log evidence on held-out episodes.
+
+    The episodes must come from the *training* tasks (held out from training, never the test
+    tasks): calibration is part of fitting the model, and tuning it on the tasks it is then
+    scored on would leak them into the score.
+
+    The noise is searched as ``factor x residual scale``, starting from the model's
+    :attr:`~smcd_rl.AdaptiveModel.residual_scale` (recorded by :func:`smcd_rl.fit`; without one,
+    the RMS residual of the network with dropout off on the episodes). With ``per_dimension`` the
+    noise keeps the residual's proportions across output dimensions and only the common factor is
+    searched (one parameter, well posed even for few episodes); without it the noise is a scalar.
+    Search, in log factor:
+
+    1. a bracket of factors 1/8 .. 8 in doublings at the middle of ``flip_probs`` (7 runs),
+       extended past an end while the best value lies there;
+    2. the other ``flip_probs`` at the best factor (``len(flip_probs) - 1`` runs);
+    3. if the best flip probability changed, the factors half and twice the best one at it
+       (2 runs, extended in the same way);
+    4. a golden-section refinement between those neighbours (``refine`` runs), which narrows
+       the bracket around the optimum to a factor ``4 ** (0.618 ** (refine - 1))`` (1.22 for
+       the default 5).
+
+    That is 17 filter runs by default (15 when the flip probability stays, one more per
+    extension), each over all episodes at once as one batch of independent filters, every one seeded alike from ``seed``
+    (common random numbers, so candidates differ by their setting and not by their draws). The
+    cost of a run is that of ``steps`` SMCD updates of batch ``episodes`` (memory: ``episodes x
+    num_particles`` masks and activations at once). The chosen setting is
+    the candidate of highest log evidence; it is stored in ``model.calibration`` (saved with the
+    model, used by ``SMCD(noise_std="auto", flip_prob="auto")``).
+
+    Args:
+        model: a fitted model; its network is not changed.
+        episodes: a TensorDict of batch ``[E, T]`` (E episodes of T consecutive steps) in the
+            model's keys, or a list of ``[T]`` ones; at least 2 episodes of 2 steps.
+        base: the SMCD whose other settings (particles, resampling, transition...) the filter
+            runs use and the result keeps (default ``SMCD()``); its noise and flip are ignored.
+        flip_probs: the flip probabilities tried.
+        per_dimension: one noise per output dimension in the residual's proportions (else one scalar).
+        refine: golden-section runs at the end (0 for none).
+        seed: seed of every filter run: two calls with the same arguments give the same result.
+        progress: show a progress bar over the filter runs.
+
+    Returns:
+        The chosen strategy and settings and every candidate (``print`` it for a table).
+
+    Raises:
+        TypeError: ``model`` is not an AdaptiveModel, ``episodes`` not TensorDicts, a value not real.
+        KeyError: a key the model needs is missing from ``episodes``.
+        ValueError: shapes that do not fit the model, fewer than 2 episodes or steps, NaN or inf,
+            episodes of different lengths, an unfitted model, a flip probability the transition
+            cannot take, or a filter that refused the episodes under every candidate.
+    """
+    started = time.perf_counter()
+    model, base = _checked_model(model), _checked_base(base)
+    grid = _checked_flips(flip_probs, model, base)
+    refine = check_count(refine, "refine", minimum=0)
+    seed = check_count(seed, "seed", minimum=0)
+    td = _stacked(episodes)
+    num_episodes, steps = td.batch_size
+    x, y = _pairs(model, td)  # normalised, [E, T, features]
+
+    recorded = model.residual_scale
+    source: Literal["fit", "episodes"] = "fit" if recorded is not None else "episodes"
+    scale = recorded if recorded is not None else _residual_scale(model, x, y)
+    start = scale.to(torch.float64)
+    searched = start if per_dimension else start.square().mean().sqrt().reshape(1)
+
+    def noise_of(log_factor: float) -> float | tuple[float, ...]:
+        values = (math.exp(log_factor) * searched).tolist()
+        return tuple(values) if per_dimension else values[0]
+
+    config = {k: v for k, v in base.config().items() if k not in ("noise_std", "flip_prob")}
+    device = next(model.net.parameters()).device
+    candidates: list[Candidate] = []
+    scores: dict[tuple[float, float], float] = {}
+    middle = grid[len(grid) // 2]
+    planned = len(_BRACKET) + len(grid) - 1 + refine
+    bar = tqdm(total=planned, desc="calibrate", unit="run", disable=not progress)
+
+    def score(log_factor: float, flip: float, stage: Stage) -> float:
+        key = (round(log_factor, 9), flip)
+        if key in scores:
+            return scores[key]
+        nonlocal planned
+        if len(candidates) >= planned:  # an extended bracket: more runs than planned
+            planned += 1
+            bar.total = planned
+            bar.refresh()
+        noise = noise_of(log_factor)
+        strategy = SMCD(
+            **config,
+            noise_std=list(noise) if isinstance(noise, tuple) else noise,
+            flip_prob=flip,
+            generator=torch.Generator(device=device).manual_seed(seed),
+        )
+        evidence, rmse = _run(model, strategy, x, y)
+        candidates.append(Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse))
+        scores[key] = evidence
+        bar.update(1)
+        bar.set_postfix(factor=f"{math.exp(log_factor):.3g}", flip=f"{flip:g}", evidence=f"{evidence:.4g}")
+        return evidence
+
+    try:
+        # 1. Bracket the noise at the middle flip probability; 2. the other flip probabilities there.
+        log_factor = _climb([k * _LOG2 for k in _BRACKET], lambda u: score(u, middle, "bracket"))
+        flip = max(grid, key=lambda f: score(log_factor, f, "flip"))
+        # 3. Bracket again if the flip probability moved; 4. narrow the bracket by golden section.
+        if flip != middle:
+            log_factor = _climb(
+                [log_factor - _LOG2, log_factor, log_factor + _LOG2], lambda u: score(u, flip, "rebracket")
+            )
+        _golden(log_factor - _LOG2, log_factor + _LOG2, refine, lambda u: score(u, flip, "refine"))
+    finally:
+        bar.close()
+
+    best = max(candidates, key=lambda c: c.log_evidence)
+    if not math.isfinite(best.log_evidence):
+        raise ValueError(
+            "the filter refused the episodes under every candidate setting (an observation impossible under "
+            "every particle); check that the episodes are in the model's units and free of outliers"
+        )
+    chosen: float | list[float] = list(best.noise_std) if isinstance(best.noise_std, tuple) else best.noise_std
+    model.calibration = {
+        "noise_std": chosen,
+        "flip_prob": best.flip_prob,
+        "log_evidence": best.log_evidence,
+        "one_step_rmse": best.one_step_rmse,
+        "episodes": num_episodes,
+        "steps": steps,
+        "num_particles": base.num_particles,
+    }
+    return Calibration(
+        strategy=SMCD(**config, noise_std=chosen, flip_prob=best.flip_prob),
+        noise_std=chosen,
+        flip_prob=best.flip_prob,
+        candidates=candidates,
+        residual_scale=start.tolist(),
+        residual_source=source,
+        per_dimension=per_dimension,
+        flip_probs=grid,
+        episodes=num_episodes,
+        steps=steps,
+        num_particles=base.num_particles,
+        seconds=time.perf_counter() - started,
+    )
+
+
+def evidence(
+    model: AdaptiveModel,
+    episodes: TensorDictBase | Sequence[TensorDictBase],
+    *,
+    noise_std: float | Sequence[float],
+    flip_prob: float,
+    base: SMCD | None = None,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """One filter run of :func:`calibrate` for a setting of your choice: its evidence and one-step error.
+
+    Takes ``episodes``, ``base`` and ``seed`` as :func:`calibrate` does and checks them the same
+    way; stores nothing on the model.
+
+    Returns:
+        The mean log evidence per episode and the one-step RMSE (see :class:`Candidate`).
+
+    Example:
+        >>> import torch, smcd_rl
+        >>> from tensordict import TensorDict
+        >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+        >>> model.fitted = True  # a toy network: declare it trained
+        >>> q = torch.rand(3, 5, 2)
+        >>> episodes = TensorDict({"q": q, "ee": torch.zeros(3, 5, 2)}, [3, 5])
+        >>> log_evidence, rmse = evidence(model, episodes, noise_std=0.1, flip_prob=0.01, base=smcd_rl.SMCD(num_particles=10))
+        >>> log_evidence < 0 < rmse
+        True
+    """
+    model, base, seed = _checked_model(model), _checked_base(base), check_count(seed, "seed", minimum=0)
+    td = _stacked(episodes)
+    x, y = _pairs(model, td)
+    config = {k: v for k, v in base.config().items() if k not in ("noise_std", "flip_prob")}
+    device = next(model.net.parameters()).device
+    generator = torch.Generator(device=device).manual_seed(seed)
+    return _run(model, SMCD(**config, noise_std=noise_std, flip_prob=flip_prob, generator=generator), x, y)
+
+
+def _checked_model(model: AdaptiveModel) -> AdaptiveModel:
+    if not isinstance(model, AdaptiveModel):
+        raise TypeError(f"calibrate takes a smcd_rl.AdaptiveModel, got {type(model).__name__}")
+    if not model.fitted:
+        raise ValueError(
+            "calibrate needs a fitted model (its residual scale and the evidence of an untrained network mean "
+            "nothing); train it with smcd_rl.fit first, or set model.fitted = True if you trained it yourself"
+        )
+    return model
+
+
+def _checked_base(base: SMCD | None) -> SMCD:
+    base = SMCD() if base is None else base
+    if not isinstance(base, SMCD):
+        raise TypeError(f"base must be a smcd_rl.SMCD whose other settings the runs use, got {type(base).__name__}")
+    return base
+
+
+def _climb(log_factors: list[float], score: Callable[[float], float]) -> float:
+    """The best of ``log_factors`` after extending them by doublings while the best lies at an end."""
+    points = sorted(log_factors)
+    lowest, highest = points[0] - _EXTEND * _LOG2, points[-1] + _EXTEND * _LOG2
+    values = [score(u) for u in points]
+    for _ in range(2 * _EXTEND):
+        best = max(range(len(points)), key=values.__getitem__)
+        low, high = points[0] <= lowest + 1e-9, points[-1] >= highest - 1e-9
+        if not math.isfinite(values[best]):
+            break  # nothing explains the episodes here: no direction to climb
+        if best == 0 and not low:
+            points.insert(0, points[0] - _LOG2)
+            values.insert(0, score(points[0]))
+        elif best == len(points) - 1 and not high:
+            points.append(points[-1] + _LOG2)
+            values.append(score(points[-1]))
+        else:
+            break
+    return points[max(range(len(points)), key=values.__getitem__)]
+
+
+def _golden(low: float, high: float, runs: int, score: Callable[[float], float]) -> None:
+    """Golden-section search for the maximum of ``score`` on ``[low, high]`` in ``runs`` evaluations."""
+    if runs < 1:
+        return
+    c = high - _GOLDEN * (high - low)
+    fc = score(c)
+    if runs < 2:
+        return
+    d = low + _GOLDEN * (high - low)
+    fd = score(d)
+    for _ in range(runs - 2):
+        if fc >= fd:  # the maximum is in [low, d]
+            high, d, fd = d, c, fc
+            c = high - _GOLDEN * (high - low)
+            fc = score(c)
+        else:  # in [c, high]
+            low, c, fc = c, d, fd
+            d = low + _GOLDEN * (high - low)
+            fd = score(d)
+
+
+def _run(model: AdaptiveModel, strategy: SMCD, x: Tensor, y: Tensor) -> tuple[float, float]:
+    """One filter over every episode at once: mean log evidence per episode and the one-step RMSE.
+
+    ``x [E, T, in]``, ``y [E, T, out]`` are normalised; the RMSE is in the target's units.
+    """
+    num_episodes, steps = x.shape[:2]
+    model.with_adaptation(strategy).reset(batch_shape=(num_episodes,))
+    output_std = model.output_norm.std.to(torch.float64)
+    squared = torch.zeros((), dtype=torch.float64, device=x.device)
+    with torch.no_grad():
+        try:
+            for t in range(steps):
+                if t > 0:  # predicted from steps < t, before the filter sees step t
+                    error = (strategy.predict(x[:, t]) - y[:, t]).to(torch.float64) * output_std
+                    squared += error.square().sum()
+                strategy.observe(x[:, t], y[:, t])
+        except ValueError:  # the filter refused an observation: this setting cannot explain the episodes
+            return -math.inf, math.nan
+    assert strategy.filter is not None and strategy.filter.log_evidence is not None
+    evidence = float(strategy.filter.log_evidence.to(torch.float64).mean())
+    rmse = math.sqrt(float(squared) / (num_episodes * (steps - 1) * y.shape[-1]))
+    return evidence, rmse
+
+
+def _residual_scale(model: AdaptiveModel, x: Tensor, y: Tensor) -> Tensor:
+    """RMS residual per output of the network with dropout off on normalised ``x``, ``y``, in target units."""
+    plain = model.with_adaptation(NoAdaptation())
+    plain.reset()
+    with torch.no_grad():
+        residual = plain.adaptation.predict(x.reshape(-1, x.shape[-1])) - y.reshape(-1, y.shape[-1])
+    std = model.output_norm.std.to(torch.float64)
+    rms = residual.to(torch.float64).square().mean(0).sqrt() * std
+    return torch.maximum(rms, 1e-6 * std).to(torch.float32).cpu()  # a dimension fitted exactly keeps a scale
+
+
+def _stacked(episodes: TensorDictBase | Sequence[TensorDictBase]) -> TensorDictBase:
+    """``episodes`` as one TensorDict of batch ``[E, T]``, ``E, T >= 2``, or a clear error."""
+    if isinstance(episodes, TensorDictBase):
+        td = episodes
+        if td.batch_dims != 2:
+            hint = ""
+            if td.batch_dims == 1:
+                hint = "; a batch [T] is one episode, and calibration needs at least 2"
+            elif td.batch_dims > 2:
+                hint = f"; flatten the leading dims, e.g. episodes.reshape(-1, {td.batch_size[-1]})"
+            raise ValueError(
+                f"calibrate takes episodes as a TensorDict of batch [E, T] (E episodes of T steps) or a list of "
+                f"[T] ones, got batch {list(td.batch_size)}{hint}"
+            )
+    elif isinstance(episodes, Sequence) and not isinstance(episodes, (str, bytes)):
+        items = list(episodes)
+        for i, episode in enumerate(items):
+            check_tensordict(episode, f"calibrate (episodes[{i}])")
+            if episode.batch_dims != 1:
+                raise ValueError(
+                    f"calibrate: episodes[{i}] has batch {list(episode.batch_size)}; a list holds one TensorDict "
+                    "of batch [T] per episode"
+                )
+        lengths = sorted({int(episode.batch_size[0]) for episode in items})
+        if len(lengths) > 1:
+            raise ValueError(
+                f"calibrate: the episodes have different lengths {lengths}; cut them to a common length, "
+                f"e.g. [episode[:{lengths[0]}] for episode in episodes]"
+            )
+        if len(items) < 2:
+            raise ValueError(f"calibrate needs at least 2 episodes, got {len(items)}")
+        try:
+            td = torch.stack(items, 0)
+        except (RuntimeError, ValueError, KeyError) as err:
+            raise ValueError(
+                f"calibrate: the episodes do not all have the same keys and feature shapes ({err})"
+            ) from err
+    else:
+        check_tensordict(episodes, "calibrate")
+        raise AssertionError("unreachable")  # check_tensordict refused it
+    num_episodes, steps = td.batch_size
+    if num_episodes < 2:
+        raise ValueError(
+            f"calibrate needs at least 2 episodes, got {num_episodes}: two settings are chosen from the "
+            "evidence, and one episode's evidence mostly measures that episode"
+        )
+    if steps < 2:
+        raise ValueError(
+            f"calibrate needs episodes of at least 2 steps, got {steps}: the one-step error predicts each "
+            "step from the steps before it"
+        )
+    return td
+
+
+def _pairs(model: AdaptiveModel, td: TensorDictBase) -> tuple[Tensor, Tensor]:
+    """Normalised network inputs and targets ``[E, T, features]`` of the episodes, checked (keys, shapes, NaN)."""
+    what = "calibrate (episodes)"
+    x = model._raw_inputs(td, what=what, exact=True)
+    target = model._read(td, model.target_key, model.net.out_features, what=what, exact=True)
+    return model.input_norm(x), model.output_norm(model._to_output(td, target, exact=True))
+
+
+def _checked_flips(flip_probs: Sequence[float], model: AdaptiveModel, base: SMCD) -> list[float]:
+    """The flip probabilities, sorted and distinct, each one the model's transition can take."""
+    if isinstance(flip_probs, (str, bytes)) or not isinstance(flip_probs, Sequence):
+        raise TypeError(f"flip_probs must be a sequence of probabilities such as (0.003, 0.01), got {flip_probs!r}")
+    if not flip_probs:
+        raise ValueError("flip_probs must hold at least one flip probability")
+    grid = sorted({check_real(f, f"flip_probs[{i}]", low=0.0, high=1.0) for i, f in enumerate(flip_probs)})
+    for flip in grid:  # the transition's own check; a generator of its own, so no global random draw
+        SMCDFilter(
+            1,
+            num_particles=1,
+            flip_prob=flip,
+            keep_prob=model.net.keep_prob,
+            transition=base.transition,
+            generator=torch.Generator(),
+        )
+    return grid
