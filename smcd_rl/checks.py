@@ -26,7 +26,15 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
-__all__ = ["check_count", "check_real", "check_shape", "check_real_tensor", "check_tensordict", "check_key"]
+__all__ = [
+    "check_count",
+    "check_real",
+    "check_shape",
+    "check_real_tensor",
+    "check_tensordict",
+    "check_key",
+    "read_tensor",
+]
 
 
 def check_count(value: Any, name: str, *, minimum: int = 1) -> int:
@@ -95,3 +103,54 @@ def check_key(key: Any, name: str, *, optional: bool = False) -> None:
     nested = isinstance(key, tuple) and len(key) > 0 and all(isinstance(k, str) and k for k in key)
     if not (plain or nested):
         raise TypeError(f"{name} must be a key (a string, or a tuple of strings for a nested key), got {key!r}")
+
+
+def read_tensor(
+    td: TensorDictBase,
+    key: Any,
+    size: int | None,
+    *,
+    what: str,
+    like: Tensor,
+    check_finite: bool = True,
+    exact: bool = False,
+) -> Tensor:
+    """``td[key]`` checked and converted to ``like``'s dtype and device, before a model uses it.
+
+    It must be a real tensor of shape ``[..., size]`` (``[*td.batch_size, size]`` if ``exact``).
+    Finiteness is checked after the conversion: a float64 1e39 is finite, but not in float32.
+    The errors name ``what`` (the entry point), the key and the fix.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"q": torch.tensor([[1e39, 0.0]], dtype=torch.float64)}, [1])
+        >>> read_tensor(td, "q", 2, what="observe", like=torch.zeros(1))
+        Traceback (most recent call last):
+        ...
+        ValueError: observe: 'q' holds values too large for the model's torch.float32 (they become inf); the adaptation state is unchanged. Rescale or drop the transition before passing it
+    """
+    value = td.get(key, None)
+    if value is None:
+        raise KeyError(f"{what}: the TensorDict has no key {key!r}; it has {sorted(map(str, td.keys(True, True)))}")
+    value = check_real_tensor(value, f"{what}: {key!r}")
+    if value.dim() == 0 or (size is not None and value.shape[-1:] != (size,)):
+        raise ValueError(f"{what}: {key!r} must have shape [..., {size or 'features'}], got {list(value.shape)}")
+    if exact and tuple(value.shape[:-1]) != tuple(td.batch_size):
+        raise ValueError(
+            f"{what}: {key!r} has shape {list(value.shape)} but the TensorDict's batch is {list(td.batch_size)}; "
+            f"{what} takes one transition per batch element, [*batch, features]: build the TensorDict with "
+            f"batch_size={list(value.shape[:-1])}"
+        )
+    converted = value.to(device=like.device, dtype=like.dtype)
+    if check_finite and not bool(torch.isfinite(converted).all()):
+        if value.is_floating_point() and bool(torch.isfinite(value).all()):
+            raise ValueError(
+                f"{what}: {key!r} holds values too large for the model's {converted.dtype} (they become inf); "
+                "the adaptation state is unchanged. Rescale or drop the transition before passing it"
+            )
+        raise ValueError(
+            f"{what}: {key!r} contains NaN or inf; the adaptation state is unchanged. "
+            "Drop or repair the transition before passing it"
+        )
+    return converted

@@ -16,7 +16,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 
 from smcd_rl.adaptation import ADAPTATIONS, Adaptation, NoAdaptation, _checked_noise
-from smcd_rl.checks import check_key, check_real, check_real_tensor, check_shape, check_tensordict
+from smcd_rl.checks import check_key, check_real, check_real_tensor, check_shape, check_tensordict, read_tensor
 from smcd_rl.files import CheckpointMismatchError, UnreadableFileError, load_file, save_file
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.normalization import Normalizer
@@ -483,34 +483,8 @@ class AdaptiveModel(TensorDictModuleBase):
         check_finite: bool = True,
         exact: bool = False,
     ) -> Tensor:
-        """``td[key]`` in the model's dtype, checked: a real tensor of ``[..., size]`` (``[*td.batch, size]`` if ``exact``).
-
-        Finiteness is checked after the conversion: a float64 1e39 is finite, but not in float32.
-        """
-        value = td.get(key, None)
-        if value is None:
-            raise KeyError(f"{what}: the TensorDict has no key {key!r}; it has {sorted(map(str, td.keys(True, True)))}")
-        value = check_real_tensor(value, f"{what}: {key!r}")
-        if value.dim() == 0 or (size is not None and value.shape[-1:] != (size,)):
-            raise ValueError(f"{what}: {key!r} must have shape [..., {size or 'features'}], got {list(value.shape)}")
-        if exact and tuple(value.shape[:-1]) != tuple(td.batch_size):
-            raise ValueError(
-                f"{what}: {key!r} has shape {list(value.shape)} but the TensorDict's batch is {list(td.batch_size)}; "
-                f"{what} takes one transition per batch element, [*batch, features]: build the TensorDict with "
-                f"batch_size={list(value.shape[:-1])}"
-            )
-        converted = self._as_model_dtype(value)
-        if check_finite and not bool(torch.isfinite(converted).all()):
-            if value.is_floating_point() and bool(torch.isfinite(value).all()):
-                raise ValueError(
-                    f"{what}: {key!r} holds values too large for the model's {converted.dtype} (they become inf); "
-                    "the adaptation state is unchanged. Rescale or drop the transition before passing it"
-                )
-            raise ValueError(
-                f"{what}: {key!r} contains NaN or inf; the adaptation state is unchanged. "
-                "Drop or repair the transition before passing it"
-            )
-        return converted
+        """``td[key]`` checked and in the model's dtype (see :func:`smcd_rl.checks.read_tensor`)."""
+        return read_tensor(td, key, size, what=what, like=self.input_norm.mean, check_finite=check_finite, exact=exact)
 
     def training_pairs(self, td: TensorDictBase) -> tuple[Tensor, Tensor]:
         """Raw (unnormalised) network inputs and regression targets of a batch of transitions."""

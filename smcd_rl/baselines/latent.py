@@ -21,7 +21,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from smcd_rl.checks import check_key, check_real_tensor, check_shape, check_tensordict
+from smcd_rl.checks import check_key, check_shape, check_tensordict, read_tensor
 from smcd_rl.files import CheckpointMismatchError, load_file
 from smcd_rl.normalization import Normalizer
 from smcd_rl.training import _normalised_pairs, _require_samples, _shuffled_epoch, _train
@@ -298,22 +298,8 @@ class LatentVariableModel(TensorDictModuleBase):
         check_finite: bool = True,
         exact: bool = False,
     ) -> Tensor:
-        value = td.get(key, None)
-        if value is None:
-            raise KeyError(f"{what}: the TensorDict has no key {key!r}; it has {sorted(map(str, td.keys(True, True)))}")
-        value = check_real_tensor(value, f"{what}: {key!r}")
-        if value.dim() == 0 or (size is not None and value.shape[-1:] != (size,)):
-            raise ValueError(f"{what}: {key!r} must have shape [..., {size or 'features'}], got {list(value.shape)}")
-        if exact and tuple(value.shape[:-1]) != tuple(td.batch_size):
-            raise ValueError(
-                f"{what}: {key!r} has shape {list(value.shape)} but the TensorDict's batch is {list(td.batch_size)}; "
-                f"{what} takes one pair per batch element, [*batch, features]"
-            )
-        # Converted first: finiteness counts in the model's dtype (a float64 1e39 is inf in float32).
-        value = value.to(device=self.input_norm.mean.device, dtype=self.input_norm.mean.dtype)
-        if check_finite and not bool(torch.isfinite(value).all()):
-            raise ValueError(f"{what}: {key!r} contains NaN or inf; drop or repair that transition")
-        return value
+        """``td[key]`` checked and in the model's dtype (see :func:`smcd_rl.checks.read_tensor`)."""
+        return read_tensor(td, key, size, what=what, like=self.input_norm.mean, check_finite=check_finite, exact=exact)
 
 
 def fit_latent(
