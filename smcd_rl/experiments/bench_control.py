@@ -78,7 +78,7 @@ class BenchControlConfig(BenchConfig):
     out: str = setting("runs/bench-control", "output directory (results.json, results.csv)")
     model: str = setting("", "a trained model.pt to time (e.g. runs/panda/model.pt); empty: random weights of --hidden")
     hidden: tuple[int, ...] = setting(
-        (1024, 1024, 1024), "hidden widths of the random network (every layer masked)", low=1
+        (1024, 1024, 1024), "hidden widths of the random network (every layer masked)", low=1, repeats=True
     )
     dropout: float = setting(0.5, "dropout probability of the random network", low=0.0, below=1.0)
     batch: int = setting(1, "arms controlled at once by each contender", low=1)

@@ -71,7 +71,9 @@ class BenchFilterConfig(BenchConfig):
     particles: tuple[int, ...] = setting((100, 1000, 5000), "particle counts N to time", low=1)
     inputs: int = setting(4, "network input size", low=1)
     outputs: int = setting(2, "network output size", low=1)
-    hidden: tuple[int, ...] = setting((1024, 1024), "hidden widths (every hidden layer carries mask bits)", low=1)
+    hidden: tuple[int, ...] = setting(
+        (1024, 1024), "hidden widths (every hidden layer carries mask bits)", low=1, repeats=True
+    )
     dropout: float = setting(0.5, "dropout probability of the network (keep_prob = 1 - dropout)", low=0.0, below=1.0)
     flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
     noise_std: float = setting(
@@ -84,7 +86,9 @@ class BenchFilterConfig(BenchConfig):
     repeats: int = setting(20, "timed updates in the worst case", low=1)
     warmup: int = setting(3, "untimed updates per contender first", low=0)
     memory_particles: int = setting(5000, "N of the peak-memory measurement (0 skips it)", low=0)
-    memory_hidden: tuple[int, ...] = setting((1024, 1024, 1024), "hidden widths of the peak-memory network", low=1)
+    memory_hidden: tuple[int, ...] = setting(
+        (1024, 1024, 1024), "hidden widths of the peak-memory network", low=1, repeats=True
+    )
     full: bool = setting(False, "more worst-case repeats for steadier medians")
 
     NON_EMPTY = ("particles", "hidden", "memory_hidden")

@@ -60,7 +60,7 @@ class BenchPlannersConfig(BenchConfig):
     out: str = setting("runs/bench-planners", "output directory (results.json, results.csv)")
     observation: int = setting(27, "observation size (Ant-v5 without contact forces: 27)", low=1)
     action: int = setting(8, "action size (Ant: 8)", low=1)
-    hidden: tuple[int, ...] = setting((256, 256), "hidden layer widths of the model", low=1)
+    hidden: tuple[int, ...] = setting((256, 256), "hidden layer widths of the model", low=1, repeats=True)
     horizon: int = setting(15, "planning horizon H", low=1)
     candidates: int = setting(500, "action sequences per iteration", low=2)
     top_k: int = setting(50, "elites per iteration (2 to --candidates)", low=2)

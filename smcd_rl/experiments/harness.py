@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 import typing
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -66,6 +67,7 @@ def setting(
     high: float | None = None,
     below: float | None = None,
     choices: Sequence[Any] | None = None,
+    repeats: bool = False,
 ) -> Any:
     """A config field: ``help`` becomes its ``--help`` text; the bounds are checked before any work.
 
@@ -77,6 +79,8 @@ def setting(
         high: the largest allowed value (inclusive).
         below: values must be strictly smaller than this.
         choices: the allowed values (of each item, for a tuple).
+        repeats: whether a tuple may hold a value twice (layer widths may; methods, horizons and
+            the like may not: each would be run, tabled and compared twice).
 
     Example:
         >>> from dataclasses import dataclass
@@ -95,6 +99,7 @@ def setting(
         "high": high,
         "below": below,
         "choices": None if choices is None else tuple(choices),
+        "repeats": repeats,
     }
     if isinstance(default, (list, tuple)):
         value = tuple(default)
@@ -110,9 +115,10 @@ class ExperimentConfig:
     """
 
     out: str = setting("runs/experiment", "output directory (results, plot, report, trained models)")
-    seed: int = setting(0, "seed of data, training, trials and filters", low=0)
+    # Experiments derive further seeds from this one (e.g. seed * 1_000_003 + k): 2^31 keeps them in torch's range.
+    seed: int = setting(0, "seed of data, training, trials and filters", low=0, high=2**31 - 1)
     threads: int = setting(
-        1, "torch CPU threads (0: torch's default); results repeat bit for bit per thread count", low=0
+        1, "torch CPU threads (0: torch's default); results repeat bit for bit per thread count", low=0, high=256
     )
     device: str = setting("cpu", "torch device: cpu, cuda, cuda:1 or auto")
     full: bool = setting(False, "the paper's scale (options given explicitly still win)")
@@ -132,10 +138,15 @@ class ExperimentConfig:
             items = value if isinstance(value, tuple) else (value,)
             if isinstance(value, tuple) and not value and field.name in self.NON_EMPTY:
                 raise ValueError(f"{flag} needs at least one value")
+            repeated = sorted({item for item in items if items.count(item) > 1}, key=repr)
+            if isinstance(value, tuple) and repeated and not field.metadata.get("repeats"):
+                raise ValueError(f"{flag} repeats {repeated}; give each value once")
             kind = hints[field.name]
             item_kind = typing.get_args(kind)[0] if typing.get_origin(kind) is tuple else kind
             for item in items:
                 _check_item(flag, item, item_kind, field.metadata)
+        if not self.out.strip():
+            raise ValueError("--out must name a directory (it is empty)")
         resolve_device(self.device)
 
     def settings(self, *, exclude: Sequence[str] = ()) -> dict[str, Any]:
@@ -148,8 +159,8 @@ def _check_item(flag: str, value: Any, kind: Any, metadata: Mapping[str, Any]) -
         value = float(value)
     if kind in (int, float, str, bool) and not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
         raise ValueError(f"{flag} must be a {kind.__name__}, got {value!r}")
-    if kind is float and value != value:  # NaN
-        raise ValueError(f"{flag} must be a number, got NaN")
+    if kind is float and not math.isfinite(value):
+        raise ValueError(f"{flag} must be a finite number, got {value}")
     low, above, choices = metadata.get("low"), metadata.get("above"), metadata.get("choices")
     high, below = metadata.get("high"), metadata.get("below")
     if low is not None and value < low:
@@ -193,8 +204,13 @@ class Experiment:
     def __enter__(self) -> Experiment:
         self.config.validate()
         self.device = torch.device(resolve_device(self.config.device))
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:  # a file in the way, no permission, ...: nothing has been done yet
+            raise ValueError(
+                f"--out {self.out}: cannot create the output directory ({err.strerror}); pick another"
+            ) from err
         self._stack.enter_context(torch_threads(self.config.threads))
-        self.out.mkdir(parents=True, exist_ok=True)
         self.generator = seed_everything(self.config.seed)
         self._started = time.perf_counter()
         return self
@@ -310,12 +326,12 @@ class Experiment:
         plots = dict(plots or {})
         written = ["results.csv"]
         write_csv(self.out / "results.csv", rows)
-        if trials:
-            write_csv(self.out / "trials.csv", trials)
-            written.append("trials.csv")
-        if comparisons:
-            write_csv(self.out / "comparisons.csv", comparisons)
-            written.append("comparisons.csv")
+        for name, content in (("trials.csv", trials), ("comparisons.csv", comparisons)):
+            if content:
+                write_csv(self.out / name, content)
+                written.append(name)
+            else:  # an earlier run's file would read as this run's
+                (self.out / name).unlink(missing_ok=True)
         result = {
             "experiment": experiment,
             "config": config_dict(self.config),
@@ -324,6 +340,7 @@ class Experiment:
             **payload,
             "results": list(rows),
             **({"comparisons": list(comparisons)} if comparisons else {}),
+            "files": [*written, "results.json", *plots, *files, "report.md"],
         }
         write_json(self.out / "results.json", result)
         written.append("results.json")
@@ -371,7 +388,7 @@ def write_report(path: Path, result: Mapping[str, Any], tables: Mapping[str, str
         f"Settings (fingerprint `{settings_fingerprint(settings)[:12]}`):",
         "",
         "```json",
-        json.dumps(config, indent=2),
+        json.dumps(config, indent=2, ensure_ascii=False),
         "```",
         "",
     ]

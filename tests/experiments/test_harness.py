@@ -32,11 +32,16 @@ class ToyConfig(ExperimentConfig):
         ({"particles": -5}, "--particles must be >= 1, got -5"),
         ({"particles": 2.5}, "--particles must be a int, got 2.5"),
         ({"dropout": 1.0}, "--dropout must be < 1.0"),
-        ({"dropout": float("nan")}, "--dropout must be a number"),
+        ({"dropout": float("nan")}, "--dropout must be a finite number, got nan"),
         ({"methods": ("a", "x")}, "--methods: unknown value 'x'"),
         ({"methods": ()}, "--methods needs at least one value"),
         ({"threads": -1}, "--threads must be >= 0"),
         ({"device": "tpu"}, "unknown device 'tpu'"),
+        ({"dropout": float("inf")}, "--dropout must be a finite number, got inf"),
+        ({"methods": ("a", "b", "a")}, "--methods repeats ['a']; give each value once"),
+        ({"seed": 2**40}, "--seed must be <= 2147483647"),
+        ({"threads": 100_000}, "--threads must be <= 256"),
+        ({"out": " "}, "--out must name a directory"),
     ],
 )
 def test_a_bad_option_is_refused_before_the_output_directory_exists(tmp_path: Path, change, message) -> None:
@@ -177,3 +182,41 @@ def test_cell_statistics_compares_every_adaptive_method_with_the_baseline_and_ea
         paired_comparisons({"M+N": trials, "M+S": trials[:10]}, baseline="M+N", adaptive=["M+S"])
     with pytest.raises(ValueError, match="NaN or inf"):
         mean_ci(torch.tensor([1.0, float("nan")]))
+
+
+def test_an_out_that_is_a_file_is_refused_in_one_line(tmp_path: Path) -> None:
+    (tmp_path / "afile").write_text("not a directory")
+    with pytest.raises(ValueError, match="cannot create the output directory"):
+        with Experiment(ToyConfig(out=str(tmp_path / "afile" / "run")), progress=False):
+            pass
+
+
+def test_a_rerun_without_comparisons_removes_the_earlier_runs_file(tmp_path: Path) -> None:
+    """A run of one method used to leave the previous run's comparisons.csv beside its new results."""
+
+    def write(comparisons: list) -> dict:
+        with Experiment(ToyConfig(out=str(tmp_path)), progress=False) as ex:
+            return ex.write(experiment="toy", tables={}, rows=[{"a": 1}], payload={}, comparisons=comparisons)
+
+    write([{"method": "b", "against": "a", "verdict": "better"}])
+    assert (tmp_path / "comparisons.csv").is_file()
+    result = write([])
+    assert not (tmp_path / "comparisons.csv").exists() and "comparisons.csv" not in result["files"]
+
+
+def test_results_are_recomputed_after_the_code_changes(tmp_path: Path, monkeypatch) -> None:
+    """The cache was keyed by the package version, which does not change with the code."""
+    from smcd_rl.experiments import result_store
+
+    calls: list[str] = []
+
+    def run() -> None:
+        with Experiment(ToyConfig(out=str(tmp_path), methods=("a",)), progress=False) as ex:
+            ex.evaluate({"a": lambda: 1.0}, lambda name, m: calls.append(name) or {"x": m}, content={})
+
+    run()
+    run()
+    assert calls == ["a"]
+    monkeypatch.setattr(result_store, "code_digest", lambda: "other code")
+    run()
+    assert calls == ["a", "a"]
