@@ -65,6 +65,7 @@ class TwoLinkConfig(TwoLinkFamilyConfig):
     )
 
     NON_EMPTY = ("burn_in", "horizons", "methods")
+    SELECTION = ("methods",)  # each method's errors are its own: a rerun with more methods reuses the others
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -239,7 +240,7 @@ def _evaluate(
     The method observes measured positions ``ee``; errors are against the noise-free ``ee_true``.
     """
     trials, max_h = q.shape[0], max(config.horizons)
-    errors = torch.empty(trials, len(config.burn_in), max_h)
+    errors = torch.full((trials, len(config.burn_in), max_h), float("nan"))  # a cell left unfilled shows
     chunks = range(0, trials, config.chunk)
     for begin in tqdm(chunks, desc=desc, unit="chunk", disable=not progress):
         qc, eec = q[begin : begin + config.chunk], ee[begin : begin + config.chunk]
