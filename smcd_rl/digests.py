@@ -14,6 +14,7 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from collections.abc import Mapping
@@ -24,7 +25,7 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["content_digest", "model_digest", "file_digest"]
+__all__ = ["content_digest", "model_digest", "file_digest", "code_digest"]
 
 
 def content_digest(value: Any) -> str:
@@ -62,6 +63,26 @@ def file_digest(path: str | os.PathLike[str]) -> str:
     with Path(path).open("rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):
             digest.update(block)
+    return digest.hexdigest()
+
+
+@functools.cache
+def code_digest() -> str:
+    """The digest of every Python source file of the installed package (``smcd_rl``, its envs and agents).
+
+    Cached results are keyed by it, so any change to the code, an upgrade or a local edit, makes
+    them be computed afresh instead of reused from the code that was there before.
+    """
+    import smcd_rl  # imported here: the package imports this module while it initialises
+    import smcd_rl.agents
+    import smcd_rl.envs
+
+    digest = hashlib.sha256()
+    for package in (smcd_rl, smcd_rl.envs, smcd_rl.agents):
+        for root in package.__path__:
+            for path in sorted(Path(root).rglob("*.py")):
+                digest.update(f"{package.__name__}/{path.relative_to(root)}".encode())
+                digest.update(path.read_bytes())
     return digest.hexdigest()
 
 

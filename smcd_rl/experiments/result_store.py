@@ -2,7 +2,7 @@
 
 Each piece (a method's results over all trials, a sweep's grid point, collected data) is a file
 of its own, ``{kind}-{digest}.pt``, the digest that of the piece's key (every setting and input
-digest its result depends on, and the package version, which stands for the code), so saving one
+digest its result depends on, and the digest of the package's code), so saving one
 piece never rewrites another, even among thousands. A changed setting or input gives another file, so a rerun
 never reads a stale result, and a grown grid reuses every finished piece; a key that names an
 input file holds its :func:`file_digest`, so new data at the same path is never mistaken for the
@@ -26,8 +26,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import smcd_rl
-from smcd_rl.digests import content_digest, file_digest
+from smcd_rl.digests import code_digest, content_digest, file_digest
 from smcd_rl.files import load_file, save_file
 
 __all__ = ["ResultStore", "file_digest"]
@@ -68,5 +67,5 @@ class ResultStore:
 
 
 def _digest(key: Mapping[str, Any]) -> str:
-    # The package version stands for the code, as in the harness's method cache: an upgrade recomputes.
-    return content_digest({"version": smcd_rl.__version__, "key": dict(key)})
+    # The code's digest: after any change to the package's code a result is computed afresh.
+    return content_digest({"code": code_digest(), "key": dict(key)})
