@@ -384,6 +384,7 @@ class GradientDescent(Adaptation):
         assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
         rows = torch.arange(self._count.numel(), device=self._count.device)
         slot = self._count % self.window  # a ring buffer per batch element
+        before = (self._params, self._count, self._inputs[rows, slot].clone(), self._targets[rows, slot].clone())
         self._inputs[rows, slot] = inputs.reshape(-1, inputs.shape[-1])
         self._targets[rows, slot] = targets.reshape(-1, targets.shape[-1])
         self._count = self._count + 1
@@ -400,6 +401,14 @@ class GradientDescent(Adaptation):
             for _ in range(self.steps):
                 grads = gradient(self._params, self._inputs, self._targets, filled)
                 self._params = {k: p - self.lr * grads[k] for k, p in self._params.items()}
+        if not all(bool(torch.isfinite(p).all()) for p in self._params.values()):
+            # Put everything back, so that one outlier does not leave NaN weights for good.
+            self._params, self._count = before[0], before[1]
+            self._inputs[rows, slot], self._targets[rows, slot] = before[2], before[3]
+            raise ValueError(
+                "gradient descent diverged on this observation (its weights became inf or NaN); the adaptation "
+                f"state is unchanged. Drop the outlier, or lower the learning rate (lr={self.lr})"
+            )
 
     def state_dict(self) -> dict[str, Any]:
         assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"

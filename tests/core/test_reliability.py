@@ -445,6 +445,21 @@ def test_an_unfitted_model_warns_once_and_a_fitted_or_loaded_one_never(tmp_path:
             m.observe(TensorDict({"q": q, "ee": ee}, [2]))
 
 
+def test_gradient_descent_refuses_an_observation_that_makes_its_weights_non_finite() -> None:
+    """A finite but huge target used to turn the weights NaN for good, and every later prediction with them."""
+    model = _model().with_adaptation(smcd_rl.GradientDescent(lr=0.1, steps=2, window=4))
+    model.reset(batch_shape=(3,))
+    q, ee = _arm(3)
+    model.observe(TensorDict({"q": q, "ee": ee}, [3]))
+    before = model.adaptation.state_dict()
+    with pytest.raises(ValueError, match="diverged on this observation"):
+        model.observe(TensorDict({"q": q, "ee": torch.full((3, 2), 1e20)}, [3]))
+    after = model.adaptation.state_dict()
+    assert all(torch.equal(before["params"][k], after["params"][k]) for k in before["params"])
+    assert torch.equal(before["inputs"], after["inputs"]) and torch.equal(before["count"], after["count"])
+    assert bool(torch.isfinite(model.predict(q)).all())
+
+
 def test_declaring_a_model_fitted_keeps_the_normalisation_unfitted_and_survives_a_save(tmp_path: Path) -> None:
     """``model.fitted = True`` used to mark the normalisers fitted too, so a later fit skipped
     standardising the data and trained on raw units."""
