@@ -18,7 +18,6 @@ import torch
 from tqdm.auto import tqdm
 
 __all__ = [
-    "option",
     "config_dict",
     "machine_info",
     "write_csv",
@@ -29,16 +28,7 @@ __all__ = [
     "torch_threads",
     "interleaved_times",
     "settings_fingerprint",
-    "training_checkpoint",
 ]
-
-
-def option(default: Any, help: str) -> Any:  # noqa: A002 - mirrors argparse's name
-    """A config dataclass field whose ``help`` becomes the command's ``--help`` text."""
-    if isinstance(default, (list, tuple)):
-        value = tuple(default)
-        return dataclasses.field(default_factory=lambda: value, metadata={"help": help})
-    return dataclasses.field(default=default, metadata={"help": help})
 
 
 def config_dict(config: Any) -> dict[str, Any]:
@@ -123,19 +113,6 @@ def settings_fingerprint(settings: Mapping[str, Any]) -> str:
         True
     """
     return hashlib.sha256(json.dumps(dict(settings), sort_keys=True, default=str).encode()).hexdigest()
-
-
-def training_checkpoint(out: Path, name: str, settings: Mapping[str, Any]) -> Path:
-    """``out / "{name}-{fingerprint}.ckpt"``: a training checkpoint named by the settings the training depends on.
-
-    A rerun with the same settings resumes it; one with other settings (other data, another network)
-    starts its own instead of resuming, or being refused by, the other run's.
-
-    Example:
-        >>> training_checkpoint(Path("runs"), "train", {"seed": 0}).name
-        'train-de7d7744ccd7.ckpt'
-    """
-    return Path(out) / f"{name}-{settings_fingerprint(settings)[:12]}.ckpt"
 
 
 def write_csv(path: str | os.PathLike[str], rows: Sequence[Mapping[str, Any]]) -> None:

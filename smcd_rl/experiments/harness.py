@@ -6,14 +6,14 @@ field help is the command's ``--help``) and a ``run(config)`` that reads top to 
     with Experiment(config) as ex:                      # validate, threads, device, out dir, seed
         data = make_data(ex.generator)
         losses = ex.train("train", smcd_rl.fit, model, data, epochs=config.epochs, ...)  # or resume
-        scores = ex.evaluate(methods, evaluate_one, content={"model": model_digest(model)})
-        table = score_table(scores, baseline="M+N", ...)  # means, 95 % CIs, paired verdicts
+        done = ex.evaluate(methods, evaluate_one, content={"model": model_digest(model)})
+        rows, comparisons = cell_statistics(scores_of(done), baseline="M+N", ...)  # 95 % CIs, paired verdicts
         ex.write(experiment=..., tables=..., rows=..., trials=..., comparisons=..., plots={"fig.png": draw})
 
 Training checkpoints are named by everything that determines the trained model (its architecture
 and initial weights, the trainer and all its settings, a digest of the data), and the per-method
-result cache is keyed by content (the evaluated models' digests and the settings), never by a
-file name, so no rerun ever picks up a stale result.
+result cache is keyed by content (the evaluated models' digests, the settings and the package's
+code), never by a file name, so no rerun ever picks up a stale result.
 """
 
 from __future__ import annotations
