@@ -324,6 +324,7 @@ class Experiment:
             files: other files the command wrote in ``out``, listed with these.
         """
         plots = dict(plots or {})
+        tables = {caption: text for caption, text in tables.items() if text}  # e.g. no comparisons ran
         written = ["results.csv"]
         write_csv(self.out / "results.csv", rows)
         for name, content in (("trials.csv", trials), ("comparisons.csv", comparisons)):

@@ -232,7 +232,7 @@ def cell_statistics(
 
 
 def verdict_table(comparisons: Sequence[Mapping[str, Any]], *, cell: Sequence[str]) -> str:
-    """A Markdown table of the paired comparisons: difference [95 % CI] and verdict per cell and pair.
+    """A Markdown table of the paired comparisons: difference [95 % CI] and verdict per cell and pair ("" if none).
 
     Example:
         >>> print(verdict_table([{"T": 1, "method": "M+S", "against": "M+N", "difference": -0.1,
@@ -243,6 +243,8 @@ def verdict_table(comparisons: Sequence[Mapping[str, Any]], *, cell: Sequence[st
     """
     from smcd_rl.experiments.common import format_table
 
+    if not comparisons:  # nothing was compared (e.g. the baseline did not run): no table, not an empty one
+        return ""
     body = [
         [
             *(c[name] for name in cell),

@@ -220,3 +220,13 @@ def test_results_are_recomputed_after_the_code_changes(tmp_path: Path, monkeypat
     monkeypatch.setattr(result_store, "code_digest", lambda: "other code")
     run()
     assert calls == ["a", "a"]
+
+
+def test_a_verdict_table_of_no_comparisons_is_left_out_of_the_report(tmp_path: Path, capsys) -> None:
+    """Without the baseline a command used to print a verdict table of headers only."""
+    from smcd_rl.experiments.stats import verdict_table
+
+    with Experiment(ToyConfig(out=str(tmp_path)), progress=False) as ex:
+        tables = {"Scores": "| a |\n|---|\n| 1 |", "Verdicts": verdict_table([], cell=["T"])}
+        ex.write(experiment="toy", tables=tables, rows=[{"a": 1}], payload={})
+    assert "Verdicts" not in capsys.readouterr().out and "Verdicts" not in (tmp_path / "report.md").read_text()
