@@ -235,8 +235,8 @@ def _load_model(path: str, device: torch.device) -> smcd_rl.AdaptiveModel:
     model = smcd_rl.load(path).to(device)  # an unreadable file raises an error naming it and the fix
     if model.in_keys != ["q"] or model.out_keys != ["ee"] or model.net.in_features != 2:
         raise ValueError(
-            f"--model {path} maps {model.in_keys} -> {model.out_keys}; this experiment needs a two-link "
-            "forward-kinematics model q -> ee, e.g. the model.pt of `smcd-rl two-link`"
+            f"--model {path} maps {model.in_keys} ({model.net.in_features} inputs) -> {model.out_keys}; this "
+            "experiment needs a two-link forward-kinematics model q (2) -> ee, e.g. the model.pt of `smcd-rl two-link`"
         )
     return model
 
