@@ -325,14 +325,14 @@ class Experiment:
         """
         plots = dict(plots or {})
         tables = {caption: text for caption, text in tables.items() if text}  # e.g. no comparisons ran
+        # An earlier run's file that this run does not write would read as this run's: remove it.
+        earlier = {"trials.csv", "comparisons.csv", *_files_of_earlier_run(self.out / "results.json")}
         written = ["results.csv"]
         write_csv(self.out / "results.csv", rows)
         for name, content in (("trials.csv", trials), ("comparisons.csv", comparisons)):
             if content:
                 write_csv(self.out / name, content)
                 written.append(name)
-            else:  # an earlier run's file would read as this run's
-                (self.out / name).unlink(missing_ok=True)
         result = {
             "experiment": experiment,
             "config": config_dict(self.config),
@@ -349,12 +349,24 @@ class Experiment:
             draw(self.out / name)
         written += [*plots, *files, "report.md"]
         write_report(self.out / "report.md", result, tables, list(plots))
+        for name in earlier - set(written):
+            (self.out / name).unlink(missing_ok=True)
         for caption, text in tables.items():
             print(f"{caption}\n\n{text}\n")
         print(f"wrote {self.out}/: {', '.join(written)}")
         self.written = written
         self.result = result
         return result
+
+
+def _files_of_earlier_run(results: Path) -> list[str]:
+    """The result files an earlier run in this directory listed in its results.json (none if unreadable)."""
+    try:
+        files = json.loads(results.read_text()).get("files", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    # Only plain names in this directory: a hand-edited results.json must not delete anything else.
+    return [name for name in files if isinstance(name, str) and name == Path(name).name and name not in ("", ".", "..")]
 
 
 def _count(n: int, noun: str) -> str:

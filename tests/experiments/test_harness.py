@@ -191,17 +191,24 @@ def test_an_out_that_is_a_file_is_refused_in_one_line(tmp_path: Path) -> None:
             pass
 
 
-def test_a_rerun_without_comparisons_removes_the_earlier_runs_file(tmp_path: Path) -> None:
-    """A run of one method used to leave the previous run's comparisons.csv beside its new results."""
+def test_a_rerun_removes_the_files_of_the_earlier_run_that_it_does_not_write(tmp_path: Path) -> None:
+    """A run of one method used to leave the previous run's comparisons.csv (and a part's plot or
+    CSV it did not redo) beside its new results, as if they were this run's."""
 
-    def write(comparisons: list) -> dict:
+    def write(comparisons: list, files: list[str]) -> dict:
+        for name in files:
+            (tmp_path / name).write_text("part")
         with Experiment(ToyConfig(out=str(tmp_path)), progress=False) as ex:
-            return ex.write(experiment="toy", tables={}, rows=[{"a": 1}], payload={}, comparisons=comparisons)
+            return ex.write(
+                experiment="toy", tables={}, rows=[{"a": 1}], payload={}, comparisons=comparisons, files=files
+            )
 
-    write([{"method": "b", "against": "a", "verdict": "better"}])
-    assert (tmp_path / "comparisons.csv").is_file()
-    result = write([])
+    write([{"method": "b", "against": "a", "verdict": "better"}], ["fig9.csv"])
+    (tmp_path / "model.pt").write_text("not a result file")
+    assert (tmp_path / "comparisons.csv").is_file() and (tmp_path / "fig9.csv").is_file()
+    result = write([], [])
     assert not (tmp_path / "comparisons.csv").exists() and "comparisons.csv" not in result["files"]
+    assert not (tmp_path / "fig9.csv").exists() and (tmp_path / "model.pt").is_file()
 
 
 def test_results_are_recomputed_after_the_code_changes(tmp_path: Path, monkeypatch) -> None:
