@@ -44,8 +44,9 @@ from smcd_rl.envs.drone_operators import save_dataset
 from smcd_rl.experiments import interpret_drone as drone
 from smcd_rl.experiments import interpret_links as links
 from smcd_rl.experiments import interpret_lookahead as lookahead
+from smcd_rl.experiments.adaptations import make_adaptation
 from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
-from smcd_rl.experiments.interpret_masks import shared_prior, smcd_filter
+from smcd_rl.experiments.interpret_masks import shared_prior
 from smcd_rl.experiments.multipart import PartsReport
 from smcd_rl.experiments.stats import verdict_table
 
@@ -236,7 +237,7 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
             seeds = {"stored": config.seed + 31, "known": config.seed + 37, "unknown": config.seed + 37}
             noise = drone.noise_std(model, train, config, ex.device)
             prior = None if config.independent_priors else shared_prior(model.net, config.particles, config.seed + 29)
-            smcd = partial(smcd_filter, particles=config.particles, flip_prob=config.flip_prob, noise_std=noise)
+            smcd = partial(make_adaptation, "S", config, particles=config.particles, noise_std=noise)
             masks = ex.evaluate(
                 {s: partial(smcd, seed=seeds[s], device=ex.device) for s in sets},
                 lambda s, strategy: drone.mask_record(

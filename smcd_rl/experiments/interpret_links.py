@@ -20,8 +20,9 @@ from tensordict import TensorDict
 
 import smcd_rl
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, motor_babbling, sample_link_lengths, two_link_fk
+from smcd_rl.experiments.adaptations import make_adaptation
 from smcd_rl.experiments.common import format_table
-from smcd_rl.experiments.interpret_masks import filter_masks, shared_prior, smcd_filter
+from smcd_rl.experiments.interpret_masks import filter_masks, shared_prior
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.interpret import InterpretConfig
@@ -78,12 +79,8 @@ def make_model(latent: int, config: InterpretConfig, device: torch.device) -> sm
 
 def smcd_model(model: smcd_rl.AdaptiveModel, config: InterpretConfig, device: torch.device) -> smcd_rl.AdaptiveModel:
     """The trained two-link model with a fresh SMCD filter (its own seed, the same for every latent size)."""
-    smcd = smcd_filter(
-        particles=config.fig9_particles,
-        flip_prob=config.flip_prob,
-        noise_std=0.05,
-        seed=config.seed + 19,
-        device=device,
+    smcd = make_adaptation(
+        "S", config, particles=config.fig9_particles, noise_std=0.05, seed=config.seed + 19, device=device
     )
     return model.with_adaptation(smcd)
 

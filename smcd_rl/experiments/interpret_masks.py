@@ -17,19 +17,7 @@ from tqdm.auto import tqdm
 import smcd_rl
 from smcd_rl.envs.drone_operators import TrajectoryDataset
 
-__all__ = ["smcd_filter", "shared_prior", "filter_masks", "sorted_masks", "padded"]
-
-
-def smcd_filter(
-    *, particles: int, flip_prob: float, noise_std: float | list[float], seed: int, device: torch.device
-) -> smcd_rl.SMCD:
-    """An SMCD strategy whose filter draws from a generator of its own, seeded with ``seed``."""
-    return smcd_rl.SMCD(
-        num_particles=particles,
-        flip_prob=flip_prob,
-        noise_std=noise_std,
-        generator=torch.Generator(device=device).manual_seed(seed),
-    )
+__all__ = ["shared_prior", "filter_masks", "sorted_masks", "padded"]
 
 
 def shared_prior(net: smcd_rl.MaskedMLP, particles: int, seed: int) -> torch.Tensor:
