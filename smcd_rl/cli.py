@@ -50,6 +50,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "AntConfig",
         "crippled-leg Ant: planners x adaptations, healthy and crippled (paper appendix C, Fig. 15)",
     ),
+    "scoreboard": (
+        "smcd_rl.experiments.scoreboard",
+        "ScoreboardConfig",
+        "one table and plot of every task from experiments' run directories: none, GD, SMCD (paper), SMCD (calibrated)",
+    ),
     "bench planners": (
         "smcd_rl.experiments.bench_planners",
         "BenchPlannersConfig",
@@ -99,7 +104,11 @@ def _add_config_arguments(parser: argparse.ArgumentParser, config_cls: type) -> 
         default = getattr(defaults, field.name)
         help_text = _escape_percent(f"{field.metadata.get('help', '')} (default: {default})")
         # SUPPRESS: only options the user typed reach the config, so --full can fill the rest.
-        if kind is bool:
+        if field.metadata.get("positional"):
+            item = typing.get_args(kind)[0]
+            help_text = _escape_percent(field.metadata.get("help", ""))
+            parser.add_argument(field.name, type=item, nargs="+", metavar=field.name.upper(), help=help_text)
+        elif kind is bool:
             parser.add_argument(flag, action="store_true", default=argparse.SUPPRESS, help=help_text)
         elif typing.get_origin(kind) is tuple:
             item = typing.get_args(kind)[0]

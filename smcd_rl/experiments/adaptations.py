@@ -2,35 +2,36 @@
 
 Every experiment names its methods by the paper's letters: ``N`` (no adaptation), ``G`` (online
 gradient descent) and ``S`` (SMCD). :class:`AdaptationConfig` declares their settings once, and
-:func:`make_adaptation` builds the strategy for a letter, so every experiment adapts the same way.
+:func:`make_adaptation` builds the strategy for a letter (from one :class:`StrategySettings`), so every
+experiment adapts the same way.
 
 Example:
-    >>> config = AdaptationConfig(particles=50)
-    >>> make_adaptation("S", config, particles=config.particles, noise_std=config.noise_std, seed=0)
+    >>> settings = StrategySettings(particles=50, noise_std=0.05, flip_prob=0.01, gd_lr=0.03, gd_steps=1, gd_window=5)
+    >>> settings.strategy("S", seed=0)
     SMCD(num_particles=50, flip_prob=0.01, noise_std=0.05, ...)
-    >>> make_adaptation("G", config, particles=config.particles, noise_std=config.noise_std, seed=0).lr
-    0.01
+    >>> settings.strategy("G", seed=0).lr
+    0.03
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import torch
 
 import smcd_rl
 from smcd_rl.experiments.harness import ExperimentConfig, setting
 
-__all__ = ["AdaptationConfig", "AdaptationSettings", "make_adaptation", "LETTERS"]
+__all__ = ["AdaptationConfig", "AdaptationSettings", "StrategySettings", "make_adaptation", "LETTERS"]
 
 #: The paper's letters for the strategies: none, gradient descent, SMCD.
 LETTERS = ("N", "G", "S")
 
 
 class AdaptationSettings(Protocol):
-    """What :func:`make_adaptation` reads from a config (an :class:`AdaptationConfig` has it all)."""
+    """What :func:`make_adaptation` reads from a config (a :class:`StrategySettings` has it all)."""
 
     @property
     def flip_prob(self) -> float: ...
@@ -44,14 +45,49 @@ class AdaptationSettings(Protocol):
 
 @dataclass
 class AdaptationConfig(ExperimentConfig):
-    """The settings of SMCD and of online gradient descent, shared by every experiment that adapts."""
+    """The settings of SMCD and of online gradient descent, shared by every experiment that adapts.
+
+    SMCD's ``noise_std`` and ``flip_prob`` are the paper's fixed settings (variant ``S(paper)``); the
+    calibrated SMCD (``S``) and gradient descent (``G``) are tuned on ``tuning_episodes`` held-out
+    training-task episodes, GD over the grid ``gd_lr x gd_steps x gd_window`` (see
+    :mod:`smcd_rl.experiments.tuning`).
+    """
 
     particles: int = setting(1000, "SMCD mask particles", low=1)
-    flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
-    noise_std: float = setting(0.05, "SMCD likelihood noise std, in the observation's units", above=0.0)
-    gd_lr: float = setting(0.01, "online gradient-descent learning rate (normalised units)", above=0.0)
-    gd_steps: int = setting(5, "gradient steps per observation", low=1)
-    gd_window: int = setting(10, "recent transitions in the gradient-descent loss", low=1)
+    flip_prob: float = setting(0.01, "bit-flip probability per step of SMCD at the paper's settings", low=0.0, high=1.0)
+    noise_std: float = setting(
+        0.05, "likelihood noise std of SMCD at the paper's settings (observation units)", above=0.0
+    )
+    tuning_episodes: int = setting(
+        32, "held-out episodes of fresh training-distribution tasks that SMCD and GD are tuned on", low=2
+    )
+    gd_lr: tuple[float, ...] = setting(
+        (0.003, 0.01, 0.03, 0.1), "gradient-descent learning rates tried in tuning (normalised units)", above=0.0
+    )
+    gd_steps: tuple[int, ...] = setting((1, 5), "gradient steps per observation tried in tuning", low=1)
+    gd_window: tuple[int, ...] = setting((5, 10), "recent transitions in the gradient-descent loss tried", low=1)
+    calibrate_flips: tuple[float, ...] = setting(
+        (0.001, 0.003, 0.01, 0.03), "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
+    )
+
+    NON_EMPTY: ClassVar[tuple[str, ...]] = ("gd_lr", "gd_steps", "gd_window", "calibrate_flips")
+
+
+@dataclass(frozen=True)
+class StrategySettings:
+    """One setting of every strategy: what :func:`make_adaptation` builds a variant from."""
+
+    particles: int
+    noise_std: float | tuple[float, ...]
+    flip_prob: float
+    gd_lr: float
+    gd_steps: int
+    gd_window: int
+
+    def strategy(self, letter: str, *, seed: int, device: torch.device | str = "cpu") -> smcd_rl.Adaptation:
+        """The strategy ``N``, ``G`` or ``S`` with these settings."""
+        noise = list(self.noise_std) if isinstance(self.noise_std, tuple) else self.noise_std
+        return make_adaptation(letter, self, particles=self.particles, noise_std=noise, seed=seed, device=device)
 
 
 def make_adaptation(

@@ -68,6 +68,7 @@ def setting(
     below: float | None = None,
     choices: Sequence[Any] | None = None,
     repeats: bool = False,
+    positional: bool = False,
 ) -> Any:
     """A config field: ``help`` becomes its ``--help`` text; the bounds are checked before any work.
 
@@ -81,6 +82,7 @@ def setting(
         choices: the allowed values (of each item, for a tuple).
         repeats: whether a tuple may hold a value twice (layer widths may; methods, horizons and
             the like may not: each would be run, tabled and compared twice).
+        positional: a tuple field given as the command's positional arguments instead of an option.
 
     Example:
         >>> from dataclasses import dataclass
@@ -100,6 +102,7 @@ def setting(
         "below": below,
         "choices": None if choices is None else tuple(choices),
         "repeats": repeats,
+        "positional": positional,
     }
     if isinstance(default, (list, tuple)):
         value = tuple(default)
@@ -123,7 +126,8 @@ class ExperimentConfig:
     device: str = setting("cpu", "torch device: cpu, cuda, cuda:1 or auto")
     full: bool = setting(False, "the paper's scale (options given explicitly still win)")
 
-    #: Fields whose values must be non-empty when given as tuples (e.g. methods, horizons).
+    #: Fields whose values must be non-empty when given as tuples (e.g. methods, horizons); a
+    #: subclass's list adds to those of the classes it derives from.
     NON_EMPTY: ClassVar[tuple[str, ...]] = ()
     #: Fields the method cache leaves out: those that choose which methods or cells run (not what
     #: any of them computes), so a rerun with more methods reuses the finished ones, and paths of
@@ -133,10 +137,11 @@ class ExperimentConfig:
     def validate(self) -> None:
         """Check every field against its declared type and bounds; raise ValueError naming the option."""
         hints = typing.get_type_hints(type(self))
+        non_empty = {name for cls in type(self).__mro__ for name in vars(cls).get("NON_EMPTY", ())}
         for field in dataclasses.fields(self):
             value, flag = getattr(self, field.name), "--" + field.name.replace("_", "-")
             items = value if isinstance(value, tuple) else (value,)
-            if isinstance(value, tuple) and not value and field.name in self.NON_EMPTY:
+            if isinstance(value, tuple) and not value and field.name in non_empty:
                 raise ValueError(f"{flag} needs at least one value")
             repeated = sorted({item for item in items if items.count(item) > 1}, key=repr)
             if isinstance(value, tuple) and repeated and not field.metadata.get("repeats"):

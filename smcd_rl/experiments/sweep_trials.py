@@ -104,7 +104,7 @@ def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict
     :data:`REFERENCES`) on the same trained model and arms. The arms and their evaluation are
     two-link's own, so the numbers are comparable to Fig. 2's.
     """
-    from smcd_rl.experiments.two_link import TwoLinkConfig, _evaluate, _trials
+    from smcd_rl.experiments.two_link import TEST_ARMS_SEED, TwoLinkConfig, _evaluate, _trials
 
     device = torch.device(config["device"])
     with torch_threads(int(config["threads"])):
@@ -119,7 +119,7 @@ def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict
             measurement_noise=float(config["measurement_noise"]),
             device=str(device),
         )
-        q, ee, ee_true, _ = _trials(lookahead, device)
+        q, ee, ee_true, _ = _trials(lookahead, device, count=lookahead.trials, seed=lookahead.seed + TEST_ARMS_SEED)
         method = model.with_adaptation(_adaptation(config, device))
         errors = _evaluate(method, q, ee, ee_true, lookahead, desc="smcd", progress=False)
     return {

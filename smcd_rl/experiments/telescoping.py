@@ -37,18 +37,32 @@ from smcd_rl.digests import model_digest
 from smcd_rl.envs.two_link_telescoping import TARGET_ANGULAR_SPEED, TELESCOPING_DT
 from smcd_rl.experiments.common import format_table, write_csv
 from smcd_rl.experiments.harness import Experiment, setting
+from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.telescoping_tracking import make_method, sample_episodes, track
-from smcd_rl.experiments.two_link_family import TwoLinkFamilyConfig, babbling_data, fit_settings, network, train_reptile
+from smcd_rl.experiments.tuning import tune
+from smcd_rl.experiments.two_link_family import (
+    TwoLinkFamilyConfig,
+    babbling_data,
+    fit_settings,
+    network,
+    train_reptile,
+    tuning_episodes,
+)
 
 __all__ = ["TelescopingConfig", "FULL", "METHODS", "run", "table"]
 
 #: Fig. 8's methods, plus "true": the PD law with the true telescoping kinematics (the floor
 #: that the controller's lag behind the moving target and link sets for every method).
-METHODS = ("true", "O+P", "M+N", "M+G", "M+S", "R+N", "R+G", "R+S")
+METHODS = ("true", "O+P", "M+N", "M+G", "M+S", "M+S(paper)", "R+N", "R+G", "R+S", "R+S(paper)")
+#: What runs by default (R+S(paper) only on request: the R network's comparison is R+S against R+G).
+DEFAULT_METHODS = tuple(m for m in METHODS if m != "R+S(paper)")
+
+#: Steps of each tuning episode (babbling of a fresh arm): twice the training episodes' 10.
+TUNING_STEPS = 20
 
 #: The adaptive methods, each compared (paired over the same episodes) with M+N and with each other.
-ADAPTIVE = ("M+S", "M+G", "R+S", "R+G", "R+N", "O+P", "true")
+ADAPTIVE = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N", "O+P", "true")
 
 
 @dataclass
@@ -85,7 +99,9 @@ class TelescopingConfig(TwoLinkFamilyConfig):
     )
     report_steps: tuple[int, ...] = setting((10, 25, 50, 100), "steps k whose mean error the table shows", low=0)
     methods: tuple[str, ...] = setting(
-        METHODS, "methods: true, O+P (oracle PF), M+N, M+G, M+S, R+N, R+G, R+S", choices=METHODS
+        DEFAULT_METHODS,
+        "methods: true, O+P (oracle PF); M or R + N, G (tuned), S (calibrated) or S(paper)",
+        choices=METHODS,
     )
     full: bool = setting(False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials")
 
@@ -142,10 +158,18 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
             models["R"], losses["R"] = train_reptile(ex, config, data, init_seed=config.seed + 1)
             models["R"].save(ex.out / "reptile.pt")
 
+        # --- the fair protocol: SMCD and GD tuned on babbling of fresh training arms (never telescoping)
+        held_out = tuning_episodes(config, ex.device, steps=TUNING_STEPS)
+        tunings = {
+            family: tune(ex, models[family], held_out, config, name=family)
+            for family in sorted(families)
+            if any(_family(m) == family and not m.endswith("+N") for m in config.methods)
+        }
+
         # --- every method on the same episodes, cached by the digest of the model it adapts ---------
         episodes, noise = sample_episodes(config, ex.device)
         done = ex.evaluate(
-            {name: functools.partial(make_method, name, models, config, ex.device) for name in config.methods},
+            {name: functools.partial(make_method, name, models, tunings, config, ex.device) for name in config.methods},
             lambda name, method: {"errors": track(name, method, episodes, noise, config, progress=progress)},
             # "": the true kinematics and the oracle, which use no trained model
             content=lambda name: {_family(name): model_digest(models[_family(name)])} if _family(name) else {},
@@ -167,21 +191,37 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
             for k in range(config.horizon + 1)
         ]
         write_csv(ex.out / "curves.csv", curves)
-        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G")]
+        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
         ex.write(
             experiment="two-link tracking with a telescoping link (paper appendix A.4, Fig. 8)",
             tables={
                 f"Distance end effector - target (m), mean [95% CI] over {config.trials} episodes, "
                 f"x {config.feedback}; std over episodes": table(rows, config),
-                "M+S paired with M+N and M+G over the same episodes (negative: M+S's error is lower)": verdict_table(
-                    headline, cell=("k",)
+                "M+S paired with M+N, M+G and M+S(paper) over the same episodes (negative: M+S's error is lower)": (
+                    verdict_table(headline, cell=("k",))
                 ),
+                **{t.caption(): t.table() for t in tunings.values()},
             },
             rows=rows,
             trials=_trial_rows(scores),
             comparisons=comparisons,
-            payload={"train_loss": losses, "curves": curves},
-            plots={"tracking.png": lambda path: _plot(errors, config, path)},
+            payload={
+                "train_loss": losses,
+                "curves": curves,
+                "tuning": {name: t.payload() for name, t in tunings.items()},
+                "scoreboard": scoreboard_entry(
+                    f"telescoping tracking ({config.feedback})",
+                    cells,
+                    comparisons,
+                    cell={"k": "episode"},
+                    metric="error",
+                    unit="m",
+                ),
+            },
+            plots={
+                "tracking.png": lambda path: _plot(errors, config, path),
+                **{f"tuning-{name}.png": t.plot for name, t in tunings.items()},
+            },
         )
     return ex.result
 

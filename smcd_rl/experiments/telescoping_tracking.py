@@ -1,8 +1,8 @@
 """The tracking loop of ``smcd-rl telescoping``: PD control of two-link arms whose second link telescopes.
 
 :func:`sample_episodes` draws the arms, targets and measurement noise every method faces,
-:func:`make_method` builds a method by its label (``true``, ``O+P``, ``M+N``, ``M+G``, ``M+S``, and
-the same on the Reptile model R), and :func:`track` runs one method over all episodes at once.
+:func:`make_method` builds a method by its label (``true``, ``O+P``, ``M+N``, ``M+G``, ``M+S``,
+``M+S(paper)``, and the same on the Reptile model R), and :func:`track` runs one method over all episodes at once.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from smcd_rl.envs.two_link_telescoping import (
     sample_initial_state,
     telescoping_link_lengths,
 )
-from smcd_rl.experiments.adaptations import make_adaptation
+from smcd_rl.experiments.tuning import Tuning, method_variant
 from smcd_rl.experiments.two_link_family import oracle
 
 if TYPE_CHECKING:
@@ -50,18 +50,21 @@ def sample_episodes(config: TelescopingConfig, device: torch.device) -> tuple[di
 
 
 def make_method(
-    name: str, models: Mapping[str, smcd_rl.AdaptiveModel], config: TelescopingConfig, device: torch.device
+    name: str,
+    models: Mapping[str, smcd_rl.AdaptiveModel],
+    tunings: Mapping[str, Tuning],
+    config: TelescopingConfig,
+    device: torch.device,
 ) -> Any:
-    """The method ``name``: ``None`` for the true kinematics, the oracle, or a model with its adaptation."""
+    """The method ``name``: ``None`` for the true kinematics, the oracle, or a model with its (tuned) adaptation."""
     if name == "true":
         return None
     if name == "O+P":
         return oracle(config, device)
-    family, letter = name.split("+")
-    strategy = make_adaptation(
-        letter, config, particles=config.particles, noise_std=config.noise_std, seed=config.seed + 11, device=device
-    )
-    return models[family].with_adaptation(strategy)
+    family, variant = method_variant(name)
+    if variant == "N":
+        return models[family].with_adaptation(smcd_rl.NoAdaptation())
+    return models[family].with_adaptation(tunings[family].strategy(variant, seed=config.seed + 11, device=device))
 
 
 def _kinematics(method: Any, k: int, l1: Tensor) -> Callable[[Tensor], Tensor]:

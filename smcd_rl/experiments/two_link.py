@@ -23,10 +23,11 @@ import smcd_rl
 from smcd_rl.baselines import LatentVariableModel, fit_latent
 from smcd_rl.digests import model_digest
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, sample_link_lengths, two_link_fk
-from smcd_rl.experiments.adaptations import make_adaptation
 from smcd_rl.experiments.common import format_table
 from smcd_rl.experiments.harness import Experiment, setting
+from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.tuning import Tuning, method_variant, tune
 from smcd_rl.experiments.two_link_family import (
     TwoLinkFamilyConfig,
     babbling_data,
@@ -34,12 +35,15 @@ from smcd_rl.experiments.two_link_family import (
     network,
     oracle,
     train_reptile,
+    tuning_episodes,
 )
 
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "run", "table"]
 
-#: Method labels of Fig. 2 that this command runs.
-METHODS = ("O+P", "M+N", "M+G", "M+S", "R+N", "R+G", "R+S", "LV+N")
+#: Method labels of Fig. 2 that this command runs: S is calibrated SMCD, S(paper) SMCD at the paper's settings.
+METHODS = ("O+P", "M+N", "M+G", "M+S", "M+S(paper)", "R+N", "R+G", "R+S", "R+S(paper)", "LV+N")
+#: What runs by default (R+S(paper) only on request: the R network's comparison is R+S against R+G).
+DEFAULT_METHODS = tuple(m for m in METHODS if m != "R+S(paper)")
 
 
 @dataclass
@@ -52,8 +56,9 @@ class TwoLinkConfig(TwoLinkFamilyConfig):
     burn_in: tuple[int, ...] = setting((1, 5, 10, 20), "burn-in (adaptation) steps T", low=1)
     horizons: tuple[int, ...] = setting((1, 5, 10, 20), "look-ahead horizons H", low=1)
     methods: tuple[str, ...] = setting(
-        METHODS,
-        "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G or S; LV+N (VRNN)",
+        DEFAULT_METHODS,
+        "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G (tuned), S (calibrated) or "
+        "S(paper); LV+N (VRNN)",
         choices=METHODS,
     )
     lv_epochs: int = setting(20, "training epochs of the latent-variable (VRNN) model", low=1)
@@ -84,8 +89,11 @@ FULL = {
     "threads": 0,
 }
 
+#: Offset of the test arms' seed from ``--seed`` (a stream of their own, disjoint from training and tuning).
+TEST_ARMS_SEED = 1_000_003
+
 #: The adaptive methods, each compared (paired over the same arms) with M+N and with each other.
-ADAPTIVE = ("M+S", "M+G", "R+S", "R+G", "R+N", "LV+N", "O+P")
+ADAPTIVE = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N", "LV+N", "O+P")
 
 
 def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
@@ -98,9 +106,20 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         model.save(ex.out / "model.pt")
         reptile, latent = _train_baselines(ex, config, data, losses)
 
+        # --- the fair protocol: SMCD and GD tuned on held-out babbling of fresh training arms -------
+        episodes = tuning_episodes(config, ex.device, steps=max(2, *config.burn_in))  # calibration needs 2 steps
+        tunings = {
+            name: tune(ex, trained, episodes, config, name=name)
+            for name, trained in (("M", model), ("R", reptile))
+            if any(m.startswith(name + "+") and m[2:] in ("G", "S", "S(paper)") for m in config.methods)
+            and trained is not None
+        }
+
         # --- every method on the same held-out arms -------------------------------------------------
-        q, ee, ee_true, lengths = _trials(config, ex.device)
-        methods = {name: (lambda name=name: _method(name, model, reptile, latent, config)) for name in config.methods}
+        q, ee, ee_true, lengths = _trials(config, ex.device, count=config.trials, seed=config.seed + TEST_ARMS_SEED)
+        methods = {
+            name: (lambda name=name: _method(name, model, reptile, latent, tunings, config)) for name in config.methods
+        }
         trained = {"M": model, "R": reptile, "LV": latent}
         content = {name: model_digest(m) for name, m in trained.items() if m is not None}
         done = ex.evaluate(
@@ -124,20 +143,36 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
             for name, values in by_method.items()
             for k, v in enumerate(values)
         ]
-        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G")]
+        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
         ex.write(
             experiment="two-link look-ahead prediction (paper Fig. 2)",
             tables={
                 "End-effector RMSE (m), mean [95% CI] over held-out arms": table(rows, config),
-                "M+S paired with M+N and M+G over the same arms (negative: M+S's error is lower)": verdict_table(
-                    headline, cell=("burn_in", "horizon")
+                "M+S paired with M+N, M+G and M+S(paper) over the same arms (negative: M+S's error is lower)": (
+                    verdict_table(headline, cell=("burn_in", "horizon"))
                 ),
+                **{t.caption(): t.table() for t in tunings.values()},
             },
             rows=rows,
             trials=trial_rows,
             comparisons=comparisons,
-            payload={**losses, "test_link_lengths": lengths.tolist()},
-            plots={"lookahead.png": lambda path: _plot(rows, config, path)},
+            payload={
+                **losses,
+                "test_link_lengths": lengths.tolist(),
+                "tuning": {name: t.payload() for name, t in tunings.items()},
+                "scoreboard": scoreboard_entry(
+                    "two-link look-ahead",
+                    rows,
+                    comparisons,
+                    cell={"burn_in": 10, "horizon": 1},
+                    metric="rmse",
+                    unit="m",
+                ),
+            },
+            plots={
+                "lookahead.png": lambda path: _plot(rows, config, path),
+                **{f"tuning-{name}.png": t.plot for name, t in tunings.items()},
+            },
         )
     return ex.result
 
@@ -154,15 +189,18 @@ def table(rows: list[dict[str, Any]], config: TwoLinkConfig) -> str:
     return format_table(body, header)
 
 
-def _trials(config: TwoLinkConfig, device: torch.device) -> tuple[torch.Tensor, ...]:
-    """Held-out arms: joint paths ``q [trials, T+H, 2]``, measured and true ``ee``, link lengths."""
-    generator = torch.Generator().manual_seed(config.seed + 1_000_003)  # disjoint from training data
+def _trials(config: TwoLinkConfig, device: torch.device, *, count: int, seed: int) -> tuple[torch.Tensor, ...]:
+    """``count`` fresh arms: joint paths ``q [count, T+H, 2]``, measured and true ``ee``, link lengths.
+
+    The test arms come from a generator of their own seed, disjoint from the training data's.
+    """
+    generator = torch.Generator().manual_seed(seed)
     length = max(config.burn_in) + max(config.horizons)
-    lengths = sample_link_lengths((config.trials,), generator=generator)
-    q = (torch.rand(config.trials, 2, generator=generator) * 2 - 1) * math.pi
+    lengths = sample_link_lengths((count,), generator=generator)
+    q = (torch.rand(count, 2, generator=generator) * 2 - 1) * math.pi
     path = [q]
     for _ in range(length - 1):
-        q = integrate_joints(q, torch.randn(config.trials, 2, generator=generator), DEFAULT_DT)
+        q = integrate_joints(q, torch.randn(count, 2, generator=generator), DEFAULT_DT)
         path.append(q)
     joints = torch.stack(path, 1)
     ee_true = two_link_fk(joints, lengths.unsqueeze(1))
@@ -204,6 +242,7 @@ def _method(
     model: smcd_rl.AdaptiveModel,
     reptile: smcd_rl.AdaptiveModel | None,
     latent: LatentVariableModel | None,
+    tunings: dict[str, Tuning],
     config: TwoLinkConfig,
 ) -> Any:
     if name == "LV+N":
@@ -211,17 +250,12 @@ def _method(
     if name == "O+P":
         return oracle(config, "cpu")
     # M and R differ only in how the network was trained; they adapt with identical strategies.
-    trained = {"M": model, "R": reptile}[name[0]]
+    network, variant = method_variant(name)
+    trained = {"M": model, "R": reptile}[network]
     assert trained is not None
-    strategy = make_adaptation(
-        name[2],
-        config,
-        particles=config.particles,
-        noise_std=config.noise_std,
-        seed=config.seed + 11,
-        device=config.device,
-    )
-    return trained.with_adaptation(strategy)
+    if variant == "N":
+        return trained.with_adaptation(smcd_rl.NoAdaptation())
+    return trained.with_adaptation(tunings[network].strategy(variant, seed=config.seed + 11, device=config.device))
 
 
 @torch.no_grad()

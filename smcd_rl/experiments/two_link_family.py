@@ -25,7 +25,15 @@ from smcd_rl.envs.two_link_arm import motor_babbling, sample_link_lengths, two_l
 from smcd_rl.experiments.adaptations import AdaptationConfig
 from smcd_rl.experiments.harness import Experiment, setting
 
-__all__ = ["TwoLinkFamilyConfig", "babbling_data", "network", "fit_settings", "train_reptile", "oracle"]
+__all__ = [
+    "TwoLinkFamilyConfig",
+    "babbling_data",
+    "tuning_episodes",
+    "network",
+    "fit_settings",
+    "train_reptile",
+    "oracle",
+]
 
 
 @dataclass
@@ -59,6 +67,20 @@ def babbling_data(config: TwoLinkFamilyConfig, ex: Experiment) -> TensorDictBase
         config.tasks, config.episodes, config.steps, measurement_noise=config.measurement_noise, generator=ex.generator
     )
     return data.to(ex.device)
+
+
+def tuning_episodes(config: TwoLinkFamilyConfig, device: torch.device | str, *, steps: int) -> TensorDictBase:
+    """The fair protocol's held-out episodes: babbling of ``tuning_episodes`` fresh training-distribution arms.
+
+    One episode of ``steps`` steps per arm, batch ``[E, steps]``, drawn exactly as the training
+    data is but from a generator of its own (seed ``config.seed + 2_000_003``), so neither the
+    training arms nor the test arms are among them.
+    """
+    generator = torch.Generator().manual_seed(config.seed + 2_000_003)
+    data = motor_babbling(
+        config.tuning_episodes, 1, steps, measurement_noise=config.measurement_noise, generator=generator
+    )
+    return data.reshape(config.tuning_episodes, steps).select("q", "ee").to(device)
 
 
 def network(config: TwoLinkFamilyConfig, device: torch.device | str) -> smcd_rl.MaskedMLP:

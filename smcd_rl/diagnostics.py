@@ -1,0 +1,93 @@
+"""How a strategy adapts, step by step: its one-step error and, for SMCD, ESS, evidence and kept share.
+
+:func:`trace` runs one strategy over held-out episodes (all at once, one independent state per
+episode) and records, at every step, the error of its prediction of that step from the steps
+before it and, for SMCD, the filter's effective sample size before resampling, its log evidence
+so far and the share of units the MMSE mask keeps. Where SMCD loses to another strategy, these
+say why: an ESS that collapses to one particle at every step means the likelihood is too sharp
+(or the model cannot explain the data); a kept share that drifts far from the training keep
+probability means the filter is switching units off to fit noise.
+
+Example:
+    >>> import torch, smcd_rl
+    >>> from tensordict import TensorDict
+    >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+    >>> model.fitted = True  # a toy network: declare it trained
+    >>> episodes = TensorDict({"q": torch.rand(3, 5, 2), "ee": torch.zeros(3, 5, 2)}, [3, 5])
+    >>> result = trace(model, episodes, smcd_rl.SMCD(num_particles=10, noise_std=0.1))
+    >>> len(result.one_step_rmse), len(result.ess), 0 < result.kept[0] < 1
+    (4, 5, True)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+
+from smcd_rl.adaptation import SMCD, Adaptation
+from smcd_rl.calibration import _checked_model, _pairs, _stacked
+from smcd_rl.model import AdaptiveModel
+
+__all__ = ["trace", "Trace"]
+
+
+@dataclass
+class Trace:
+    """Per-step record of one strategy over episodes (means over the episodes)."""
+
+    #: RMSE (target units, dimensions pooled) of the prediction of step ``t`` from steps ``< t``, t = 2..T.
+    one_step_rmse: list[float]
+    #: The one-step RMSE over every episode and step 2..T (``inf`` if the strategy refused a step).
+    rmse: float
+    #: SMCD only (else empty): ESS of each update before resampling, as a share of the particles.
+    ess: list[float]
+    #: SMCD only: mean log evidence per episode of steps 1..t.
+    log_evidence: list[float]
+    #: Strategies with a mask: the mean share of units the adapted (MMSE) mask keeps after step t.
+    kept: list[float]
+
+
+def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBase], strategy: Adaptation) -> Trace:
+    """Run ``strategy`` on ``model`` over ``episodes`` and record it at every step (see the module doc).
+
+    Args:
+        model: a fitted model; its network is not changed.
+        episodes: as :func:`smcd_rl.calibrate` takes them (batch ``[E, T]``, or a list of ``[T]``).
+        strategy: a fresh strategy; it is attached to a copy of ``model`` and reset.
+
+    Returns:
+        The :class:`Trace`. A strategy that refuses an observation (an impossible one under every
+        particle, or gradient descent whose weights would turn non-finite) stops the trace there:
+        ``rmse`` is ``inf`` and the lists end at the refused step.
+    """
+    model = _checked_model(model)
+    td = _stacked(episodes)
+    x, y = _pairs(model, td)
+    num_episodes, steps = x.shape[:2]
+    model.with_adaptation(strategy).reset(batch_shape=(num_episodes,))
+    output_std = model.output_norm.std.to(torch.float64)
+    result = Trace([], math.inf, [], [], [])
+    squared = 0.0
+    with torch.no_grad():
+        for t in range(steps):
+            if t > 0:
+                error = (strategy.predict(x[:, t]) - y[:, t]).to(torch.float64) * output_std
+                step_squared = float(error.square().sum())
+                squared += step_squared
+                result.one_step_rmse.append(math.sqrt(step_squared / (num_episodes * y.shape[-1])))
+            try:
+                strategy.observe(x[:, t], y[:, t])
+            except ValueError:
+                return result
+            if isinstance(strategy, SMCD):
+                summary = strategy.summary()
+                result.ess.append(float(summary["ess"].to(torch.float64).mean()) / strategy.num_particles)
+                result.log_evidence.append(float(summary["log_evidence"].to(torch.float64).mean()))
+            if strategy.mask is not None:
+                result.kept.append(float(strategy.mask.to(torch.float64).mean()))
+    result.rmse = math.sqrt(squared / (num_episodes * (steps - 1) * y.shape[-1]))
+    return result

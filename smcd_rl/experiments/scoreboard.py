@@ -1,0 +1,232 @@
+"""One table of every task: ``smcd-rl scoreboard RUN_DIR...``.
+
+Each experiment writes into its ``results.json`` the cell of its table that stands for the task
+(e.g. two-link at burn-in T = 10, horizon H = 1): the estimates of its methods for "none", "GD",
+"SMCD (paper)" and "SMCD (calibrated)" and their paired verdicts (:func:`scoreboard_entry`). The
+scoreboard reads those entries from the given run directories and writes one row per task: each
+strategy's mean with its 95 % CI, and the verdicts of both SMCD variants against none and GD (the
+experiment's own comparisons, over the same trials). The plot shows each strategy relative to none.
+
+Example:
+    >>> rows = [{"T": 10, "method": "M+N", "rmse_mean": 0.2, "rmse_low": 0.1, "rmse_high": 0.3, "trials": 9}]
+    >>> entry = scoreboard_entry("two-link", rows, [], cell={"T": 10}, metric="rmse", unit="m")
+    >>> entry["estimates"]["none"]["mean"], entry["verdicts"]["SMCD (calibrated) vs none"]
+    (0.2, 'not compared')
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
+from smcd_rl.experiments.stats import Estimate
+
+__all__ = ["ScoreboardConfig", "run", "scoreboard_entry", "HEADLINE", "COLUMNS"]
+
+#: The scoreboard's strategies, in order.
+COLUMNS = ("none", "GD", "SMCD (paper)", "SMCD (calibrated)")
+#: Strategy -> the method suffix most experiments use for it (after ``M+``).
+HEADLINE = {"none": "N", "GD": "G", "SMCD (paper)": "S(paper)", "SMCD (calibrated)": "S"}
+#: The paired verdicts shown: (method, against).
+VERDICTS = (
+    ("SMCD (calibrated)", "none"),
+    ("SMCD (calibrated)", "GD"),
+    ("SMCD (paper)", "none"),
+    ("SMCD (paper)", "GD"),
+)
+
+
+@dataclass
+class ScoreboardConfig(ExperimentConfig):
+    """Settings of ``smcd-rl scoreboard``."""
+
+    runs: tuple[str, ...] = setting(
+        (),
+        "run directories of experiments (each with its results.json), e.g. runs/two-link runs/panda",
+        positional=True,
+    )
+    out: str = setting("runs/scoreboard", "output directory (scoreboard table, plot, report)")
+
+    NON_EMPTY = ("runs",)
+
+
+def scoreboard_entry(
+    task: str,
+    rows: Sequence[Mapping[str, Any]],
+    comparisons: Sequence[Mapping[str, Any]],
+    *,
+    cell: Mapping[str, Any],
+    metric: str,
+    unit: str,
+    methods: Mapping[str, str] | None = None,
+    prefix: str = "M+",
+    lower_is_better: bool = True,
+) -> dict[str, Any]:
+    """The ``results.json`` entry that stands for ``task`` in the scoreboard: its estimates and verdicts.
+
+    Args:
+        task: the task's name in the scoreboard.
+        rows: the table rows of :func:`~smcd_rl.experiments.stats.cell_statistics`.
+        comparisons: its paired comparisons.
+        cell: the headline cell, field -> value (if it did not run, e.g. other burn-in steps were
+            asked for, the first row's cell is used).
+        metric: the rows' score name (``rmse`` reads ``rmse_mean``, ``rmse_low``, ``rmse_high``).
+        unit: the metric's unit, for the table.
+        methods: strategy (a :data:`COLUMNS` name) -> method suffix; default :data:`HEADLINE`.
+        prefix: what the suffixes follow (``"M+"``).
+        lower_is_better: ``False`` for success rates and returns.
+    """
+    chosen = dict(cell)
+    if rows and not any(_in_cell(r, chosen) for r in rows):
+        chosen = {k: rows[0][k] for k in chosen}
+    labels = {column: prefix + suffix for column, suffix in (HEADLINE if methods is None else methods).items()}
+    found = {r["method"]: r for r in rows if _in_cell(r, chosen)}
+    estimates = {
+        column: {
+            "method": label,
+            "mean": found[label][f"{metric}_mean"],
+            "low": found[label][f"{metric}_low"],
+            "high": found[label][f"{metric}_high"],
+            "trials": found[label]["trials"],
+        }
+        for column, label in labels.items()
+        if label in found
+    }
+    pairs = {(c["method"], c["against"]): c for c in comparisons if _in_cell(c, chosen)}
+    verdicts = {
+        f"{method} vs {against}": _verdict(pairs, labels.get(method, ""), labels.get(against, ""))
+        for method, against in VERDICTS
+    }
+    return {
+        "task": task,
+        "cell": chosen,
+        "metric": metric,
+        "unit": unit,
+        "lower_is_better": lower_is_better,
+        "estimates": estimates,
+        "verdicts": verdicts,
+    }
+
+
+def _in_cell(row: Mapping[str, Any], cell: Mapping[str, Any]) -> bool:
+    return all(row.get(k) == v for k, v in cell.items())
+
+
+def run(config: ScoreboardConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Read every run's scoreboard entries and write the table, plot and report."""
+    with Experiment(config, progress=progress) as ex:
+        rows = [_row(entry) for run_dir in config.runs for entry in _entries(Path(run_dir))]
+        table_rows = [
+            [
+                row["task"],
+                row["cell"],
+                *(row[f"{c} text"] for c in COLUMNS),
+                *(row[f"{m} vs {a}"] for m, a in VERDICTS),
+            ]
+            for row in rows
+        ]
+        header = ["task", "cell", *COLUMNS, *(f"{m.split(' ')[1][1:-1]} vs {a}" for m, a in VERDICTS)]
+        ex.write(
+            experiment="scoreboard: every task, none / GD / SMCD (paper settings) / SMCD (calibrated)",
+            tables={
+                "Mean [95% CI] of each task's headline metric; verdicts are the experiments' paired comparisons "
+                "(difference [95% CI], method minus against)": format_table(table_rows, header)
+            },
+            rows=[{k: v for k, v in row.items() if not k.endswith(" text")} for row in rows],
+            payload={"runs": list(config.runs)},
+            plots={"scoreboard.png": lambda path: _plot(rows, path)},
+        )
+    return ex.result
+
+
+def _entries(run_dir: Path) -> list[dict[str, Any]]:
+    """Every scoreboard entry of the run in ``run_dir``, or a clear error."""
+    path = run_dir / "results.json"
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{run_dir}: no results.json; give the --out directory of a finished experiment run, e.g. runs/two-link"
+        )
+    try:
+        results = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: not readable as JSON ({err}); rerun the experiment to rewrite it") from err
+    entries = results.get("scoreboard") if isinstance(results, dict) else None
+    if entries is None:
+        raise ValueError(
+            f"{path}: no scoreboard entry; it was written by a command without one (bench, sweep) or an older "
+            "version: rerun the experiment"
+        )
+    return entries if isinstance(entries, list) else [entries]
+
+
+def _row(entry: Mapping[str, Any]) -> dict[str, Any]:
+    """One scoreboard row from one entry: each strategy's estimate and the verdicts."""
+    row: dict[str, Any] = {
+        "task": entry["task"],
+        "cell": ", ".join(f"{k}={v}" for k, v in entry["cell"].items()),
+        "metric": f"{entry['metric']} ({entry['unit']})",
+        "lower_is_better": entry["lower_is_better"],
+    }
+    for column in COLUMNS:
+        e = entry["estimates"].get(column)
+        mean, low, high = (e["mean"], e["low"], e["high"]) if e else (math.nan,) * 3
+        row[column], row[f"{column} low"], row[f"{column} high"] = mean, low, high
+        row[f"{column} text"] = str(Estimate(mean, low, high, 0)) if e else "not run"
+    for method, against in VERDICTS:
+        row[f"{method} vs {against}"] = entry["verdicts"].get(f"{method} vs {against}", "not compared")
+    return row
+
+
+def _verdict(pairs: Mapping[tuple[str, str], Mapping[str, Any]], a: str, b: str) -> str:
+    """``a`` against ``b``: "better -0.02 [-0.03, -0.01]", from either orientation of the stored pair."""
+    flip = {"better": "worse", "worse": "better"}
+    if (a, b) in pairs:
+        c = pairs[(a, b)]
+        return f"{c['verdict']} {Estimate(c['difference'], c['low'], c['high'], 0)}"
+    if (b, a) in pairs:
+        c = pairs[(b, a)]
+        verdict = flip.get(c["verdict"], c["verdict"])
+        return f"{verdict} {Estimate(-c['difference'], -c['high'], -c['low'], 0)}"
+    return "not compared"
+
+
+def _plot(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
+    """Each strategy's mean and CI relative to none's mean, one group of bars per task."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(1.8 * len(rows) + 2.5, 3.6))
+    width = 0.8 / len(COLUMNS)
+    for j, column in enumerate(COLUMNS):
+        xs: list[float] = []
+        ys: list[float] = []
+        errors: list[list[float]] = [[], []]
+        for i, row in enumerate(rows):
+            base = row["none"]
+            if not (math.isfinite(row[column]) and math.isfinite(base) and base != 0):
+                continue
+            xs.append(i + (j - 1.5) * width)
+            ys.append(row[column] / base)
+            errors[0].append((row[column] - row[f"{column} low"]) / abs(base))
+            errors[1].append((row[f"{column} high"] - row[column]) / abs(base))
+        ax.bar(xs, ys, width, yerr=errors, capsize=2, label=column)
+    ax.axhline(1.0, color="black", linewidth=0.8)
+    ax.set_xticks(range(len(rows)))
+    ax.set_xticklabels(
+        [f"{r['task']}\n{r['metric']}, {'lower' if r['lower_is_better'] else 'higher'} is better" for r in rows],
+        fontsize=7,
+    )
+    ax.set_ylabel("relative to none (mean, 95% CI)")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
