@@ -2,6 +2,7 @@
 
 import csv
 import json
+import re
 
 import pytest
 import torch
@@ -52,23 +53,24 @@ def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, 
     assert cli.main(["telescoping", "--out", str(whole), *TINY]) == 0
     printed = capsys.readouterr().out
     uninterrupted = first_table(printed)
-    assert [line.split("|")[1].strip() for line in uninterrupted[2:]] == list(telescoping.METHODS)
-    assert "| episode | M+S    | M+N     |" in printed  # the headline verdicts: M+S against M+N and M+G
+    assert [line.split("|")[1].strip() for line in uninterrupted[2:]] == list(telescoping.DEFAULT_METHODS)
+    # the headline verdicts: M+S against M+N, M+G and M+S(paper)
+    assert re.search(r"\| episode \| M\+S +\| M\+N +\|", printed) and "| M+S(paper) |" in printed
     for name in ("results.csv", "trials.csv", "comparisons.csv", "curves.csv", "results.json", "tracking.png"):
         assert (whole / name).is_file(), name
     for name in ("report.md", "model.pt", "reptile.pt"):
         assert (whole / name).is_file(), name
     assert len(list(whole.glob("train-*.ckpt"))) == len(list(whole.glob("reptile-*.ckpt"))) == 1
     rows = list(csv.DictReader(open(whole / "results.csv")))
-    assert [r["method"] for r in rows] == list(telescoping.METHODS)
+    assert [r["method"] for r in rows] == list(telescoping.DEFAULT_METHODS)
     for r in rows:
         assert 0 <= float(r["episode_low"]) <= float(r["episode_mean"]) <= float(r["episode_high"])
         assert float(r["error_k12_low"]) <= float(r["error_k12"]) <= float(r["error_k12_high"]) and r["trials"] == "6"
-    assert len(list(csv.DictReader(open(whole / "trials.csv")))) == len(telescoping.METHODS) * 6
+    assert len(list(csv.DictReader(open(whole / "trials.csv")))) == len(telescoping.DEFAULT_METHODS) * 6
     pairs = {(c["k"], c["method"], c["against"]) for c in csv.DictReader(open(whole / "comparisons.csv"))}
     assert {("episode", "M+S", "M+N"), ("episode", "M+S", "M+G"), ("5", "R+S", "R+N"), ("12", "M+S", "true")} <= pairs
     curves = list(csv.DictReader(open(whole / "curves.csv")))
-    assert len(curves) == len(telescoping.METHODS) * 13  # k = 0..12
+    assert len(curves) == len(telescoping.DEFAULT_METHODS) * 13  # k = 0..12
     payload = json.loads((whole / "results.json").read_text())
     assert payload["config"]["trials"] == 6 and set(payload["train_loss"]) == {"M", "R"}
     # Every method starts from the same arms and targets: the k = 0 errors agree.

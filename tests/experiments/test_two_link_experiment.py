@@ -78,10 +78,26 @@ def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> 
     assert rows[("M+S", 10, 1)] < 0.75 * rows[("M+N", 10, 1)]
     assert rows[("R+S", 10, 1)] < 0.75 * rows[("R+N", 10, 1)]
     assert rows[("M+S", 10, 10)] < rows[("R+S", 10, 10)]
-    assert {m for m, _, _ in rows} == set(two_link.METHODS)
+    assert {m for m, _, _ in rows} == set(two_link.DEFAULT_METHODS)
     payload = json.loads((out / "results.json").read_text())
     assert payload["config"]["trials"] == 60 and payload["machine"]["torch_threads"] >= 1
     assert len(payload["reptile_train_loss"]) == 3 and len(payload["latent_train_loss"]) == 3
+
+    # The fair protocol: both networks tuned on the same held-out episodes, GD's choice from its grid.
+    config = two_link.TwoLinkConfig()
+    for name in ("M", "R"):
+        tuning = payload["tuning"][name]
+        assert (out / f"tuning-{name}.png").is_file()
+        assert tuning["tuned"]["gd_lr"] in config.gd_lr and tuning["tuned"]["gd_window"] in config.gd_window
+        assert len(tuning["gd_grid"]) == len(config.gd_lr) * len(config.gd_steps) * len(config.gd_window)
+        assert tuning["paper"]["noise_std"] == config.noise_std  # S(paper): the fixed setting, not tuned
+        best = min(row["one_step_rmse"] for row in tuning["gd_grid"])
+        assert tuning["traces"]["G"]["rmse"] == pytest.approx(best)  # the chosen point is the grid's best
+    board = payload["scoreboard"]
+    assert board["cell"] == {"burn_in": 10, "horizon": 1}
+    assert set(board["estimates"]) == {"none", "GD", "SMCD (paper)", "SMCD (calibrated)"}
+    assert board["estimates"]["none"]["mean"] == pytest.approx(rows[("M+N", 10, 1)])
+    assert board["verdicts"]["SMCD (calibrated) vs none"].startswith("better")
 
     # A rerun finds the trained model and every method's trials done, and prints the same table.
     assert cli.main(["two-link", "--out", str(out), *SMALL]) == 0

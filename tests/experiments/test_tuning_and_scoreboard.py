@@ -1,0 +1,121 @@
+"""The fair protocol (experiments.tuning) and ``smcd-rl scoreboard``."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+
+import pytest
+import torch
+
+import smcd_rl
+from smcd_rl import cli
+from smcd_rl.experiments import scoreboard, tuning
+from smcd_rl.experiments.adaptations import AdaptationConfig
+from smcd_rl.experiments.harness import Experiment
+from smcd_rl.experiments.stats import cell_statistics
+from tests.core.test_calibration import SIGMA, known_mask_episodes
+
+
+@dataclass
+class TinyConfig(AdaptationConfig):
+    particles: int = 256
+    noise_std: float = 0.3  # the "paper" setting: far from the data's true noise on purpose
+
+
+def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp_path, monkeypatch) -> None:
+    model, episodes, _ = known_mask_episodes(episodes=6, steps=12)
+    config = TinyConfig(out=str(tmp_path), gd_lr=(1e-4, 0.03), gd_steps=(1, 3), gd_window=(4,))
+    with Experiment(config, progress=False) as ex:
+        result = tuning.tune(ex, model, episodes, config)
+    # GD: the grid's best by one-step error, every point scored.
+    assert len(result.gd_grid) == 4
+    best = min(result.gd_grid, key=lambda row: row["one_step_rmse"])
+    assert (result.tuned.gd_lr, result.tuned.gd_steps, result.tuned.gd_window) == (
+        best["lr"],
+        best["steps"],
+        best["window"],
+    )
+    assert result.tuned.gd_lr == 0.03  # 1e-4 barely moves the weights in 12 steps
+    # SMCD: calibrated near the episodes' true noise, while S(paper) keeps --noise-std exactly.
+    noise = result.tuned.noise_std
+    rms = math.sqrt(sum(v * v for v in noise) / len(noise)) if isinstance(noise, tuple) else noise
+    assert SIGMA / 2 < rms < 2 * SIGMA
+    assert result.paper.noise_std == 0.3 and result.paper.flip_prob == config.flip_prob
+    paper = result.strategy("S(paper)", seed=0)
+    assert isinstance(paper, smcd_rl.SMCD) and paper.noise_std == 0.3
+    assert result.strategy("G", seed=0).lr == 0.03
+    # The calibrated filter explains the episodes better than the paper's, by its own evidence.
+    assert result.traces["S"]["log_evidence"][-1] > result.traces["S(paper)"]["log_evidence"][-1]
+    assert "one-step RMSE" in result.table() and "held-out" in result.caption()
+    result.plot(tmp_path / "tuning.png")
+    assert (tmp_path / "tuning.png").stat().st_size > 0
+
+    # A rerun reads the stored result: nothing is calibrated again.
+    def refuse(*args, **kwargs):
+        raise AssertionError("calibrate ran again")
+
+    monkeypatch.setattr(tuning, "calibrate", refuse)
+    with Experiment(config, progress=False) as ex:
+        again = tuning.tune(ex, model, episodes, config)
+    assert again.tuned == result.tuned and again.gd_grid == result.gd_grid
+
+
+def test_unknown_variant_is_refused() -> None:
+    settings = tuning.StrategySettings(particles=8, noise_std=0.1, flip_prob=0.01, gd_lr=0.1, gd_steps=1, gd_window=2)
+    result = tuning.Tuning("M", settings, settings, [], [], {}, {}, episodes=2, steps=2)
+    with pytest.raises(ValueError, match="unknown strategy 'X'"):
+        result.strategy("X", seed=0)
+
+
+def test_an_empty_grid_is_refused_before_any_work(tmp_path) -> None:
+    with pytest.raises(ValueError, match="--gd-lr needs at least one value"):
+        TinyConfig(out=str(tmp_path / "x"), gd_lr=()).validate()
+    assert not (tmp_path / "x").exists()
+
+
+def fake_run(path, task: str, *, better: bool, adaptive: tuple[str, ...] = ("M+S", "M+S(paper)", "M+G")) -> None:
+    """A run directory whose results.json holds a scoreboard entry built from known scores."""
+    torch.manual_seed(0)
+    base = torch.rand(40) + 1.0
+    shift = -0.5 if better else 0.0
+    scores = {
+        (10,): {
+            "M+N": base,
+            "M+G": base - 0.2,
+            "M+S(paper)": base - 0.1,
+            "M+S": base + shift + 0.01 * torch.randn(40),
+        }
+    }
+    rows, comparisons = cell_statistics(scores, cell=("T",), baseline="M+N", adaptive=adaptive, metric="rmse")
+    entry = scoreboard.scoreboard_entry(task, rows, comparisons, cell={"T": 10}, metric="rmse", unit="m")
+    path.mkdir()
+    (path / "results.json").write_text(json.dumps({"scoreboard": entry}))
+
+
+def test_scoreboard_tables_every_run_with_its_verdicts(tmp_path, capsys) -> None:
+    fake_run(tmp_path / "a", "task a", better=True)
+    fake_run(tmp_path / "b", "task b", better=False, adaptive=("M+G", "M+S(paper)", "M+S"))  # pairs (M+G, M+S)...
+    out = tmp_path / "board"
+    assert cli.main(["scoreboard", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    lines = {line.split("|")[1].strip(): line for line in printed.splitlines() if line.startswith("| task")}
+    # a: calibrated SMCD 0.5 below none and 0.3 below GD; b: it ties none and loses to GD. In both,
+    # SMCD (paper) is 0.1 below none and 0.1 above GD. b's pairs are stored as (GD, SMCD): read reversed.
+    assert lines["task a"].count("better") == 3 and lines["task a"].rstrip(" |").endswith("worse 0.100 [0.100, 0.100]")
+    cells = [c.strip() for c in lines["task b"].split("|")]
+    assert cells[7].startswith("no significant difference") and cells[8].startswith("worse 0.2")
+    assert cells[9].startswith("better -0.1") and cells[10].startswith("worse 0.1")
+    for name in ("results.csv", "results.json", "scoreboard.png", "report.md"):
+        assert (out / name).is_file(), name
+
+
+def test_scoreboard_names_a_directory_without_results(tmp_path, capsys) -> None:
+    assert cli.main(["scoreboard", str(tmp_path), "--out", str(tmp_path / "board")]) == 2
+    assert "no results.json" in capsys.readouterr().err
+    (tmp_path / "results.json").write_text(json.dumps({"experiment": "bench"}))
+    assert cli.main(["scoreboard", str(tmp_path), "--out", str(tmp_path / "board")]) == 2
+    assert "no scoreboard entry" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["scoreboard"])  # at least one run directory
