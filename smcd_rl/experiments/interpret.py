@@ -9,7 +9,11 @@ Three parts (``--parts``), each resumable, each in a module of its own:
   confidence of drone operators' skill, strategy, phase and success from the ``k`` nearest
   stored masks, known and unknown operators apart.
 * ``lookahead`` (Fig. 14; :mod:`~smcd_rl.experiments.interpret_lookahead`): action RMSE of
-  M+N, M+G, M+S and, with Reptile, R+N, R+G, R+S after a burn-in.
+  M+N, M+G, M+S, M+S(paper) and, with Reptile, R+N, R+G, R+S (R+S(paper) on request) after a
+  burn-in. The fair protocol (:mod:`smcd_rl.experiments.tuning`): G is grid-tuned and S calibrated
+  per network on ``--tuning-episodes`` training-distribution flights the networks were not fitted
+  on (freshly simulated operators, or flights held out of a ``--dataset``'s training split), never
+  on the test flights; S(paper) keeps ``--noise-scale`` and ``--flip-prob``.
 
 Reads top to bottom: for each part, its data, its models (trained or resumed by the harness),
 its methods (cached by the models' and the dataset's content), then per-trial scores with 95%
@@ -21,17 +25,20 @@ Writes ``fig9.csv``, ``confidence.csv``, ``lookahead.csv`` (each part's table ro
 ``results.csv`` (all rows, long format, a ``figure`` column), ``trials.csv`` (every per-trial
 score), ``comparisons.csv`` (the paired comparisons), ``results.json``, ``report.md``,
 ``fig9.png``, ``fig4_skill_strategy.png``, ``fig13_phase_success.png``, ``fig14_lookahead.png``,
-the dataset used (``dataset.npz``) and the trained models.
+``tuning-M.png`` / ``tuning-R.png`` (the tuning's diagnosis), the dataset used (``dataset.npz``) and
+the trained models. With the look-ahead part, ``results.json`` holds ``"tuning"`` (chosen settings
+and every candidate, per network) and ``"scoreboard"`` (Fig. 14's headline cell for
+``smcd-rl scoreboard``).
 
 Example:
     >>> from smcd_rl.experiments.interpret import InterpretConfig, METHODS
     >>> InterpretConfig().k, METHODS
-    (5, ('M+N', 'M+G', 'M+S', 'R+N', 'R+G', 'R+S'))
+    (5, ('M+N', 'M+G', 'M+S', 'M+S(paper)', 'R+N', 'R+G', 'R+S', 'R+S(paper)'))
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -44,20 +51,25 @@ from smcd_rl.envs.drone_operators import save_dataset
 from smcd_rl.experiments import interpret_drone as drone
 from smcd_rl.experiments import interpret_links as links
 from smcd_rl.experiments import interpret_lookahead as lookahead
-from smcd_rl.experiments.adaptations import make_adaptation
+from smcd_rl.experiments.adaptations import StrategySettings
 from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
 from smcd_rl.experiments.interpret_masks import shared_prior
 from smcd_rl.experiments.multipart import PartsReport
+from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import verdict_table
+from smcd_rl.experiments.tuning import Tuning, method_variant, tune
 
 __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "SIMULATED_LABELS", "run"]
 
 #: The parts of the command (``--parts``).
 PARTS: tuple[str, ...] = ("fig9", "confidence", "lookahead")
-#: Fig. 14's methods: M multi-task / R Reptile training, N none / G gradient descent / S SMCD.
-METHODS: tuple[str, ...] = ("M+N", "M+G", "M+S", "R+N", "R+G", "R+S")
+#: Fig. 14's methods: M multi-task / R Reptile training; N none / G gradient descent (tuned) / S SMCD
+#: (calibrated) / S(paper) SMCD at the paper's settings.
+METHODS: tuple[str, ...] = ("M+N", "M+G", "M+S", "M+S(paper)", "R+N", "R+G", "R+S", "R+S(paper)")
+#: What runs by default (R+S(paper) only on request: the R network's comparison is R+S against R+G).
+DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m != "R+S(paper)")
 #: The adaptive methods, each compared (paired over the same trajectories) with M+N and with each other.
-ADAPTIVE: tuple[str, ...] = ("M+S", "M+G", "R+S", "R+G", "R+N")
+ADAPTIVE: tuple[str, ...] = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N")
 #: The labels of :func:`~smcd_rl.envs.drone_operators.simulate_operators` (a ``--dataset`` may have others).
 SIMULATED_LABELS: tuple[str, ...] = ("skill", "strategy", "phase", "success", "target")
 
@@ -101,9 +113,13 @@ class InterpretConfig(ExperimentConfig):
     lr: float = setting(1e-3, "Adam learning rate (multi-task)", above=0.0)
     # --- SMCD
     particles: int = setting(300, "SMCD mask particles", low=1)
-    flip_prob: float = setting(0.002, "SMCD bit-flip probability per step", low=0.0, high=1.0)
+    flip_prob: float = setting(
+        0.002, "SMCD bit-flip probability per step (masks of Figs. 4/9/13; Fig. 14's S(paper))", low=0.0, high=1.0
+    )
     noise_scale: float = setting(
-        0.7, "SMCD likelihood noise, in units of the model's training RMSE per action dim", above=0.0
+        0.7,
+        "SMCD likelihood noise, in units of the model's training RMSE per action dim (Figs. 4/13; Fig. 14's S(paper))",
+        above=0.0,
     )
     independent_priors: bool = setting(
         False, "draw each mask-comparison filter's prior particles afresh (default: one shared set)"
@@ -119,18 +135,33 @@ class InterpretConfig(ExperimentConfig):
     )
     phase_stride: int = setting(5, "steps between stored masks for per-step labels", low=1)
     # --- look-ahead (Fig. 14)
-    methods: tuple[str, ...] = setting(METHODS, "look-ahead methods: M+N M+G M+S R+N R+G R+S", choices=METHODS)
+    methods: tuple[str, ...] = setting(
+        DEFAULT_METHODS,
+        "look-ahead methods: M (multi-task) or R (Reptile) + N, G (tuned), S (calibrated) or S(paper)",
+        choices=METHODS,
+    )
     burn_in: tuple[float, ...] = setting(
         (0.1, 0.25, 0.5), "burn-in as a fraction of the trajectory", above=0.0, below=1.0
     )
     horizons: tuple[float, ...] = setting(
         (0.1, 0.25, 0.5), "look-ahead horizon as a fraction of the trajectory", above=0.0, below=1.0
     )
-    gd_lr: float = setting(0.01, "online gradient-descent learning rate (normalised units)", above=0.0)
-    gd_steps: int = setting(
-        1, "gradient steps per observation (5 over-fits the noisy commands: higher RMSE than M+N)", low=1
+    # --- the fair protocol (smcd_rl.experiments.tuning; the same fields as AdaptationConfig's)
+    tuning_episodes: int = setting(
+        32,
+        "held-out training-distribution flights SMCD and GD are tuned on (fresh simulated operators, or "
+        "flights held out of a --dataset's training split; never test flights)",
+        low=2,
     )
-    gd_window: int = setting(10, "recent transitions in the gradient-descent loss", low=1)
+    tuning_steps: int = setting(20, "steps of each tuning flight used (flights shorter are not drawn)", low=2)
+    gd_lr: tuple[float, ...] = setting(
+        (0.003, 0.01, 0.03, 0.1), "gradient-descent learning rates tried in tuning (normalised units)", above=0.0
+    )
+    gd_steps: tuple[int, ...] = setting((1, 5), "gradient steps per observation tried in tuning", low=1)
+    gd_window: tuple[int, ...] = setting((5, 10), "recent transitions in the gradient-descent loss tried", low=1)
+    calibrate_flips: tuple[float, ...] = setting(
+        (0.001, 0.003, 0.01, 0.03), "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
+    )
     reptile_epochs: int = setting(20, "Reptile epochs (operators as tasks)", low=1)
     reptile_batch_size: int = setting(64, "Reptile inner mini-batch", low=1)
     reptile_lr: float = setting(0.1, "Reptile outer step size", above=0.0)
@@ -138,7 +169,20 @@ class InterpretConfig(ExperimentConfig):
     reptile_tasks_per_batch: int = setting(1, "operators per Reptile meta step", low=1)
     full: bool = setting(False, "the paper's scale (B.2, A.5): hidden 1024, 1000 particles, 400/1000 epochs at lr 1e-4")
 
-    NON_EMPTY = ("parts", "fig9_latents", "fig9_ks", "labels", "steps", "methods", "burn_in", "horizons")
+    NON_EMPTY = (
+        "parts",
+        "fig9_latents",
+        "fig9_ks",
+        "labels",
+        "steps",
+        "methods",
+        "burn_in",
+        "horizons",
+        "gd_lr",
+        "gd_steps",
+        "gd_window",
+        "calibrate_flips",
+    )
 
     def validate(self) -> None:
         """The declared bounds, then the checks across fields and of the dataset file."""
@@ -226,20 +270,37 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
             dataset = content_digest(drone.dataset_content(data))  # a --dataset's content, not its path
             train, tests = data.select(split["train"]), {s: data.select(split[s]) for s in drone.SETS}
             report.payload["dataset"] = drone.summary(data, split)
-            model = drone.make_model(config, train, ex.device)
+            # The look-ahead's tuning flights, which the networks are not fitted on (none of a simulated
+            # run's training flights: those are freshly simulated operators).
+            flights, fit_ids = lookahead.tuning_flights(config, data, split)
+            fitted = train if fit_ids is None else data.select(fit_ids)
+            adapting = sorted(
+                {method_variant(m)[0] for m in config.methods if method_variant(m)[1] != "N"}, key="MR".index
+            )
+            tuning_episodes = None
+            if "lookahead" in config.parts and adapting:  # too few tuning flights: refused before training
+                tuning_episodes = lookahead.tuning_episodes(flights, config, ex.device)
+            model = drone.make_model(config, fitted, ex.device)
             fit = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
-            report.payload["train_loss"] = ex.train("bc", smcd_rl.fit, model, drone.steps(train, ex.device), **fit)
+            report.payload["train_loss"] = ex.train("bc", smcd_rl.fit, model, drone.steps(fitted, ex.device), **fit)
             model.save(ex.out / "bc_model.pt")
 
         # --- Figs. 4 and 13: eq. (9) confidence from the k nearest stored masks ----------------------
         if "confidence" in config.parts:
             sets = {"stored": train, **tests}
             seeds = {"stored": config.seed + 31, "known": config.seed + 37, "unknown": config.seed + 37}
-            noise = drone.noise_std(model, train, config, ex.device)
+            noise = drone.noise_std(model, fitted, config, ex.device)
             prior = None if config.independent_priors else shared_prior(model.net, config.particles, config.seed + 29)
-            smcd = partial(make_adaptation, "S", config, particles=config.particles, noise_std=noise)
+            smcd = StrategySettings(
+                particles=config.particles,
+                noise_std=tuple(noise),
+                flip_prob=config.flip_prob,
+                gd_lr=config.gd_lr[0],
+                gd_steps=config.gd_steps[0],
+                gd_window=config.gd_window[0],
+            )
             masks = ex.evaluate(
-                {s: partial(smcd, seed=seeds[s], device=ex.device) for s in sets},
+                {s: partial(smcd.strategy, "S", seed=seeds[s], device=ex.device) for s in sets},
                 lambda s, strategy: drone.mask_record(
                     s, model.with_adaptation(strategy), sets[s], prior, config, ex.device, progress=progress
                 ),
@@ -274,12 +335,12 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
         if "lookahead" in config.parts:
             bases = {"M": model}
             if any(name.startswith("R+") for name in config.methods):
-                reptile = drone.make_model(config, train, ex.device)  # from the same initial weights as M
+                reptile = drone.make_model(config, fitted, ex.device)  # from the same initial weights as M
                 report.payload["reptile_train_loss"] = ex.train(
                     "reptile",
                     smcd_rl.fit_reptile,
                     reptile,
-                    lookahead.reptile_tasks(train, config, ex.device),
+                    lookahead.reptile_tasks(fitted, config, ex.device),
                     epochs=config.reptile_epochs,
                     batch_size=config.reptile_batch_size,
                     lr=config.reptile_lr,
@@ -290,16 +351,29 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                 )
                 reptile.save(ex.out / "reptile_model.pt")
                 bases["R"] = reptile
+            # The fair protocol: each network's GD tuned and SMCD calibrated on the tuning flights.
+            tunings: dict[str, Tuning] = {}
+            if tuning_episodes is not None:
+                for key in adapting:
+                    paper_noise = drone.noise_std(bases[key], fitted, config, ex.device)
+                    tunings[key] = tune(ex, bases[key], tuning_episodes, config, name=key, paper_noise_std=paper_noise)
+                    report.tables[tunings[key].caption()] = tunings[key].table()
+                    report.plots[f"tuning-{key}.png"] = tunings[key].plot
+                report.payload["tuning"] = {key: t.payload() for key, t in tunings.items()}
             errors = ex.evaluate(
                 {
-                    name: partial(lookahead.method_builder, name, bases, train, config, ex.device)
+                    name: partial(lookahead.method_builder, name, bases, tunings, config, ex.device)
                     for name in config.methods
                 },
                 lambda name, build: {
                     s: lookahead.evaluate_lookahead(build(), test, config, ex.device, f"{name} {s}", progress)
                     for s, test in tests.items()
                 },
-                content={**{key: model_digest(m) for key, m in bases.items()}, "dataset": dataset},
+                content={
+                    **{key: model_digest(m) for key, m in bases.items()},
+                    "dataset": dataset,
+                    "tuning": {key: [asdict(t.tuned), asdict(t.paper)] for key, t in tunings.items()},
+                },
                 kind="lookahead",
             )
             cell = ("set", "burn_in", "horizon")
@@ -313,12 +387,19 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                 seed=config.seed,
             )
             report.tables[LOOKAHEAD] = lookahead.table(rmse, config)
-            headline = [
-                c for c in report.comparisons["lookahead"] if c["method"] == "M+S" and c["against"] in ("M+N", "M+G")
-            ]
+            comparisons = report.comparisons["lookahead"]
+            headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
             if headline:
                 report.tables[HEADLINE] = verdict_table(headline, cell=cell)
             report.plots["fig14_lookahead.png"] = lambda path: lookahead.plot(rmse, config, path)
+            report.payload["scoreboard"] = scoreboard_entry(
+                "drone look-ahead",
+                rmse,
+                comparisons,
+                cell={"set": "unknown", "burn_in": max(config.burn_in), "horizon": min(config.horizons)},
+                metric="rmse",
+                unit="m/s",
+            )
 
         # --- results: each part's CSV, every part in results.csv / trials.csv / comparisons.csv ------
         report.write(ex, experiment="mask interpretability (paper Figs. 4, 9, 13) and drone look-ahead (Fig. 14)")
@@ -329,5 +410,5 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
 FIG9 = "Fig. 9: top-k link-length accuracy of two-link masks, mean [95% CI] over held-out arms"
 CONFIDENCE = "Figs. 4 / 13: eq. (9) confidence of the true label, k = {k}, mean [95% CI] over test trajectories"
 LOOKAHEAD = "Fig. 14: look-ahead action RMSE (m/s), mean [95% CI] over test trajectories; columns: horizon ratio"
-HEADLINE = "M+S paired with M+N and M+G over the same trajectories (negative: M+S's error is lower)"
+HEADLINE = "M+S paired with M+N, M+G and M+S(paper) over the same trajectories (negative: M+S's error is lower)"
 SKILL, PHASE = ("skill", "strategy"), ("phase", "success")

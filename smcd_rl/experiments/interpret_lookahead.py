@@ -5,7 +5,25 @@ steps, then predicts the operator's actions on the next ``h = max(1, round(rh T)
 to ``b + h <= T``) from the observed states, with no further adaptation. The score is the RMSE
 over the horizon's steps and the 3 action dims, per trajectory; a trajectory with ``b >= T`` is
 left out of that burn-in's cells. Methods: M (multi-task) or R (Reptile, operators as tasks:
-:func:`smcd_rl.fit_reptile`) with N (none), G (gradient descent) or S (SMCD).
+:func:`smcd_rl.fit_reptile`) with N (none), G (gradient descent, tuned), S (SMCD, calibrated) or
+S(paper) (SMCD at the paper's settings).
+
+The fair protocol (:mod:`smcd_rl.experiments.tuning`): before any test flight is seen, each trained
+network's GD is grid-tuned (``--gd-lr`` x ``--gd-steps`` x ``--gd-window``, by one-step error) and
+its SMCD calibrated (by log evidence) on ``--tuning-episodes`` training-distribution flights that
+the networks were not fitted on, each cut to its first ``--tuning-steps`` steps
+(:func:`tuning_flights`): for the simulated operators, flights of freshly simulated operators (one
+flight each, from the same population as the training operators); for a ``--dataset``, flights
+held out of the training split (never an operator's last one), which M and R are then not fitted
+on. The test flights (known and unknown operators) are never used. S(paper)'s likelihood noise is
+``--noise-scale`` times the network's own training RMSE per action dim, its flip probability
+``--flip-prob``.
+
+Example:
+    >>> from smcd_rl.experiments.interpret import InterpretConfig
+    >>> flights, fit = tuning_flights(InterpretConfig(tuning_episodes=4), None, None)
+    >>> flights.num_trajectories, fit is None, bool((flights.lengths >= 20).all())
+    (4, True, True)
 """
 
 from __future__ import annotations
@@ -21,16 +39,75 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 import smcd_rl
-from smcd_rl.envs.drone_operators import TrajectoryDataset
-from smcd_rl.experiments.adaptations import make_adaptation
+from smcd_rl.envs.drone_operators import TrajectoryDataset, simulate_operators
 from smcd_rl.experiments.common import format_table
-from smcd_rl.experiments.interpret_drone import SETS, noise_std
+from smcd_rl.experiments.interpret_drone import SETS
 from smcd_rl.experiments.interpret_masks import padded
+from smcd_rl.experiments.tuning import Tuning, method_variant
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.interpret import InterpretConfig
 
-__all__ = ["reptile_tasks", "make_method", "method_builder", "evaluate_lookahead", "cell_scores", "table", "plot"]
+__all__ = [
+    "TUNING_SEED",
+    "tuning_flights",
+    "tuning_episodes",
+    "reptile_tasks",
+    "make_method",
+    "method_builder",
+    "evaluate_lookahead",
+    "cell_scores",
+    "table",
+    "plot",
+]
+
+#: Offset of the tuning flights' seed from ``--seed`` (operators of their own, none of the dataset's).
+TUNING_SEED = 7919
+
+
+def tuning_flights(
+    config: InterpretConfig, data: TrajectoryDataset | None, split: dict[str, np.ndarray] | None
+) -> tuple[TrajectoryDataset, np.ndarray | None]:
+    """The flights SMCD and GD are tuned on, and the training trajectories the networks are fitted on.
+
+    Simulated operators (no ``--dataset``): one flight, at least ``--tuning-steps`` long, of each of
+    ``--tuning-episodes`` freshly simulated operators (seed ``--seed + TUNING_SEED``); the training
+    split is fitted whole (``None``). A ``--dataset``: up to ``--tuning-episodes`` training-split
+    flights that long, at random, never an operator's last one, held out of the fit; returns the ids
+    (into ``data``) of the training trajectories left to fit on.
+    """
+    steps = config.tuning_steps
+    rng = np.random.default_rng(config.seed + TUNING_SEED)
+    if not config.dataset:
+        fresh = simulate_operators(
+            config.tuning_episodes, config.trajectories_per_operator, seed=config.seed + TUNING_SEED
+        )
+        chosen = []
+        for op in range(config.tuning_episodes):
+            long_enough = np.flatnonzero((fresh.operator == op) & (fresh.lengths >= steps))
+            if long_enough.size:
+                chosen.append(int(rng.choice(long_enough)))
+        return fresh.select(chosen), None
+    assert data is not None and split is not None
+    train = split["train"]
+    eligible = []
+    for op in np.unique(data.operator[train]):
+        own = train[data.operator[train] == op]
+        eligible += [int(i) for i in own[:-1] if data.lengths[i] >= steps]  # keep each operator's last one
+    count = min(config.tuning_episodes, len(eligible))
+    held_out = np.sort(rng.choice(np.array(eligible, dtype=np.int64), size=count, replace=False))
+    return data.select(held_out), np.setdiff1d(train, held_out)
+
+
+def tuning_episodes(flights: TrajectoryDataset, config: InterpretConfig, device: torch.device) -> TensorDict:
+    """``[E, --tuning-steps]`` states and actions: the first steps of each tuning flight."""
+    if flights.num_trajectories < 2 or int(flights.lengths.min()) < config.tuning_steps:
+        raise ValueError(
+            f"SMCD's calibration and GD's tuning need at least 2 training-distribution flights of at least "
+            f"--tuning-steps {config.tuning_steps} steps; only {flights.num_trajectories} were found: lower "
+            "--tuning-steps or give more training flights"
+        )
+    return padded(flights, device)[:, : config.tuning_steps]
 
 
 def reptile_tasks(train: TrajectoryDataset, config: InterpretConfig, device: torch.device) -> TensorDict:
@@ -50,32 +127,29 @@ def reptile_tasks(train: TrajectoryDataset, config: InterpretConfig, device: tor
 def make_method(
     name: str,
     bases: dict[str, smcd_rl.AdaptiveModel],
-    train: TrajectoryDataset,
+    tunings: dict[str, Tuning],
     config: InterpretConfig,
     device: torch.device,
 ) -> smcd_rl.AdaptiveModel:
-    """Method ``name``: its trained network (``M`` or ``R``) with its strategy (``N``, ``G`` or ``S``).
-
-    SMCD's likelihood noise is ``noise_scale`` times that network's own training RMSE.
-    """
-    base, letter = bases[name[0]], name[2]
-    noise = noise_std(base, train, config, device) if letter == "S" else 0.0
-    adaptation = make_adaptation(
-        letter, config, particles=config.particles, noise_std=noise, seed=config.seed + 41, device=device
-    )
-    return base.with_adaptation(adaptation)
+    """Method ``name``: its trained network (``M`` or ``R``) with its strategy (``N``, tuned ``G``,
+    calibrated ``S`` or ``S(paper)``, from that network's :class:`~smcd_rl.experiments.tuning.Tuning`)."""
+    network, variant = method_variant(name)
+    base = bases[network]
+    if variant == "N":
+        return base.with_adaptation(smcd_rl.NoAdaptation())
+    return base.with_adaptation(tunings[network].strategy(variant, seed=config.seed + 41, device=device))
 
 
 def method_builder(
     name: str,
     bases: dict[str, smcd_rl.AdaptiveModel],
-    train: TrajectoryDataset,
+    tunings: dict[str, Tuning],
     config: InterpretConfig,
     device: torch.device,
 ) -> Callable[[], smcd_rl.AdaptiveModel]:
     """A builder of method ``name``, called once per test set: each set starts from a freshly seeded filter,
     so neither set's results depend on whether the other ran first."""
-    return partial(make_method, name, bases, train, config, device)
+    return partial(make_method, name, bases, tunings, config, device)
 
 
 def _burn_in_steps(test: TrajectoryDataset, config: InterpretConfig) -> torch.Tensor:

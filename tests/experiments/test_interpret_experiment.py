@@ -1,4 +1,4 @@
-"""``smcd-rl interpret`` end to end at a tiny scale: files, tables with CIs, --dataset, resume, bad input."""
+"""``smcd-rl interpret`` end to end at a tiny scale: files, tables with CIs, --dataset, resume, bad input, tuning."""
 
 from __future__ import annotations
 
@@ -59,6 +59,19 @@ TINY = [
     "R+N",
     "--threads",
     "1",
+    "--tuning-episodes",
+    "4",
+    "--tuning-steps",
+    "5",
+    "--gd-lr",
+    "0.01",
+    "0.1",
+    "--gd-steps",
+    "1",
+    "--gd-window",
+    "5",
+    "--calibrate-flips",
+    "0.01",
 ]
 FILES = (
     "results.csv",
@@ -76,6 +89,7 @@ FILES = (
     "dataset.npz",
     "bc_model.pt",
     "reptile_model.pt",
+    "tuning-M.png",
 )
 #: Training checkpoints, named by the harness after the model, trainer, settings and data.
 CHECKPOINTS = ("fig9_ld8-*.ckpt", "fig9_ld16-*.ckpt", "bc-*.ckpt", "reptile-*.ckpt")
@@ -98,7 +112,8 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
     for pattern in CHECKPOINTS:
         assert len(list(first.glob(pattern))) == 1, pattern
     assert "Fig. 9" in printed and "| skill" in printed and "| M+S" in printed and "| R+N" in printed
-    assert "M+S paired with M+N and M+G" in printed and "[95% CI]" in printed
+    assert "M+S paired with M+N, M+G and M+S(paper)" in printed and "[95% CI]" in printed
+    assert "Tuning of M on 4 held-out training-task episodes x 5 steps" in printed
     payload = json.loads((first / "results.json").read_text())
     assert (
         payload["dataset"]["train"]["trajectories"]
@@ -128,7 +143,7 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
     report = (first / "report.md").read_text()
     assert "Fig. 14" in report and all(f"({name})" in report for name in FILES if name.endswith(".png"))
 
-    # The same data as a user's --dataset; the run is interrupted in its second look-ahead method.
+    # The run is interrupted in its second look-ahead method, and resumes to the same tables.
     second = tmp_path / "second"
     real = interpret_lookahead.evaluate_lookahead
     calls = {"n": 0}
@@ -140,7 +155,7 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
         return real(*args, **kwargs)
 
     monkeypatch.setattr(interpret_lookahead, "evaluate_lookahead", interrupted)
-    assert cli.main(["interpret", "--out", str(second), "--dataset", str(first / "dataset.npz"), *TINY]) == 130
+    assert cli.main(["interpret", "--out", str(second), *TINY]) == 130
     assert "interrupted; run the same command again to resume" in capsys.readouterr().err
 
     def counted(*args, **kwargs):
@@ -149,9 +164,18 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
 
     calls["n"] = 0
     monkeypatch.setattr(interpret_lookahead, "evaluate_lookahead", counted)
-    assert cli.main(["interpret", "--out", str(second), "--dataset", str(first / "dataset.npz"), *TINY]) == 0
+    assert cli.main(["interpret", "--out", str(second), *TINY]) == 0
     assert calls["n"] == 4  # M+S and R+N for both sets; M+N came from the cache
     assert tables(capsys.readouterr().out) == tables(printed)
+
+    # The same data as a user's --dataset: Fig. 9 is the same; M and R are fitted without the
+    # training flights held out for tuning, so Figs. 4/13/14 are of other networks.
+    third = tmp_path / "third"
+    assert cli.main(["interpret", "--out", str(third), "--dataset", str(first / "dataset.npz"), *TINY]) == 0
+    printed_third = capsys.readouterr().out
+    assert printed_third.split("Figs. 4 / 13")[0] == printed.split("Figs. 4 / 13")[0]
+    held_out = json.loads((third / "results.json").read_text())["dataset"]
+    assert held_out == payload["dataset"]  # the split is the same; the tuning flights come out of "train"
 
 
 def _user_dataset(tmp_path, drop_label: str | None = None, drop_key: str | None = None):
@@ -252,6 +276,57 @@ def test_overwriting_the_dataset_file_retrains_and_recomputes(tmp_path, capsys, 
     assert calls["n"] == 4  # the new content: evaluated afresh
     assert len(list(out.glob("bc-*.ckpt"))) == 2  # and trained afresh, beside the first model
     assert json.loads((out / "results.json").read_text())["lookahead"] != before
+
+
+@pytest.mark.slow
+def test_lookahead_tunes_on_held_out_flights_and_writes_a_scoreboard_entry(tmp_path, capsys) -> None:
+    """The fair protocol: GD's chosen point is in the grid, SMCD calibrated, four strategies on the scoreboard."""
+    out = tmp_path / "run"
+    methods = ["--methods", "M+N", "M+G", "M+S", "M+S(paper)"]
+    assert cli.main(["interpret", "--out", str(out), "--parts", "lookahead", *TINY, *methods]) == 0
+    printed = capsys.readouterr().out
+    assert "| M+S(paper)" in printed and "Tuning of M on 4" in printed
+    payload = json.loads((out / "results.json").read_text())
+    assert set(payload["tuning"]) == {"M"}  # no R method ran: only M is tuned
+    tuning = payload["tuning"]["M"]
+    assert tuning["episodes"] == 4 and tuning["steps"] == 5
+    assert tuning["tuned"]["gd_lr"] in (0.01, 0.1) and tuning["tuned"]["gd_steps"] == 1
+    assert tuning["tuned"]["gd_window"] == 5 and len(tuning["gd_grid"]) == 2
+    assert tuning["calibration"] and tuning["paper"]["flip_prob"] == interpret.InterpretConfig().flip_prob
+    assert len(tuning["paper"]["noise_std"]) == 3  # noise-scale x M's training RMSE per action dim
+    board = payload["scoreboard"]
+    assert board["task"] == "drone look-ahead" and board["cell"] == {"set": "unknown", "burn_in": 0.5, "horizon": 0.25}
+    assert set(board["estimates"]) == {"none", "GD", "SMCD (paper)", "SMCD (calibrated)"}
+    assert {e["method"] for e in board["estimates"].values()} == {"M+N", "M+G", "M+S(paper)", "M+S"}
+    assert all(v != "not compared" for v in board["verdicts"].values())
+    pairs = {(c["method"], c["against"]) for c in payload["comparisons"]}
+    assert {("M+S", "M+N"), ("M+S", "M+G"), ("M+S", "M+S(paper)")} <= pairs
+    assert (out / "tuning-M.png").is_file()
+    # Without the look-ahead part: no tuning, no scoreboard entry.
+    other = tmp_path / "other"
+    assert cli.main(["interpret", "--out", str(other), "--parts", "confidence", *TINY]) == 0
+    capsys.readouterr()
+    assert not {"tuning", "scoreboard"} & set(json.loads((other / "results.json").read_text()))
+
+
+def test_tuning_flights_are_never_test_flights() -> None:
+    """Simulated: fresh operators' flights; a --dataset: training flights held out of the fit, each operator kept."""
+    config = interpret.InterpretConfig(tuning_episodes=5, tuning_steps=10)
+    flights, fit = interpret_lookahead.tuning_flights(config, None, None)
+    assert fit is None and flights.num_trajectories == 5 and (flights.lengths >= 10).all()
+    data = simulate_operators(num_operators=6, trajectories_per_operator=4, seed=0)
+    assert not any(np.array_equal(flights.state[:10], data.select([i]).state[:10]) for i in range(24))
+    split = interpret.drone.split_dataset(data, known_fraction=0.1, unknown_fraction=0.2, seed=0)
+    config = interpret.InterpretConfig(tuning_episodes=5, tuning_steps=10, dataset="given.npz")
+    flights, fit = interpret_lookahead.tuning_flights(config, data, split)
+    assert fit is not None and flights.num_trajectories == 5
+    held_out = np.setdiff1d(split["train"], fit)
+    assert len(held_out) == 5 and not set(held_out) & (set(split["known"]) | set(split["unknown"]))
+    assert set(data.operator[fit]) == set(data.operator[split["train"]])  # every training operator still fitted
+    episodes = interpret_lookahead.tuning_episodes(flights, config, torch.device("cpu"))
+    assert episodes.batch_size == torch.Size([5, 10]) and set(episodes.keys()) == {"state", "action"}
+    with pytest.raises(ValueError, match="--tuning-steps"):
+        interpret_lookahead.tuning_episodes(flights.select([0]), config, torch.device("cpu"))
 
 
 def test_neighbour_hits_average_to_the_top_k_accuracy() -> None:
