@@ -1,37 +1,65 @@
 """Model-based control of the crippled-leg Ant (paper appendix C, Fig. 15): ``smcd-rl ant``.
 
 Reads top to bottom: seed, collect transitions from the *healthy* Ant (random actions, or a
-small stable-baselines3 SAC policy), fit one dropout dynamics model, then run every combination
-of planner {CEM, MPPI, RS} x adaptation {none, GD, SMCD} on the healthy Ant and on the Ant with
-a crippled leg (the episodes are in :mod:`smcd_rl.experiments.ant_episodes`). All cells share
-the trained network (``model.with_adaptation``).
+small stable-baselines3 SAC policy), fit one dropout dynamics model, tune the adaptations by the
+fair protocol (:mod:`smcd_rl.experiments.tuning`), then score every adaptation by the primary
+metric, prediction error, and by the secondary one, the return of planner x adaptation episodes,
+on the healthy Ant and on the Ant with a crippled leg. All strategies share the trained network
+(``model.with_adaptation``).
 
-Writes ``results.csv`` (one row per planner, adaptation and condition: mean episode return with
-its 95% bootstrap interval, and its spread), ``trials.csv`` (every episode), ``comparisons.csv``
-(each adaptation paired with no adaptation and with the other over the same episodes, per planner
-and condition), ``results.json``, ``ant.png`` (Fig. 15: healthy and crippled panels, bars per
-planner grouped by adaptation, error bars the 95% intervals) and ``report.md``. The collected
-data and the finished cells (in ``partial/``, keyed by the data settings, and by the trained
-model's digest and the settings) and the training (``train-<digest>.ckpt``) are reused by a rerun.
+The adaptations (``--adaptations``), labelled as in every experiment:
+
+* ``M+N``: no adaptation;
+* ``M+G``: online gradient descent, its ``--gd-lr x --gd-steps x --gd-window`` grid point of best
+  one-step error on the tuning episodes;
+* ``M+S``: SMCD calibrated by log evidence (:func:`smcd_rl.calibrate`) on the tuning episodes;
+* ``M+S(paper)``: SMCD at the paper's settings: likelihood noise per observation dimension
+  ``--noise-scale`` (3) times the model's held-out RMSE, and ``--flip-prob``.
+
+**Fair protocol.** The tuning episodes are ``--tuning-episodes`` episodes of ``--tuning-steps``
+uniform random actions on the *healthy* Ant (the training distribution: the model never saw a
+crippled leg), from env seeds of their own (``--seed + 2000003 + k``), neither the training data
+nor any test episode.
+
+**Primary metric: prediction error.** ``--prediction-episodes`` episodes per condition of
+``--prediction-steps`` uniform random actions (the default data-collection policy; a fixed
+behaviour policy, so every strategy is scored on the same logged states), from env seeds
+``--seed + 3000003 + k``. Each strategy filters along each episode
+(:mod:`smcd_rl.experiments.ant_prediction`): the *one-step* error predicts step ``t`` from the
+steps before it, before observing it; the *H-step* error (``H = --prediction-horizon``) rolls the
+adapted model ``H`` steps ahead from the logged state at ``t`` on the logged actions and compares
+with the logged states. Both are RMSE in observation units (pooled over the 41 dims), averaged
+per episode; strategies are paired over the same episodes (95% bootstrap CIs and paired verdicts
+by :func:`~smcd_rl.experiments.stats.cell_statistics`, cells condition x metric). The
+scoreboard entries (healthy, crippled) are the one-step error.
+
+**Secondary metric: return.** ``--episodes`` MPC episodes of ``--episode-steps`` steps per
+planner x adaptation x condition cell (the episodes are in
+:mod:`smcd_rl.experiments.ant_episodes`); episode ``k`` is the same (env seed, start state,
+leg) in every cell. By default one planner (CEM) and three adaptations, 30 episodes of 100
+steps, so that the default finishes in about 12 minutes on 2 CPU cores.
+
+Writes ``results.csv`` (``part`` prediction: per condition, metric and strategy the mean error
+with its 95% CI; ``part`` return: per planner, adaptation and condition the mean return),
+``trials.csv`` (every episode's errors and every return episode), ``comparisons.csv`` (the paired
+comparisons of both parts), ``results.json`` (with ``tuning`` and the two ``scoreboard``
+entries), ``prediction.png`` (the errors with their CIs), ``ant.png`` (Fig. 15: returns per
+planner grouped by adaptation), ``tuning-M.png`` (the strategies on the tuning episodes) and
+``report.md``. The collected data, the tuning, the strategies' errors and the finished return
+cells (in ``partial/``) and the training (``train-<digest>.ckpt``) are reused by a rerun.
 
 Choices the paper leaves open, made here:
 
 * Crippled condition: each episode cripples a leg drawn uniformly from ``--crippled-legs``
   (default all four: the model never saw any crippled leg, so all are out of distribution).
-  Episode ``k`` uses the same env seed in every cell, hence the same initial state and the same
-  leg: cells are compared paired, on identical episodes.
 * The task (``--task l2a``, default) is Learning to Adapt's, which the paper used: reward =
   forward velocity + 0.05 per step, no control or contact cost, and episodes never end early.
   ``--task ant-v5`` uses Ant-v5's reward (forward velocity + 1 while healthy - 0.5 |a|^2 -
   contact cost) and ends an episode when the Ant is unhealthy. The reported reward is the env's;
   the planners optimise :func:`~smcd_rl.envs.crippled_ant.ant_reward` with the same weights (the
   contact term, which needs contact forces, left out) and, for ant-v5,
-  :func:`~smcd_rl.envs.crippled_ant.ant_termination`. On ant-v5, with a model fitted to random
-  actions, the planners mostly keep the Ant standing: the control cost outweighs the forward
-  velocity the model can predict.
-* SMCD's likelihood noise is per observation dimension: the trained model's RMSE on held-out
-  transitions times ``--noise-scale`` (default 3; at 1 the effective sample size collapses to
-  about 15% of the particles after every step).
+  :func:`~smcd_rl.envs.crippled_ant.ant_termination`. The prediction and tuning episodes never
+  end early (only the dynamics matter there).
 * Dropout: ``--full`` uses the paper's p = 0.5 on its 3 x 1024 network. The default network is
   five times narrower and underfits at p = 0.5 (held-out normalised MSE 0.46 on 10^5 random
   transitions, against 0.16 at the default p = 0.1), and planning on it barely moves the Ant.
@@ -42,7 +70,7 @@ Example:
     >>> from smcd_rl.experiments.ant import AntConfig, CELLS
     >>> config = AntConfig()
     >>> len(CELLS), config.planners, config.adaptations, config.conditions
-    (18, ('cem', 'mppi', 'rs'), ('none', 'gd', 'smcd'), ('healthy', 'crippled'))
+    (24, ('cem',), ('N', 'G', 'S'), ('healthy', 'crippled'))
 """
 
 from __future__ import annotations
@@ -50,37 +78,55 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 import smcd_rl
-from smcd_rl.digests import model_digest
+from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.ant_episodes import ACTION_DIM, OBS_DIM, TASKS, collect, run_cell, validation_error
+from smcd_rl.experiments.ant_prediction import prediction_errors, random_episodes
 from smcd_rl.experiments.common import format_table
 from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
+from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.tuning import VARIANTS, Tuning, tune
 
-__all__ = ["AntConfig", "FULL", "PLANNERS", "ADAPTATIONS", "CONDITIONS", "CELLS", "TASKS", "run", "table"]
+__all__ = [
+    "AntConfig",
+    "FULL",
+    "PLANNERS",
+    "ADAPTATIONS",
+    "CONDITIONS",
+    "CELLS",
+    "TASKS",
+    "run",
+    "table",
+    "prediction_table",
+]
 
 #: Planner names and their labels in the table and plot.
 PLANNERS: dict[str, str] = {"cem": "CEM", "mppi": "MPPI", "rs": "RS"}
-#: Adaptation names and their labels.
-ADAPTATIONS: dict[str, str] = {"none": "none", "gd": "GD", "smcd": "SMCD"}
+#: Adaptation names (:data:`~smcd_rl.experiments.tuning.VARIANTS`) and their method labels.
+ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
 #: Conditions: the Ant the model was trained on, and the Ant with one leg crippled per episode.
 CONDITIONS: tuple[str, ...] = ("healthy", "crippled")
 #: Every (planner, adaptation, condition) cell of Fig. 15.
 CELLS: tuple[tuple[str, str, str], ...] = tuple(itertools.product(PLANNERS, ADAPTATIONS, CONDITIONS))
 #: Settings that determine the collected transitions.
 DATA_SETTINGS = ("seed", "task", "data_policy", "sac_steps", "transitions", "data_episode_steps")
+#: Offsets of the env seeds from ``--seed``: MPC episodes, tuning episodes, prediction episodes.
+EPISODE_SEED, TUNING_SEED, PREDICTION_SEED = 1_000_003, 2_000_003, 3_000_003
+#: The paired comparisons: each adaptive method against M+N and against each other.
+ADAPTIVE = ("M+S", "M+S(paper)", "M+G")
 
 
 @dataclass
 class AntConfig(ExperimentConfig):
-    """Settings of ``smcd-rl ant``; the defaults finish in under 20 minutes on 2 CPU cores."""
+    """Settings of ``smcd-rl ant``; the defaults finish in about 12 minutes on 2 CPU cores."""
 
     out: str = setting("runs/ant", "output directory (results, plot, report, data, trained model)")
     task: str = setting(
@@ -101,35 +147,68 @@ class AntConfig(ExperimentConfig):
     batch_size: int = setting(256, "training batch size", low=1)
     lr: float = setting(1e-3, "Adam learning rate", above=0.0)
     validation: float = setting(
-        0.1, "fraction (0 < f < 1) of the transitions held out (validation RMSE, SMCD noise)", above=0.0
+        0.1, "fraction (0 < f < 1) of the transitions held out (validation RMSE, SMCD(paper) noise)", above=0.0
     )
-    planners: tuple[str, ...] = setting(tuple(PLANNERS), "planners to run: cem, mppi, rs", choices=tuple(PLANNERS))
+    planners: tuple[str, ...] = setting(
+        ("cem",), "planners of the return episodes: cem, mppi, rs", choices=tuple(PLANNERS)
+    )
     adaptations: tuple[str, ...] = setting(
-        tuple(ADAPTATIONS), "adaptations to run: none, gd, smcd", choices=tuple(ADAPTATIONS)
+        ("N", "G", "S"),
+        "adaptations of the return episodes: N (none), G (tuned gradient descent), S (calibrated SMCD), "
+        "S(paper) (SMCD at --noise-scale, --flip-prob); the prediction error always compares all four",
+        choices=tuple(ADAPTATIONS),
     )
     conditions: tuple[str, ...] = setting(CONDITIONS, "conditions to run: healthy, crippled", choices=CONDITIONS)
     crippled_legs: tuple[int, ...] = setting(
         (0, 1, 2, 3), "legs the crippled leg is drawn from per episode", choices=(0, 1, 2, 3)
     )
-    episodes: int = setting(
-        6, "evaluation episodes per cell (at least 2: a confidence interval over one is a point)", low=2
+    prediction_episodes: int = setting(
+        50, "random-action episodes per condition on which the prediction error (primary metric) is paired", low=2
     )
-    episode_steps: int = setting(200, "steps per evaluation episode (ant-v5: a fall ends it sooner)", low=1)
-    horizon: int = setting(10, "planning horizon H (steps)", low=1)
+    prediction_steps: int = setting(50, "steps per prediction episode (more than --prediction-horizon)", low=2)
+    prediction_horizon: int = setting(10, "open-loop look-ahead H of the H-step prediction error", low=1)
+    episodes: int = setting(
+        30, "MPC episodes per planner x adaptation x condition cell (return, secondary metric)", low=2
+    )
+    episode_steps: int = setting(100, "steps per MPC episode (ant-v5: a fall ends it sooner)", low=1)
+    horizon: int = setting(10, "planning horizon (steps)", low=1)
     candidates: int = setting(200, "action sequences per planner iteration (RS: times --iterations, once)", low=1)
     elites: int = setting(20, "CEM elites per iteration (at most --candidates)", low=1)
     iterations: int = setting(3, "CEM and MPPI iterations per step", low=1)
     temperature: float = setting(1.0, "MPPI temperature (units of the predicted return)", above=0.0)
     mppi_noise: float = setting(0.5, "MPPI perturbation std (actions lie in [-1, 1])", above=0.0)
-    particles: int = setting(100, "SMCD mask particles", low=1)
-    flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0)
-    noise_scale: float = setting(3.0, "SMCD likelihood noise, in units of the held-out RMSE per dimension", above=0.0)
-    gd_lr: float = setting(0.01, "online gradient-descent learning rate (normalised units)", above=0.0)
-    gd_steps: int = setting(5, "gradient steps per observation", low=1)
-    gd_window: int = setting(10, "recent transitions in the gradient-descent loss", low=1)
-    full: bool = setting(False, "the paper's scale: 3 x 1024 model, 10^6 transitions, 110 episodes of 1000 steps")
+    particles: int = setting(100, "SMCD mask particles (both SMCD variants)", low=1)
+    flip_prob: float = setting(0.01, "bit-flip probability per step of SMCD at the paper's settings", low=0.0)
+    noise_scale: float = setting(
+        3.0, "likelihood noise of SMCD at the paper's settings, in units of the held-out RMSE per dimension", above=0.0
+    )
+    tuning_episodes: int = setting(
+        32, "held-out random-action episodes of the healthy Ant (training distribution) SMCD and GD are tuned on", low=2
+    )
+    tuning_steps: int = setting(25, "steps per tuning episode", low=2)
+    gd_lr: tuple[float, ...] = setting(
+        (0.003, 0.01, 0.03, 0.1), "gradient-descent learning rates tried in tuning (normalised units)", above=0.0
+    )
+    gd_steps: tuple[int, ...] = setting((1, 5), "gradient steps per observation tried in tuning", low=1)
+    gd_window: tuple[int, ...] = setting((5, 10), "recent transitions in the gradient-descent loss tried", low=1)
+    calibrate_flips: tuple[float, ...] = setting(
+        (0.001, 0.003, 0.01, 0.03), "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
+    )
+    full: bool = setting(
+        False,
+        "the paper's scale: 3 x 1024 model, 10^6 transitions, every planner and adaptation, 110 episodes of 1000 steps",
+    )
 
-    NON_EMPTY = ("planners", "adaptations", "conditions", "crippled_legs")
+    NON_EMPTY: ClassVar[tuple[str, ...]] = (
+        "planners",
+        "adaptations",
+        "conditions",
+        "crippled_legs",
+        "gd_lr",
+        "gd_steps",
+        "gd_window",
+        "calibrate_flips",
+    )
     SELECTION = ("planners", "adaptations", "conditions")  # which cells run: a subset rerun reuses cells
 
     def validate(self) -> None:
@@ -140,14 +219,22 @@ class AntConfig(ExperimentConfig):
                 raise ValueError(f"--{name} must be < 1, got {getattr(self, name)}")
         if self.elites > self.candidates:
             raise ValueError(f"--elites ({self.elites}) must be <= --candidates ({self.candidates})")
+        if self.prediction_steps <= self.prediction_horizon:
+            raise ValueError(
+                f"--prediction-steps ({self.prediction_steps}) must be > --prediction-horizon "
+                f"({self.prediction_horizon})"
+            )
         if self.transitions * self.validation < 1 or self.transitions * (1 - self.validation) < 2:
             raise ValueError(f"{self.transitions} transitions are too few to hold out {self.validation:.0%}")
         keep = 1.0 - self.dropout  # SMCD's keep_rate transition flips a bit with up to 2 d max(k, 1 - k)
-        if self.flip_prob > 1 / (2 * max(keep, 1 - keep)):
-            raise ValueError(
-                f"--flip-prob {self.flip_prob} is too large at dropout {self.dropout}: "
-                f"use at most {1 / (2 * max(keep, 1 - keep)):.3g}"
-            )
+        for name in ("flip_prob", "calibrate_flips"):
+            values = getattr(self, name)
+            for flip in values if isinstance(values, tuple) else (values,):
+                if flip > 1 / (2 * max(keep, 1 - keep)):
+                    raise ValueError(
+                        f"--{name.replace('_', '-')} {flip} is too large at dropout {self.dropout}: "
+                        f"use at most {1 / (2 * max(keep, 1 - keep)):.3g}"
+                    )
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -159,6 +246,8 @@ FULL = {
     "dropout": 0.5,
     "epochs": 100,
     "lr": 1e-4,
+    "planners": tuple(PLANNERS),
+    "adaptations": tuple(ADAPTATIONS),
     "episodes": 110,
     "episode_steps": 1000,
     "horizon": 15,
@@ -181,9 +270,8 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
             ex.store.put("data", data_key, collected)
         n_val = max(1, int(round(config.validation * config.transitions)))
         train, val = collected["data"][:-n_val].to(ex.device), collected["data"][-n_val:].to(ex.device)
-        episode_seeds = [config.seed + 1_000_003 + k for k in range(config.episodes)]  # the same in every cell
 
-        # --- one dropout dynamics model for every cell --------------------------------------------
+        # --- one dropout dynamics model for every strategy ----------------------------------------
         torch.manual_seed(config.seed)  # the same initial weights whether the data was collected or loaded
         net = smcd_rl.MaskedMLP(
             OBS_DIM + ACTION_DIM,
@@ -197,21 +285,62 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
         losses = ex.train("train", smcd_rl.fit_dynamics, model, train, **fit)
         model.save(ex.out / "model.pt")
         val_rmse, val_nmse = validation_error(model, val)
-        noise_std = (config.noise_scale * val_rmse).clamp_min(1e-4)
+        paper_noise = (config.noise_scale * val_rmse).clamp_min(1e-4)
 
-        # --- every (planner, adaptation, condition) cell on the same episodes ----------------------
+        # --- the fair protocol: SMCD calibrated, GD grid-tuned on held-out healthy episodes --------
+        task_env = TASKS[config.task][0]
+        tuning_episodes, _ = random_episodes(
+            task_env,
+            None,
+            count=config.tuning_episodes,
+            steps=config.tuning_steps,
+            seed=config.seed + TUNING_SEED,
+        )
+        tuning = tune(ex, model, tuning_episodes.to(ex.device), config, name="M", paper_noise_std=paper_noise.tolist())
+        strategy = functools.partial(_strategy, tuning, config, ex.device)
+        content = {"model": model_digest(model), "tuned": asdict(tuning.tuned), "paper": asdict(tuning.paper)}
+
+        # --- primary: every strategy's prediction error on the same logged episodes ----------------
+        prediction, legs = _prediction(ex, model, config, strategy, content)
+        scores = {
+            (condition, name): {ADAPTATIONS[v]: r[metric] for v, r in by_variant.items()}
+            for condition, by_variant in prediction.items()
+            for name, metric in _metrics(config)
+        }
+        p_rows, p_comparisons = cell_statistics(
+            scores,
+            cell=("condition", "prediction"),
+            baseline="M+N",
+            adaptive=ADAPTIVE,
+            metric="rmse",
+            seed=config.seed,
+        )
+        p_trials = [
+            {
+                "part": "prediction",
+                "condition": condition,
+                "method": ADAPTATIONS[v],
+                "episode": k,
+                "leg": legs[condition][k],
+            }
+            | {name: float(r[metric][k]) for name, metric in _metrics(config)}
+            for condition, by_variant in prediction.items()
+            for v, r in by_variant.items()
+            for k in range(config.prediction_episodes)
+        ]
+
+        # --- secondary: returns of every (planner, adaptation, condition) cell on the same episodes -
         cells = [
             c for c in CELLS if c[0] in config.planners and c[1] in config.adaptations and c[2] in config.conditions
         ]
-
-        # A cell's factory runs its episodes; it is called only for cells the cache does not have.
+        episode_seeds = [config.seed + EPISODE_SEED + k for k in range(config.episodes)]  # the same in every cell
         cell_runs = {
             "/".join(cell): functools.partial(
                 run_cell,
                 model,
                 cell,
                 config,
-                noise_std,
+                strategy(cell[1]),
                 # One planner seed per planner, the same in every adaptation and condition.
                 planner_seed=config.seed + 1000 * (1 + list(PLANNERS).index(cell[0])),
                 episode_seeds=episode_seeds,
@@ -220,47 +349,60 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
             )
             for cell in cells
         }
-        done = ex.evaluate(
-            cell_runs,
-            lambda name, result: result,
-            content={"model": model_digest(model), "noise_std": noise_std},
-        )
-
-        # --- results: returns per episode, 95% CIs, adaptations paired over the same episodes -----
+        done = ex.evaluate(cell_runs, lambda name, result: result, content=content)
         episodes = {cell: done["/".join(cell)]["episodes"] for cell in cells}
-        scores: dict[tuple[str, str], dict[str, torch.Tensor]] = {}
+        returns: dict[tuple[str, str], dict[str, torch.Tensor]] = {}
         for (planner, adaptation, condition), records in episodes.items():
-            returns = torch.tensor([e["return"] for e in records], dtype=torch.float64)
-            scores.setdefault((PLANNERS[planner], condition), {})[ADAPTATIONS[adaptation]] = returns
-        stats, comparisons = cell_statistics(
-            scores,
+            values = torch.tensor([e["return"] for e in records], dtype=torch.float64)
+            returns.setdefault((PLANNERS[planner], condition), {})[ADAPTATIONS[adaptation]] = values
+        stats, r_comparisons = cell_statistics(
+            returns,
             cell=("planner", "condition"),
-            baseline="none",
-            adaptive=("SMCD", "GD"),
+            baseline="M+N",
+            adaptive=ADAPTIVE,
             metric="return",
             lower_is_better=False,
             seed=config.seed,
         )
-        rows = _rows(stats, episodes, {cell: done["/".join(cell)]["seconds"] for cell in cells})
-        trial_rows = [
-            {"planner": PLANNERS[p], "adaptation": ADAPTATIONS[a], "condition": c, **e}
+        r_rows = _rows(stats, episodes, {cell: done["/".join(cell)]["seconds"] for cell in cells})
+        r_trials = [
+            {"part": "return", "planner": PLANNERS[p], "method": ADAPTATIONS[a], "condition": c, **e}
             for (p, a, c), records in episodes.items()
             for e in records
         ]
-        headline = [c for c in comparisons if c["method"] == "SMCD"]
+
+        # --- report: primary table and verdicts first, then returns, then the tuning --------------
+        one_step = "one-step"
+        headline = [c for c in p_comparisons if c["method"] == "M+S"]
         tables = {
-            f"Episode return (task {config.task}), mean [95% CI] over {config.episodes} episodes of up to "
-            f"{config.episode_steps} steps": table(rows)
+            f"Prediction error (RMSE, observation units), mean [95% CI] over {config.prediction_episodes} random-action "
+            f"episodes of {config.prediction_steps} steps per condition (one-step: step t from the steps before it; "
+            f"{config.prediction_horizon}-step: open loop on the logged actions)": prediction_table(p_rows),
+            "M+S paired with M+N, M+G and M+S(paper) over the same episodes (negative: M+S's error is lower)": (
+                verdict_table(headline, cell=("condition", "prediction"))
+            ),
         }
-        if headline:
-            caption = "SMCD paired with no adaptation and GD over the same episodes (positive: SMCD's return is higher)"
-            tables[caption] = verdict_table(headline, cell=("planner", "condition"))
+        if r_rows:
+            tables[
+                f"Episode return (task {config.task}), mean [95% CI] over {config.episodes} MPC episodes of up to "
+                f"{config.episode_steps} steps"
+            ] = table(r_rows)
+            r_headline = [c for c in r_comparisons if c["method"] == "M+S"]
+            tables[
+                "M+S paired with the other adaptations over the same MPC episodes (positive: M+S's return is higher)"
+            ] = verdict_table(r_headline, cell=("planner", "condition"))
+        tables[tuning.caption()] = tuning.table()
+        plots = {"prediction.png": lambda path: _plot_prediction(p_rows, config, path)}
+        if r_rows:
+            plots["ant.png"] = lambda path: _plot(r_rows, config, path)
+        plots["tuning-M.png"] = tuning.plot
         ex.write(
             experiment="crippled-leg Ant, model-based control with adaptation (paper appendix C, Fig. 15)",
             tables=tables,
-            rows=rows,
-            trials=trial_rows,
-            comparisons=comparisons,
+            rows=[{"part": "prediction", **r} for r in p_rows] + [{"part": "return", **r} for r in r_rows],
+            trials=p_trials + r_trials,
+            comparisons=[{"part": "prediction", **c} for c in p_comparisons]
+            + [{"part": "return", **c} for c in r_comparisons],
             payload={
                 "data": {
                     "policy": config.data_policy,
@@ -273,12 +415,94 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
                     "loss": losses,
                     "validation_nmse": val_nmse,
                     "validation_rmse": val_rmse.tolist(),
-                    "smcd_noise_std": noise_std.tolist(),
+                    "paper_noise_std": paper_noise.tolist(),
                 },
+                "tuning": {"M": tuning.payload()},
+                "prediction": {
+                    "episodes": config.prediction_episodes,
+                    "steps": config.prediction_steps,
+                    "horizon": config.prediction_horizon,
+                    "legs": legs,
+                    "refused": {
+                        c: {ADAPTATIONS[v]: r["refused"] for v, r in by_variant.items()}
+                        for c, by_variant in prediction.items()
+                    },
+                },
+                "scoreboard": [
+                    scoreboard_entry(
+                        f"Ant one-step prediction ({condition})",
+                        p_rows,
+                        p_comparisons,
+                        cell={"condition": condition, "prediction": one_step},
+                        metric="rmse",
+                        unit="observation units",
+                    )
+                    for condition in config.conditions
+                ],
             },
-            plots={"ant.png": lambda path: _plot(rows, config, path)},
+            plots=plots,
         )
     return ex.result
+
+
+def _strategy(tuning: Tuning, config: AntConfig, device: torch.device, variant: str) -> smcd_rl.Adaptation:
+    """A fresh strategy of ``variant`` with the tuned (or paper) settings; SMCD's generator seeded alike."""
+    return tuning.strategy(variant, seed=config.seed + 11, device=device)
+
+
+def _metrics(config: AntConfig) -> list[tuple[str, str]]:
+    """(name in the tables, key of :func:`~smcd_rl.experiments.ant_prediction.prediction_errors`)."""
+    return [("one-step", "one_step"), (f"{config.prediction_horizon}-step", "open_loop")]
+
+
+def _prediction(
+    ex: Experiment,
+    model: smcd_rl.AdaptiveDynamicsModel,
+    config: AntConfig,
+    strategy: Any,
+    content: dict[str, Any],
+) -> tuple[dict[str, dict[str, dict[str, Any]]], dict[str, list[int]]]:
+    """Per condition: every strategy's per-episode errors on that condition's logged episodes, and their legs."""
+    results: dict[str, dict[str, dict[str, Any]]] = {}
+    legs: dict[str, list[int]] = {}
+    for condition in config.conditions:
+        episodes, legs[condition] = random_episodes(
+            TASKS[config.task][0],
+            config.crippled_legs if condition == "crippled" else None,
+            count=config.prediction_episodes,
+            steps=config.prediction_steps,
+            seed=config.seed + PREDICTION_SEED,
+        )
+        episodes = episodes.to(ex.device)
+        results[condition] = ex.evaluate(
+            {variant: functools.partial(strategy, variant) for variant in VARIANTS},
+            functools.partial(_errors, model, episodes, config.prediction_horizon),
+            content={**content, "episodes": content_digest(episodes)},
+            kind=f"prediction-{condition}",
+        )
+    return results, legs
+
+
+def _errors(
+    model: smcd_rl.AdaptiveDynamicsModel, episodes: Any, horizon: int, name: str, strategy: smcd_rl.Adaptation
+) -> dict[str, Any]:
+    """One strategy's errors on one condition's episodes (``name``, the variant, keys the cache only)."""
+    return prediction_errors(model, strategy, episodes, horizon=horizon)
+
+
+def prediction_table(rows: list[dict[str, Any]]) -> str:
+    """Prediction RMSE ``mean [95% CI]`` per condition and strategy (down), per metric (across)."""
+    metrics = list(dict.fromkeys(r["prediction"] for r in rows))
+    lookup = {(r["condition"], r["method"], r["prediction"]): r for r in rows}
+    keys = list(dict.fromkeys((r["condition"], r["method"]) for r in rows))
+    body = []
+    for condition, method in keys:
+        cells = []
+        for metric in metrics:
+            r = lookup.get((condition, method, metric))
+            cells.append("-" if r is None else f"{r['rmse_mean']:.4g} [{r['rmse_low']:.4g}, {r['rmse_high']:.4g}]")
+        body.append([condition, method, *cells])
+    return format_table(body, ["condition", "method", *metrics])
 
 
 def _rows(
@@ -294,7 +518,7 @@ def _rows(
         rows.append(
             {
                 "planner": PLANNERS[planner],
-                "adaptation": ADAPTATIONS[adaptation],
+                "method": ADAPTATIONS[adaptation],
                 "condition": condition,
                 "return_mean": r["return_mean"],
                 "return_low": r["return_low"],
@@ -311,10 +535,10 @@ def _rows(
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    """Episode return ``mean [95% CI]`` per planner and adaptation (down), per condition (across)."""
+    """Episode return ``mean [95% CI]`` per planner and method (down), per condition (across)."""
     conditions = list(dict.fromkeys(r["condition"] for r in rows))
-    lookup = {(r["planner"], r["adaptation"], r["condition"]): r for r in rows}
-    pairs = list(dict.fromkeys((r["planner"], r["adaptation"]) for r in rows))
+    lookup = {(r["planner"], r["method"], r["condition"]): r for r in rows}
+    pairs = list(dict.fromkeys((r["planner"], r["method"]) for r in rows))
     body = []
     for planner, adaptation in pairs:
         cells = []
@@ -324,7 +548,7 @@ def table(rows: list[dict[str, Any]]) -> str:
                 "-" if r is None else f"{r['return_mean']:.1f} [{r['return_low']:.1f}, {r['return_high']:.1f}]"
             )
         body.append([planner, adaptation, *cells])
-    return format_table(body, ["planner", "adaptation", *conditions])
+    return format_table(body, ["planner", "method", *conditions])
 
 
 def _plot(rows: list[dict[str, Any]], config: AntConfig, path: Path) -> None:
@@ -334,9 +558,9 @@ def _plot(rows: list[dict[str, Any]], config: AntConfig, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     conditions = list(dict.fromkeys(r["condition"] for r in rows))
-    adaptations = list(dict.fromkeys(r["adaptation"] for r in rows))
+    adaptations = list(dict.fromkeys(r["method"] for r in rows))
     planners = list(dict.fromkeys(r["planner"] for r in rows))
-    lookup = {(r["planner"], r["adaptation"], r["condition"]): r for r in rows}
+    lookup = {(r["planner"], r["method"], r["condition"]): r for r in rows}
     width = 0.8 / len(planners)
     fig, axes = plt.subplots(1, len(conditions), figsize=(4.2 * len(conditions), 3.6), sharey=True, squeeze=False)
     for ax, condition in zip(axes[0], conditions, strict=True):
@@ -362,6 +586,45 @@ def _plot(rows: list[dict[str, Any]], config: AntConfig, path: Path) -> None:
     axes[0][0].set_ylabel("episode return")
     axes[0][-1].legend(title="planner")
     fig.suptitle(f"Ant MPC ({config.episodes} episodes of up to {config.episode_steps} steps, 95% CI)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _plot_prediction(rows: list[dict[str, Any]], config: AntConfig, path: Path) -> None:
+    """``prediction.png``: one panel per metric, bars per strategy grouped by condition, 95% CIs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    metrics = list(dict.fromkeys(r["prediction"] for r in rows))
+    conditions = list(dict.fromkeys(r["condition"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    lookup = {(r["condition"], r["method"], r["prediction"]): r for r in rows}
+    width = 0.8 / len(methods)
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.4 * len(metrics), 3.6), squeeze=False)
+    for ax, metric in zip(axes[0], metrics, strict=True):
+        for i, method in enumerate(methods):
+            sel = [lookup[(c, method, metric)] for c in conditions]
+            xs = [j + (i - (len(methods) - 1) / 2) * width for j in range(len(conditions))]
+            ax.bar(
+                xs,
+                [r["rmse_mean"] for r in sel],
+                width,
+                yerr=[[r["rmse_mean"] - r["rmse_low"] for r in sel], [r["rmse_high"] - r["rmse_mean"] for r in sel]],
+                capsize=3,
+                label=method,
+            )
+        ax.set_xticks(range(len(conditions)), conditions)
+        ax.set_title(f"{metric} prediction error", fontsize=10)
+        ax.set_ylabel("RMSE (observation units)")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0][-1].legend(fontsize=8)
+    fig.suptitle(
+        f"Ant: adapted model on {config.prediction_episodes} random-action episodes of {config.prediction_steps} "
+        "steps per condition (95% CI)"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -2,7 +2,7 @@
 
 :mod:`smcd_rl.experiments.ant` reads top to bottom and calls these: :func:`collect` (transitions
 from the healthy Ant for training), :func:`validation_error` (the trained model's held-out error,
-which scales SMCD's likelihood noise) and :func:`run_cell` (the episodes of one planner x
+which scales the paper-setting SMCD's likelihood noise) and :func:`run_cell` (the episodes of one planner x
 adaptation x condition cell, through :class:`~smcd_rl.agents.mpc.MPCAgent` and
 :class:`~smcd_rl.integrations.gymnasium.AdaptationWrapper`, which calls ``model.observe`` on
 every real step).
@@ -27,7 +27,6 @@ from tqdm.auto import tqdm
 import smcd_rl
 from smcd_rl.agents.mpc import MPCAgent
 from smcd_rl.agents.planners import CEM, MPPI, Planner, RandomShooting
-from smcd_rl.experiments.adaptations import make_adaptation
 from smcd_rl.integrations.gymnasium import AdaptationWrapper, collect_transitions
 
 if TYPE_CHECKING:
@@ -135,18 +134,11 @@ def _make_planner(name: str, config: AntConfig, generator: torch.Generator, devi
     return RandomShooting(num_candidates=config.candidates * config.iterations, **common)
 
 
-def _make_adaptation(name: str, config: AntConfig, noise_std: torch.Tensor, device: torch.device) -> smcd_rl.Adaptation:
-    letter = {"none": "N", "gd": "G", "smcd": "S"}[name]
-    return make_adaptation(
-        letter, config, particles=config.particles, noise_std=noise_std.tolist(), seed=config.seed + 11, device=device
-    )
-
-
 def run_cell(
     model: smcd_rl.AdaptiveDynamicsModel,
     cell: tuple[str, str, str],
     config: AntConfig,
-    noise_std: torch.Tensor,
+    strategy: smcd_rl.Adaptation,
     *,
     planner_seed: int,
     episode_seeds: Sequence[int],
@@ -157,9 +149,10 @@ def run_cell(
 
     Args:
         model: the trained dynamics model; the cell adapts a copy (``model.with_adaptation``).
-        cell: planner (cem, mppi, rs), adaptation (none, gd, smcd) and condition (healthy, crippled).
-        config: the experiment's settings (planner, filter and episode sizes).
-        noise_std: SMCD's likelihood noise per observation dimension.
+        cell: planner (cem, mppi, rs), adaptation (N, G, S, S(paper)) and condition (healthy, crippled).
+        config: the experiment's settings (planner and episode sizes).
+        strategy: a fresh strategy of the cell's adaptation, with its tuned settings (the fair
+            protocol, :func:`smcd_rl.experiments.tuning.tune`).
         planner_seed: seed of the planner's generator.
         episode_seeds: one env seed per episode (its start state and, crippled, its leg).
         device: torch device of the model and planner.
@@ -167,8 +160,8 @@ def run_cell(
     """
     from smcd_rl.envs.crippled_ant import ant_reward, ant_termination
 
-    planner_name, adaptation_name, condition = cell
-    adapted = model.with_adaptation(_make_adaptation(adaptation_name, config, noise_std, device))
+    planner_name, _, condition = cell
+    adapted = model.with_adaptation(strategy)
     assert isinstance(adapted, smcd_rl.AdaptiveDynamicsModel)
     legs = config.crippled_legs if condition == "crippled" else None
     env = AdaptationWrapper(make_env(config.task, legs, config.episode_steps), adapted)
