@@ -138,8 +138,10 @@ class NoAdaptation(Adaptation):
 class SMCD(Adaptation):
     """Sequential Monte Carlo Dropout: a particle filter over the network's dropout masks.
 
-    Predictions use the MMSE (weighted mean) mask; :meth:`predict_particles` gives the posterior
-    predictive of eq. (5), one prediction per particle. ``keep_prob`` comes from the network.
+    Predictions use the MMSE (weighted mean) mask, or with ``prediction="predictive"`` the mean of
+    the posterior predictive (the weighted mean of every particle's prediction: N forward passes
+    instead of one); :meth:`predict_particles` gives the posterior predictive of eq. (5), one
+    prediction per particle. ``keep_prob`` comes from the network.
 
     Args:
         num_particles: masks in the particle set.
@@ -161,6 +163,8 @@ class SMCD(Adaptation):
             exact incremental path (pre-activations once per distinct parent plus the flipped
             columns, :mod:`smcd_rl.particle_forward`) when it is cheaper, ``"dense"`` always
             runs every particle in full, ``"incremental"`` forces the incremental path.
+        prediction: ``"mask"`` (the network under the MMSE mask, the paper's choice) or
+            ``"predictive"`` (the posterior predictive mean).
 
     Example:
         >>> import smcd_rl
@@ -187,9 +191,15 @@ class SMCD(Adaptation):
         generator: torch.Generator | None = None,
         transition: Transition = "keep_rate",
         forward_path: ParticlePath = "auto",
+        prediction: Literal["mask", "predictive"] = "mask",
     ) -> None:
         super().__init__()
         check_scheme(resampling)
+        if prediction not in ("mask", "predictive"):
+            raise ValueError(
+                f"prediction must be 'mask' (the MMSE mask) or 'predictive' (its mean), got {prediction!r}"
+            )
+        self.prediction: Literal["mask", "predictive"] = prediction
         self.num_particles = check_count(num_particles, "num_particles")
         self.flip_prob: float | Literal["auto"] = (
             "auto" if _is_auto(flip_prob) else check_real(flip_prob, "flip_prob", low=0.0, high=1.0)
@@ -222,6 +232,7 @@ class SMCD(Adaptation):
             "ess_threshold": self.ess_threshold,
             "transition": self.transition,
             "forward_path": self.forward_path,
+            "prediction": self.prediction,
         }
 
     def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
@@ -297,6 +308,9 @@ class SMCD(Adaptation):
         self._filter.update(log_likelihood)
 
     def predict(self, inputs: Tensor) -> Tensor:
+        if self.prediction == "predictive":
+            weights = self._mask_view(self._filter.weights, inputs, trailing=1).unsqueeze(-1)  # [*B, *1, N, 1]
+            return (weights * self.predict_particles(inputs)).sum(-2)
         mask = self._mask_view(self._filter.mean_mask, inputs, trailing=1)
         return self.net(inputs, mask=mask)
 
@@ -476,7 +490,7 @@ def make_adaptation(name: Literal["none", "gradient_descent", "smcd"] | str, **k
     Example:
         >>> import smcd_rl
         >>> smcd_rl.make_adaptation("smcd", num_particles=10)
-        SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0, transition='keep_rate', forward_path='auto')
+        SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0, transition='keep_rate', forward_path='auto', prediction='mask')
     """
     key = {"gd": "gradient_descent"}.get(name, name)
     if key not in ADAPTATIONS:

@@ -20,7 +20,7 @@ from tensordict import TensorDict
 
 import smcd_rl
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, motor_babbling, sample_link_lengths, two_link_fk
-from smcd_rl.experiments.adaptations import make_adaptation
+from smcd_rl.experiments.adaptations import StrategySettings
 from smcd_rl.experiments.common import format_table
 from smcd_rl.experiments.interpret_masks import filter_masks, shared_prior
 
@@ -79,10 +79,15 @@ def make_model(latent: int, config: InterpretConfig, device: torch.device) -> sm
 
 def smcd_model(model: smcd_rl.AdaptiveModel, config: InterpretConfig, device: torch.device) -> smcd_rl.AdaptiveModel:
     """The trained two-link model with a fresh SMCD filter (its own seed, the same for every latent size)."""
-    smcd = make_adaptation(
-        "S", config, particles=config.fig9_particles, noise_std=0.05, seed=config.seed + 19, device=device
+    settings = StrategySettings(
+        particles=config.fig9_particles,
+        noise_std=0.05,
+        flip_prob=config.flip_prob,
+        gd_lr=config.gd_lr[0],  # unused by SMCD
+        gd_steps=config.gd_steps[0],
+        gd_window=config.gd_window[0],
     )
-    return model.with_adaptation(smcd)
+    return model.with_adaptation(settings.strategy("S", seed=config.seed + 19, device=device))
 
 
 def mask_hits(

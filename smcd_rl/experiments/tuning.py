@@ -13,7 +13,9 @@ Before any test task is seen, each experiment draws ``--tuning-episodes`` episod
 Both tuned methods see the same episodes and a similar number of runs over them. The chosen
 settings, every candidate's score and a step-by-step diagnosis of each strategy on those episodes
 (:func:`smcd_rl.diagnostics.trace`: one-step error, ESS, log evidence, kept share) go into the
-run's report and ``tuning-<model>.png``.
+run's report and ``tuning-<model>.png``, with the one-step error of the calibrated SMCD under each
+of :data:`OPTIONS` (five times the particles; the posterior predictive mean instead of the MMSE
+mask), measured on the same tuning episodes and never on the test tasks.
 
 Example:
     >>> method_variant("M+S(paper)")
@@ -24,7 +26,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from itertools import product
 from pathlib import Path
@@ -46,6 +48,13 @@ __all__ = ["Tuning", "tune", "VARIANTS", "method_variant"]
 #: The strategies a method name may end in: none, tuned GD, calibrated SMCD, SMCD at the paper's settings.
 VARIANTS = ("N", "G", "S", "S(paper)")
 
+#: Options of SMCD measured on the tuning episodes only (their one-step error goes into the tuning
+#: table beside the calibrated S): option -> the settings it changes, from the calibrated SMCD's.
+OPTIONS: dict[str, Callable[[smcd_rl.SMCD], dict[str, Any]]] = {
+    "5x particles": lambda smcd: {"num_particles": 5 * smcd.num_particles},
+    "predictive mean": lambda smcd: {"prediction": "predictive"},
+}
+
 
 @dataclass
 class Tuning:
@@ -63,6 +72,8 @@ class Tuning:
     calibration: list[dict[str, Any]]
     #: Per variant: the :class:`~smcd_rl.diagnostics.Trace` on the tuning episodes, as a dict.
     traces: dict[str, dict[str, Any]]
+    #: The calibrated SMCD with one option changed (see :data:`OPTIONS`): its trace, per option.
+    options: dict[str, dict[str, Any]]
     #: Wall seconds of calibration, of the GD grid and of the diagnosis runs.
     seconds: dict[str, float]
     episodes: int
@@ -90,6 +101,10 @@ class Tuning:
             evidence = f"{t['log_evidence'][-1]:.1f}" if t["log_evidence"] else "-"
             ess = f"{min(t['ess']):.3f}" if t["ess"] else "-"
             rows.append([f"{self.name}+{variant}", settings, t["rmse"], evidence, ess])
+        for option, t in self.options.items():
+            evidence = f"{t['log_evidence'][-1]:.1f}" if t["log_evidence"] else "-"
+            ess = f"{min(t['ess']):.3f}" if t["ess"] else "-"
+            rows.append([f"{self.name}+S, {option}", "as S", t["rmse"], evidence, ess])
         return format_table(rows, ["method", "settings", "one-step RMSE", "log evidence / episode", "min ESS share"])
 
     def caption(self) -> str:
@@ -108,6 +123,7 @@ class Tuning:
             "gd_grid": self.gd_grid,
             "calibration": self.calibration,
             "traces": self.traces,
+            "options": self.options,
             "seconds": self.seconds,
             "episodes": self.episodes,
             "steps": self.steps,
@@ -192,6 +208,7 @@ def tune(
         gd_grid=found["gd_grid"],
         calibration=found["calibration"],
         traces=found["traces"],
+        options=found["options"],
         seconds=found["seconds"],
         episodes=found["episodes"],
         steps=found["steps"],
@@ -268,12 +285,21 @@ def _tune(
             settings = paper if variant == "S(paper)" else tuned
             strategy = settings.strategy(variant[0], seed=seed, device=ex.device)
             traces[variant] = asdict(trace(model, episodes, strategy))
+    with timer("options"):
+        options = {}
+        for option, changed in OPTIONS.items():
+            smcd = tuned.strategy("S", seed=seed, device=ex.device)
+            assert isinstance(smcd, smcd_rl.SMCD)
+            generator = torch.Generator(device=ex.device).manual_seed(seed)
+            other = smcd_rl.SMCD(**{**smcd.config(), **changed(smcd)}, generator=generator)
+            options[option] = asdict(trace(model, episodes, other))
     return {
         "tuned": asdict(tuned),
         "paper": asdict(paper),
         "gd_grid": gd_grid,
         "calibration": calibration,
         "traces": traces,
+        "options": options,
         "seconds": timer.seconds,
         "episodes": int(num_episodes),
         "steps": int(steps),

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from tensordict import TensorDict
 
 import smcd_rl
 from smcd_rl.calibration import evidence
@@ -51,3 +52,25 @@ def test_bad_episodes_get_the_calibration_errors() -> None:
         trace(model, episodes.exclude("ee"), smcd_rl.NoAdaptation())
     with pytest.raises(ValueError, match="at least 2 steps"):
         trace(model, episodes[:, :1], smcd_rl.NoAdaptation())
+
+
+def test_predictive_mean_is_the_weighted_mean_of_the_particles_predictions() -> None:
+    """With two masked layers the output is nonlinear in the mask, so the mean prediction differs
+    from the prediction of the mean mask (with one, before a linear output layer, they coincide)."""
+    torch.manual_seed(0)
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8, 8)), in_keys=["q"], out_key="ee")
+    model.fitted = True  # a random network on purpose
+    episodes = TensorDict({"q": torch.rand(2, 3, 2) * 4 - 2, "ee": torch.zeros(2, 3, 2)}, [2, 3])
+    smcd = smcd_rl.SMCD(num_particles=64, noise_std=0.5, prediction="predictive", ess_threshold=0.0)
+    adapted = model.with_adaptation(smcd)
+    adapted.reset(batch_shape=(2,))
+    adapted.observe(episodes[:, 0])
+    q = episodes["q"][:, 1]
+    weights = smcd.filter.weights
+    expected = (weights.unsqueeze(-1) * smcd.predict_particles(q)).sum(-2)
+    assert torch.allclose(smcd.predict(q), expected, atol=1e-6)
+    assert not torch.allclose(expected, smcd.net(q, mask=smcd.mask), atol=1e-3)
+    extra = q.unsqueeze(1).expand(2, 5, 2)  # planning candidates broadcast like the MMSE prediction
+    assert torch.allclose(smcd.predict(extra), expected.unsqueeze(1).expand(2, 5, 2), atol=1e-6)
+    with pytest.raises(ValueError, match="prediction must be 'mask'"):
+        smcd_rl.SMCD(prediction="mean")

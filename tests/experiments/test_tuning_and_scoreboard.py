@@ -49,6 +49,9 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     # The calibrated filter explains the episodes better than the paper's, by its own evidence.
     assert result.traces["S"]["log_evidence"][-1] > result.traces["S(paper)"]["log_evidence"][-1]
     assert "one-step RMSE" in result.table() and "held-out" in result.caption()
+    # The options are measured on the same episodes, each a finite one-step error.
+    assert set(result.options) == set(tuning.OPTIONS)
+    assert all(math.isfinite(t["rmse"]) for t in result.options.values()) and "5x particles" in result.table()
     result.plot(tmp_path / "tuning.png")
     assert (tmp_path / "tuning.png").stat().st_size > 0
 
@@ -64,7 +67,7 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
 
 def test_unknown_variant_is_refused() -> None:
     settings = tuning.StrategySettings(particles=8, noise_std=0.1, flip_prob=0.01, gd_lr=0.1, gd_steps=1, gd_window=2)
-    result = tuning.Tuning("M", settings, settings, [], [], {}, {}, episodes=2, steps=2)
+    result = tuning.Tuning("M", settings, settings, [], [], {}, {}, {}, episodes=2, steps=2)
     with pytest.raises(ValueError, match="unknown strategy 'X'"):
         result.strategy("X", seed=0)
 
