@@ -1,25 +1,37 @@
 """7-DOF Panda reaching with an unknown tool and sparse measurements (paper sec. 4.2, Fig. 3): ``smcd-rl panda``.
 
 Reads top to bottom: seed, sample joint configurations with random tools, train one dropout
-forward-kinematics network ``q (7) -> x (3)``, then for every method, measurement interval ``n``
-and seed drive ``tasks`` arms at once from the ready pose towards random feasible goals with
-:class:`~smcd_rl.agents.pd.JacobianPD` through the method's kinematics, and count the arms whose
-true end effector gets within 5 cm of the goal within ``steps`` control steps.
+forward-kinematics network ``q (7) -> x (3)``, tune its adaptation strategies by the fair protocol,
+then for every method, measurement interval ``n`` and seed drive ``tasks`` arms at once from the
+ready pose towards random feasible goals with :class:`~smcd_rl.agents.pd.JacobianPD` through the
+method's kinematics, and count the arms whose true end effector gets within 5 cm of the goal
+within ``steps`` control steps.
 
 Methods (Fig. 3): ``FK``, the analytic chain that does not know the tool (assumes ``l = 0``);
-``M+N``, ``M+G``, ``M+S``, the trained network with no adaptation, online gradient descent and
-SMCD (once per particle count in ``--particles``). At every n-th step (0, n, 2n, ...) the true
-end effector is measured: the adaptive model observes ``(q, measured x)`` and the controller
-corrects the measured error. In between, nothing is observed and the controller corrects the
-error of its own kinematics' prediction (model-reference control). ``FK`` at ``n = 1`` is the
-reference line of Fig. 3.
+``M+N``, the trained network with no adaptation; ``M+G``, online gradient descent (tuned);
+``M+S``, SMCD (calibrated); ``M+S(paper)``, SMCD at the paper's settings (``--noise-std`` 0.02 m,
+``--flip-prob`` 0.05). At every n-th step (0, n, 2n, ...) the true end effector is measured: the
+adaptive model observes ``(q, measured x)`` and the controller corrects the measured error. In
+between, nothing is observed and the controller corrects the error of its own kinematics'
+prediction (model-reference control). ``FK`` at ``n = 1`` is the reference line of Fig. 3.
+
+The fair protocol (:mod:`smcd_rl.experiments.tuning`): before any test task is seen,
+``--tuning-episodes`` episodes are drawn from the *training* distribution (each a fresh tool from
+``U(-tool_range, tool_range)`` observed at ``--tuning-steps`` uniform joint configurations, from a
+generator of its own, so neither training samples nor test tasks are among them). On them SMCD's
+likelihood noise and flip probability are calibrated by log evidence (``M+S``) and gradient
+descent's learning rate, steps and window are picked from the grid ``--gd-lr x --gd-steps x
+--gd-window`` by one-step error (``M+G``; one value each makes a one-point grid). ``M+S(paper)`` is
+not tuned. The report's tuning table and ``tuning-M.png`` show the chosen settings and each
+strategy's diagnosis on those episodes; ``results.json`` holds them under ``"tuning"``.
 
 Writes ``results.csv`` (success rate per method and n: mean and 95 % CI over all arms, std over
 seeds), ``trials.csv`` (every arm: reached, steps, final distance, tool), ``comparisons.csv``
-(every adaptive method paired with M+N and the others over the same arms), ``results.json``,
-``panda.png`` (success rate against n) and ``report.md``. Finished (method, n) runs are kept in
-``partial/`` and skipped by a rerun with the same network and settings (methods, particle
-counts and intervals aside).
+(every adaptive method paired with M+N and the others over the same arms), ``results.json`` (with
+the ``"tuning"`` entry and the ``"scoreboard"`` entry, success rate at n = 20, for ``smcd-rl
+scoreboard``), ``panda.png`` (success rate against n), ``tuning-M.png`` and ``report.md``.
+Finished (method, n) runs are kept in ``partial/`` and skipped by a rerun with the same network and
+settings (methods and intervals aside).
 
 Choices the paper leaves open, made here:
 
@@ -27,20 +39,21 @@ Choices the paper leaves open, made here:
   Panda's acceleration, velocity and position limits, and the gains of the paper's two-link
   controller (K1 = 20, K2 = 5). With the true kinematics this reaches every one of 300 random
   goals, median 23 steps (``tests/envs/test_panda_reach.py`` checks >= 95 % of 50).
-* Seeds: one trained network; each seed draws its own ``tasks`` tools and goals (the same for
-  every method and n, so the methods are compared on identical tasks) and its own filter noise.
-* Measurements are exact unless ``--measurement-noise`` is set; SMCD's likelihood noise
-  (``--noise-std``) then stands for the network's own error.
-* Adaptation settings were picked on 100 separate tuning tasks (not among the evaluated ones),
-  at n = 5 and 20 with the default network, over small grids for both adaptive methods: SMCD
-  noise {0.02, 0.05} m x flip probability {0.01, 0.05, 0.1} (best 0.02, 0.05), gradient descent
-  learning rate {0.01, 0.1, 1} (best 0.1; 1 diverges).
+* Seeds: one trained network and one tuning; each seed draws its own ``tasks`` test tools and goals
+  (the same for every method and n, so the methods are compared on identical tasks) and its own
+  filter noise.
+* Trials: 3 seeds x 100 tasks = 300 arms by default, enough for a paired comparison to detect a
+  success-rate difference of 0.1 between two methods (see the note above :class:`PandaConfig`).
+* Measurements are exact unless ``--measurement-noise`` is set (then the tuning episodes carry the
+  same noise); SMCD's likelihood noise stands for the network's own error.
 
 Example:
     >>> from smcd_rl.experiments.panda import PandaConfig, method_labels
     >>> config = PandaConfig()
     >>> method_labels(config)
-    ['FK', 'M+N', 'M+G', 'M+S (N=100)', 'M+S (N=300)']
+    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(paper)']
+    >>> config.tasks * config.seeds, config.gd_lr, PandaConfig(gd_lr=(0.01,)).gd_lr
+    (300, (0.003, 0.01, 0.03, 0.1), (0.01,))
 """
 
 from __future__ import annotations
@@ -64,20 +77,60 @@ from smcd_rl.envs.panda_reach import (
     TOOL_RANGE,
     panda_kinematics_data,
 )
+from smcd_rl.experiments.adaptations import AdaptationConfig
 from smcd_rl.experiments.common import format_table
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
-from smcd_rl.experiments.panda_reaching import method_kinematics, reach, sample_tasks
+from smcd_rl.experiments.harness import Experiment, setting
+from smcd_rl.experiments.panda_reaching import method_kinematics, reach, sample_tasks, tuning_episodes
+from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.tuning import tune
 
-__all__ = ["PandaConfig", "FULL", "METHODS", "method_labels", "reach", "run", "table"]
+__all__ = [
+    "PandaConfig",
+    "FULL",
+    "METHODS",
+    "DEFAULT_INTERVALS",
+    "HEADLINE_INTERVAL",
+    "method_labels",
+    "reach",
+    "run",
+    "table",
+]
 
-#: Method families of Fig. 3 that this command runs.
-METHODS = ("FK", "M+N", "M+G", "M+S")
+#: The measurement intervals n run by default.
+DEFAULT_INTERVALS = (1, 2, 5, 10, 20)
+#: The scoreboard's cell: the sparsest default measurements, where Fig. 3's methods differ most
+#: (a run without it reports its largest n instead).
+HEADLINE_INTERVAL = 20
+
+#: Methods of Fig. 3 that this command runs: S is calibrated SMCD, S(paper) SMCD at the paper's settings.
+METHODS = ("FK", "M+N", "M+G", "M+S", "M+S(paper)")
+
+# Power (the default trial count). The methods run on the same arms, so a verdict such as M+S
+# against M+G is a paired comparison of binary outcomes: only the discordant arms (one method
+# reaches, the other does not) carry information, and the SE of the success-rate difference d over
+# n arms is about sqrt((discordant share - d^2) / n). Detecting d = 0.1 at the 5 % level with 80 %
+# power needs (1.96 + 0.84) SE <= 0.1, i.e. SE <= 0.036, so n >= (discordant share - 0.01) / 0.036^2:
+# 110 arms at 15 % discordant (M+S vs M+G at n = 20 in a 100-arm run), 180 at 23 % (M+S vs M+N),
+# 230 at 30 %, 300 at 40 %. 3 seeds x 100 tasks = 300 arms covers up to 40 % discordant (power 0.9
+# at 30 %); the old 3 x 50 = 150 arms gave SE 0.044 at 30 % (power 0.6).
+# Time (1 thread, 2 shared cores), measured on 1 seed x 100 arms at n = 1 and 20 with 100
+# particles: M+S 8 s and M+S(paper) 16 s at n = 1 (SMCD's cost is its observations, ~1/n of that at
+# n > 1), M+G 35 s at n = 1 and 13 s at n = 20 (its per-arm weights cost at every control step),
+# FK and M+N under 1 s. Over n in {1, 2, 5, 10, 20} that is ~150 s per seed, so the default run
+# takes ~8-9 min with training (20 s) and tuning (25 s). 300 particles would triple SMCD's share
+# (~13 min), so the default is 100 (the paper's smaller count; --full uses 1000).
 
 
 @dataclass
-class PandaConfig(ExperimentConfig):
-    """Settings of ``smcd-rl panda``; the defaults finish in minutes on 2 CPU cores."""
+class PandaConfig(AdaptationConfig):
+    """Settings of ``smcd-rl panda``; the defaults finish in about 9 minutes on 2 CPU cores.
+
+    SMCD and gradient descent follow the fair protocol (:mod:`smcd_rl.experiments.tuning`): ``M+S``
+    is SMCD calibrated and ``M+G`` gradient descent grid-tuned (``--gd-lr x --gd-steps x
+    --gd-window``) on ``--tuning-episodes`` held-out episodes of fresh training-distribution tools;
+    ``M+S(paper)`` is SMCD at ``--noise-std`` and ``--flip-prob``.
+    """
 
     out: str = setting("runs/panda", "output directory (results, plot, report, trained model)")
     samples: int = setting(50_000, "training samples (joint angles, end effector) with random tools", low=1)
@@ -87,30 +140,39 @@ class PandaConfig(ExperimentConfig):
     epochs: int = setting(30, "training epochs", low=1)
     batch_size: int = setting(256, "training batch size", low=1)
     lr: float = setting(1e-3, "Adam learning rate", above=0.0)
-    tasks: int = setting(50, "reaching tasks per seed (all run at once as one batch)", low=1)
-    seeds: int = setting(3, "seeds (each draws its own tasks)", low=1)
+    tasks: int = setting(100, "test reaching tasks per seed (all run at once as one batch)", low=1)
+    seeds: int = setting(3, "seeds (each draws its own test tasks and filter noise)", low=1)
     intervals: tuple[int, ...] = setting(
-        (1, 2, 5, 10, 20), "measurement intervals n: a measurement every n-th step (1: every step)", low=1
+        DEFAULT_INTERVALS, "measurement intervals n: a measurement every n-th step (1: every step)", low=1
     )
     steps: int = setting(MAX_EPISODE_STEPS, "control steps per task: success is reaching the goal within them", low=1)
-    methods: tuple[str, ...] = setting(METHODS, "methods to run: FK, M+N, M+G, M+S", choices=METHODS)
-    particles: tuple[int, ...] = setting((100, 300), "SMCD particle counts (one M+S line each)", low=1)
-    flip_prob: float = setting(0.05, "SMCD bit-flip probability per step", low=0.0, high=1.0)
-    noise_std: float = setting(0.02, "SMCD likelihood noise std (m)", above=0.0)
-    gd_lr: float = setting(0.1, "online gradient-descent learning rate (normalised units)", above=0.0)
-    gd_steps: int = setting(5, "gradient steps per observation", low=1)
-    gd_window: int = setting(10, "recent transitions in the gradient-descent loss", low=1)
+    methods: tuple[str, ...] = setting(
+        METHODS,
+        "methods to run: FK (chain without the tool); M (the network) + N (none), G (GD, tuned), S (SMCD, "
+        "calibrated) or S(paper) (SMCD at --noise-std and --flip-prob)",
+        choices=METHODS,
+    )
+    particles: int = setting(100, "SMCD mask particles (M+S, M+S(paper) and the calibration)", low=1)
+    flip_prob: float = setting(
+        0.05, "bit-flip probability per step of M+S(paper), SMCD at the paper's settings", low=0.0, high=1.0
+    )
+    noise_std: float = setting(0.02, "likelihood noise std (m) of M+S(paper), SMCD at the paper's settings", above=0.0)
+    tuning_steps: int = setting(
+        20, "steps (joint configurations, one tool) per tuning episode, drawn as the training data is", low=2
+    )
     k1: float = setting(20.0, "PD gain on the end-effector error", low=0.0)
     k2: float = setting(5.0, "PD gain on the joint velocity", low=0.0)
     dt: float = setting(DEFAULT_DT, "control period (s)", above=0.0)
     tolerance: float = setting(GOAL_TOLERANCE, "success distance (m)", above=0.0)
     tool_range: float = setting(TOOL_RANGE, "tools are drawn from U(-tool_range, tool_range) (m)", low=0.0)
-    measurement_noise: float = setting(0.0, "std of the end-effector measurement noise (m)", low=0.0)
+    measurement_noise: float = setting(
+        0.0, "std of the end-effector measurement noise (m), test and tuning episodes", low=0.0
+    )
     full: bool = setting(False, "the paper's scale: 3 x 1024 network, 100000 samples, 100 tasks x 5 seeds")
 
-    NON_EMPTY = ("intervals", "methods", "particles")
-    # Which (method, n) runs there are; a run's name says its method, particle count and n.
-    SELECTION = ("methods", "particles", "intervals")
+    NON_EMPTY = ("intervals", "methods")
+    # Which (method, n) runs there are; a run's name says its method and n.
+    SELECTION = ("methods", "intervals")
 
 
 #: What ``--full`` changes (options given explicitly still win).
@@ -122,20 +184,14 @@ FULL = {
     "lr": 1e-4,
     "tasks": 100,
     "seeds": 5,
-    "particles": (100, 1000),
+    "particles": 1000,
     "threads": 0,
 }
 
 
 def method_labels(config: PandaConfig) -> list[str]:
-    """The table's method rows: one per method, and one M+S row per particle count."""
-    labels = []
-    for name in config.methods:
-        if name == "M+S":
-            labels += [f"M+S (N={n})" for n in config.particles]
-        else:
-            labels.append(name)
-    return labels
+    """The table's method rows, in the order of :data:`METHODS`."""
+    return [name for name in METHODS if name in config.methods]
 
 
 def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
@@ -151,6 +207,10 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
         model.save(ex.out / "model.pt")
         held_out_rmse = _held_out_rmse(model, held_out.to(ex.device))
 
+        # --- the fair protocol: SMCD and GD tuned on held-out episodes of fresh training tools ------
+        adapts = any(m in config.methods for m in ("M+G", "M+S", "M+S(paper)"))
+        tuning = tune(ex, model, tuning_episodes(config, ex.device), config, name="M") if adapts else None
+
         # --- every (method, n) on the same arms: each seed's tasks run as one batch -----------------
         labels = method_labels(config)
         runs = {f"{label} n={n}": (label, n) for label in labels for n in _intervals(label, config)}
@@ -160,7 +220,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             per_seed = []
             for s in ex.bar(range(config.seeds), desc=name, unit="seed"):
                 tools, goals = sample_tasks(config, s, ex.device)
-                kinematics, observe = method_kinematics(label, model, tools, config, s, ex.device)
+                kinematics, observe = method_kinematics(label, model, tools, tuning, config, s, ex.device)
                 # Measurement noise (if any) from the seed alone: every method and n sees the same draws.
                 noise = torch.Generator(device=ex.device).manual_seed(config.seed * 1_000_003 + 104_729 * (s + 1))
                 outcome = reach(kinematics, observe, tools, goals, interval=n, config=config, generator=noise)
@@ -177,7 +237,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             (n,): {label: r["reached"].reshape(-1).double() for (label, m), r in results.items() if m == n}
             for n in intervals
         }
-        adaptive = [label for label in labels if label.startswith("M+S")] + [m for m in ("M+G", "FK") if m in labels]
+        adaptive = [m for m in ("M+S", "M+S(paper)", "M+G", "FK") if m in labels]
         rows, comparisons = cell_statistics(
             scores,
             cell=("interval",),
@@ -188,22 +248,40 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             seed=config.seed,
         )
         rows = sorted((_describe(row, results, config) for row in rows), key=lambda r: labels.index(r["method"]))
-        headline = [c for c in comparisons if c["method"].startswith("M+S") and c["against"] in ("M+N", "M+G")]
+        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
+        tunings = {"M": tuning} if tuning is not None else {}
         ex.write(
             experiment="7-DOF Panda reaching with an unknown tool and sparse measurements (paper Fig. 3)",
             tables={
                 f"Success rate (within {100 * config.tolerance:.0f} cm in {config.steps} steps), mean [95% CI] over "
                 f"{config.seeds} seeds x {config.tasks} arms; the network's held-out RMSE (mean mask) is "
                 f"{held_out_rmse:.3f} m": table(rows, config),
-                "M+S paired with M+N and M+G over the same arms (positive: M+S reaches more goals)": verdict_table(
-                    headline, cell=("interval",)
+                "M+S paired with M+N, M+G and M+S(paper) over the same arms (positive: M+S reaches more goals)": (
+                    verdict_table(headline, cell=("interval",))
                 ),
+                **{t.caption(): t.table() for t in tunings.values()},
             },
             rows=rows,
             trials=_trial_rows(results, config),
             comparisons=comparisons,
-            payload={"train_loss": losses, "held_out_rmse_m": held_out_rmse},
-            plots={"panda.png": lambda path: _plot(rows, config, path)},
+            payload={
+                "train_loss": losses,
+                "held_out_rmse_m": held_out_rmse,
+                "tuning": {name: t.payload() for name, t in tunings.items()},
+                "scoreboard": scoreboard_entry(
+                    "Panda reaching",
+                    rows,
+                    comparisons,
+                    cell={"interval": HEADLINE_INTERVAL if HEADLINE_INTERVAL in intervals else max(intervals)},
+                    metric="success",
+                    unit="success rate",
+                    lower_is_better=False,
+                ),
+            },
+            plots={
+                "panda.png": lambda path: _plot(rows, config, path),
+                **{f"tuning-{name}.png": t.plot for name, t in tunings.items()},
+            },
         )
     return ex.result
 

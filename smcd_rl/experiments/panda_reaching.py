@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
 import smcd_rl
@@ -21,14 +21,19 @@ from smcd_rl.envs.panda_reach import (
     integrate_panda,
     panda_fk,
     sample_goals,
+    sample_joint_configurations,
     sample_tool_lengths,
 )
-from smcd_rl.experiments.adaptations import make_adaptation
+from smcd_rl.experiments.tuning import Tuning, method_variant
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.panda import PandaConfig
 
-__all__ = ["Kinematics", "Observe", "sample_tasks", "method_kinematics", "reach"]
+__all__ = ["Kinematics", "Observe", "TUNING_SEED", "sample_tasks", "tuning_episodes", "method_kinematics", "reach"]
+
+#: Offset of the tuning episodes' generator seed from ``--seed``: a stream of its own, apart from the
+#: training data's (the run's generator) and the test tasks' (``seed * 1_000_003 + 7919 (s + 1)``).
+TUNING_SEED = 2_000_003
 
 
 def sample_tasks(config: PandaConfig, seed: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -39,25 +44,58 @@ def sample_tasks(config: PandaConfig, seed: int, device: torch.device) -> tuple[
     return tools.to(device), goals.to(device)
 
 
+def tuning_episodes(config: PandaConfig, device: torch.device | str) -> TensorDictBase:
+    """The fair protocol's held-out episodes: ``[tuning_episodes, tuning_steps]`` in the model's keys.
+
+    Each episode is one fresh tool drawn from the training distribution (``U(-tool_range,
+    tool_range)``) observed at ``tuning_steps`` joint configurations drawn as the training data's
+    are (uniform within the joint limits), with the test measurements' noise. The generator has a
+    seed of its own (``config.seed + TUNING_SEED``), so neither the training samples nor the test
+    tasks are among them.
+
+    Example:
+        >>> from smcd_rl.experiments.panda import PandaConfig
+        >>> episodes = tuning_episodes(PandaConfig(tuning_episodes=3, tuning_steps=4), "cpu")
+        >>> episodes.batch_size, episodes["q"].shape, episodes["ee"].shape
+        (torch.Size([3, 4]), torch.Size([3, 4, 7]), torch.Size([3, 4, 3]))
+    """
+    generator = torch.Generator().manual_seed(config.seed + TUNING_SEED)
+    episodes, steps = config.tuning_episodes, config.tuning_steps
+    tools = sample_tool_lengths(episodes, tool_range=config.tool_range, generator=generator)
+    q = sample_joint_configurations((episodes, steps), generator=generator)
+    ee = panda_fk(q, tools.unsqueeze(1))
+    if config.measurement_noise > 0:
+        ee = ee + config.measurement_noise * torch.randn(ee.shape, generator=generator)
+    return TensorDict({"q": q, "ee": ee}, batch_size=[episodes, steps]).to(device)
+
+
 Kinematics = Callable[[Tensor], Tensor]
 Observe = Callable[[Tensor, Tensor], None]
 
 
 def method_kinematics(
-    label: str, model: smcd_rl.AdaptiveModel, tools: Tensor, config: PandaConfig, seed: int, device: torch.device
+    label: str,
+    model: smcd_rl.AdaptiveModel,
+    tools: Tensor,
+    tuning: Tuning | None,
+    config: PandaConfig,
+    seed: int,
+    device: torch.device,
 ) -> tuple[Kinematics, Observe | None]:
-    """The controller's kinematics and, for adaptive models, what a measurement updates."""
+    """The controller's kinematics and, for adaptive models, what a measurement updates.
+
+    ``M+G`` and ``M+S`` adapt with the settings ``tuning`` chose (tuned GD, calibrated SMCD),
+    ``M+S(paper)`` with SMCD at ``--noise-std`` and ``--flip-prob``; ``M+N`` does not adapt.
+    """
     if label == "FK":
         return (lambda q: panda_fk(q, 0.0)), None  # the tool is unknown: assume none
-    particles = int(label.split("N=")[1].rstrip(")")) if "N=" in label else 0  # "M+S (N=100)"
-    strategy = make_adaptation(
-        label[2],
-        config,
-        particles=particles,
-        noise_std=config.noise_std,
-        seed=config.seed * 1_000_003 + seed,
-        device=device,
-    )
+    _, variant = method_variant(label)
+    if variant == "N":
+        strategy: smcd_rl.Adaptation = smcd_rl.NoAdaptation()
+    elif tuning is None:
+        raise ValueError(f"{label} adapts with tuned settings, but no tuning was given")
+    else:
+        strategy = tuning.strategy(variant, seed=config.seed * 1_000_003 + seed, device=device)
     adapted = model.with_adaptation(strategy)
     adapted.reset(batch_shape=(tools.shape[0],))
 

@@ -1,15 +1,18 @@
 """``smcd-rl panda`` at a tiny scale (files, tables, resume, refused options) and the reaching loop's semantics."""
 
 import csv
+import itertools
 import json
 
 import pytest
 import torch
 
+import smcd_rl
 from smcd_rl import cli
 from smcd_rl.envs.panda_reach import panda_fk, sample_goals, sample_tool_lengths
-from smcd_rl.experiments import panda
+from smcd_rl.experiments import panda, tuning
 from smcd_rl.experiments.common import torch_threads
+from smcd_rl.experiments.scoreboard import COLUMNS
 
 TINY = [
     "--samples",
@@ -35,7 +38,12 @@ TINY = [
     "1",
     "--gd-window",
     "3",
+    "--tuning-episodes",
+    "4",
+    "--tuning-steps",
+    "5",
 ]
+LABELS = ["FK", "M+N", "M+G", "M+S", "M+S(paper)"]
 
 
 class Interrupted(RuntimeError):
@@ -56,9 +64,12 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     printed = capsys.readouterr().out
     table = _table(printed)
     assert [cell.strip() for cell in table[0].split("|")[1:-1]] == ["method", "n=2", "n=5"]
-    assert [line.split("|")[1].strip() for line in table[2:]] == ["FK", "M+N", "M+G", "M+S (N=20)"]
-    assert "| M+S (N=20) | M+G     |" in printed  # the headline verdicts: M+S against M+N and M+G
-    for name in ("results.csv", "trials.csv", "comparisons.csv", "results.json", "panda.png", "report.md", "model.pt"):
+    assert [line.split("|")[1].strip() for line in table[2:]] == LABELS
+    # The headline verdicts: M+S against M+N, M+G and M+S(paper); then the tuning table.
+    assert "M+S paired with M+N, M+G and M+S(paper)" in printed and "| 5        | M+S    | M+G " in printed
+    assert "Tuning of M on 4 held-out training-task episodes x 5 steps" in printed
+    files = ("results.csv", "trials.csv", "comparisons.csv", "results.json", "panda.png", "tuning-M.png", "report.md")
+    for name in (*files, "model.pt"):
         assert (out / name).is_file(), name
     assert len(list(out.glob("train-*.ckpt"))) == 1
     rows = list(csv.DictReader(open(out / "results.csv")))
@@ -67,25 +78,28 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
         ("FK", 1),
         ("FK", 2),
         ("FK", 5),
-        *((m, n) for m in ("M+N", "M+G", "M+S (N=20)") for n in (2, 5)),
+        *((m, n) for m in LABELS[1:] for n in (2, 5)),
     }
     for r in rows:
         low, mean, high = float(r["success_low"]), float(r["success_mean"]), float(r["success_high"])
         assert 0.0 <= low <= mean <= high <= 1.0 and int(r["seeds"]) == 2 and int(r["trials"]) == 2 * 4
     assert len(list(csv.DictReader(open(out / "trials.csv")))) == len(rows) * 2 * 4
-    # Every adaptive method against M+N, and pairwise (M+S, M+G, FK), at each interval both run at.
+    # Every adaptive method against M+N, and pairwise (M+S, M+S(paper), M+G, FK), at each interval both run at.
     pairs = {(c["interval"], c["method"], c["against"]) for c in csv.DictReader(open(out / "comparisons.csv"))}
-    assert ("5", "M+S (N=20)", "M+N") in pairs and ("5", "M+S (N=20)", "M+G") in pairs and ("2", "M+G", "FK") in pairs
+    for n in ("2", "5"):
+        assert {(n, "M+S", "M+N"), (n, "M+S", "M+G"), (n, "M+S", "M+S(paper)"), (n, "M+G", "FK")} <= pairs
     payload = json.loads((out / "results.json").read_text())
     assert payload["config"]["tasks"] == 4 and payload["machine"]["torch_threads"] >= 1
     assert payload["held_out_rmse_m"] > 0 and len(payload["train_loss"]) == 2
-    assert "M+S (N=20)" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "M+S(paper)" in report and "Tuning of M" in report and "tuning-M.png" in report
 
-    # A rerun finds every (method, n) run done: it must not control a single arm again.
+    # A rerun finds every (method, n) run and the tuning done: it must not control a single arm again.
     def no_reaching(*args, **kwargs):
         raise AssertionError("a finished run was redone")
 
     monkeypatch.setattr(panda, "reach", no_reaching)
+    monkeypatch.setattr(tuning, "_tune", no_reaching)
     assert cli.main(["panda", "--out", str(out), *TINY]) == 0
     assert _table(capsys.readouterr().out) == table
     monkeypatch.undo()
@@ -122,10 +136,64 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     assert len(calls) == (len(rows) - 3) * 2
 
 
+def test_results_json_has_the_tuning_and_the_scoreboard_entry(tmp_path, capsys) -> None:
+    """GD's chosen settings come from the grid; the scoreboard shows all four strategies at n = 20."""
+    out = tmp_path / "run"
+    grid = ["--gd-lr", "0.01", "0.1", "--gd-steps", "1", "2", "--gd-window", "3"]
+    assert cli.main(["panda", "--out", str(out), *TINY, *grid, "--intervals", "5", "20"]) == 0
+    capsys.readouterr()
+    payload = json.loads((out / "results.json").read_text())
+    entry = payload["tuning"]["M"]
+    chosen = entry["tuned"]
+    assert (chosen["gd_lr"], chosen["gd_steps"], chosen["gd_window"]) in set(
+        itertools.product((0.01, 0.1), (1, 2), (3,))
+    )
+    assert len(entry["gd_grid"]) == 4 and entry["episodes"] == 4 and entry["steps"] == 5
+    assert entry["calibration"] and set(entry["traces"]) == {"N", "G", "S", "S(paper)"}
+    board = payload["scoreboard"]
+    assert board["task"] == "Panda reaching" and board["cell"] == {"interval": panda.HEADLINE_INTERVAL}
+    assert board["metric"] == "success" and board["lower_is_better"] is False
+    assert set(board["estimates"]) == set(COLUMNS)
+    assert [board["estimates"][c]["method"] for c in COLUMNS] == ["M+N", "M+G", "M+S(paper)", "M+S"]
+    assert all(e["trials"] == 2 * 4 and 0.0 <= e["mean"] <= 1.0 for e in board["estimates"].values())
+    assert "not compared" not in board["verdicts"].values()
+    # --gd-lr with one value is a one-point grid.
+    assert cli.make_config("panda", {"gd_lr": (0.01,)}).gd_lr == (0.01,)
+
+
+def test_m_s_paper_is_smcd_at_exactly_noise_std_and_flip_prob(tmp_path, capsys, monkeypatch) -> None:
+    built = []
+    strategy = tuning.Tuning.strategy
+
+    def recording(self, variant, **kwargs):
+        built.append((variant, result := strategy(self, variant, **kwargs)))
+        return result
+
+    monkeypatch.setattr(tuning.Tuning, "strategy", recording)
+    out = tmp_path / "run"
+    paper = ["--noise-std", "0.037", "--flip-prob", "0.02", "--methods", "M+S(paper)", "M+S", "--intervals", "5"]
+    assert cli.main(["panda", "--out", str(out), *TINY, *paper]) == 0
+    capsys.readouterr()
+    by_variant = {variant: s for variant, s in built}
+    assert [variant for variant, _ in built] == ["S", "S", "S(paper)", "S(paper)"]  # two seeds each
+    assert isinstance(by_variant["S(paper)"], smcd_rl.SMCD)
+    assert by_variant["S(paper)"].noise_std == 0.037 and by_variant["S(paper)"].flip_prob == 0.02
+    assert by_variant["S(paper)"].num_particles == 20
+    entry = json.loads((out / "results.json").read_text())["tuning"]["M"]
+    assert entry["paper"]["noise_std"] == 0.037 and entry["paper"]["flip_prob"] == 0.02
+    assert entry["tuned"]["noise_std"] != 0.037  # calibrated: M+S's own likelihood noise
+
+
 def test_help_full_preset_and_bad_options(capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["panda", "--help"])
-    assert exit_info.value.code == 0 and "--intervals" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert exit_info.value.code == 0 and "--intervals" in printed
+    for option in ("--tuning-episodes", "--tuning-steps", "--gd-lr", "--calibrate-flips", "S(paper)"):
+        assert option in printed, option
+    defaults = cli.make_config("panda", {})
+    assert defaults.tasks * defaults.seeds >= 250  # power for a 0.1 success-rate difference (see panda.py)
+    assert defaults.noise_std == 0.02 and panda.HEADLINE_INTERVAL in defaults.intervals
     config = cli.make_config("panda", {"full": True, "tasks": 7})
     assert config.tasks == 7 and config.hidden == 1024 and config.samples == 100_000 and config.seeds == 5
     assert cli.make_config("panda", {}).threads == 1
@@ -138,6 +206,9 @@ def test_help_full_preset_and_bad_options(capsys) -> None:
         (["--intervals", "0"], "--intervals must be >= 1"),
         (["--particles", "0"], "--particles must be >= 1"),
         (["--particles", "-5"], "--particles must be >= 1"),
+        (["--gd-lr", "0"], "--gd-lr must be > 0"),
+        (["--tuning-episodes", "1"], "--tuning-episodes must be >= 2"),
+        (["--tuning-steps", "1"], "--tuning-steps must be >= 2"),
         (["--epochs", "0"], "--epochs must be >= 1"),
         (["--seeds", "0"], "--seeds must be >= 1"),
         (["--dropout", "1"], "--dropout must be < 1"),
