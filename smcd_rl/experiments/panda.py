@@ -158,7 +158,7 @@ class PandaConfig(AdaptationConfig):
     )
     noise_std: float = setting(0.02, "likelihood noise std (m) of M+S(paper), SMCD at the paper's settings", above=0.0)
     tuning_steps: int = setting(
-        20, "steps (joint configurations, one tool) per tuning episode, drawn as the training data is", low=2
+        20, "measurements per tuning episode (evenly spaced along a reach of a fresh tool and goal)", low=2
     )
     k1: float = setting(20.0, "PD gain on the end-effector error", low=0.0)
     k2: float = setting(5.0, "PD gain on the joint velocity", low=0.0)

@@ -21,7 +21,6 @@ from smcd_rl.envs.panda_reach import (
     integrate_panda,
     panda_fk,
     sample_goals,
-    sample_joint_configurations,
     sample_tool_lengths,
 )
 from smcd_rl.experiments.tuning import Tuning, method_variant
@@ -47,26 +46,41 @@ def sample_tasks(config: PandaConfig, seed: int, device: torch.device) -> tuple[
 def tuning_episodes(config: PandaConfig, device: torch.device | str) -> TensorDictBase:
     """The fair protocol's held-out episodes: ``[tuning_episodes, tuning_steps]`` in the model's keys.
 
-    Each episode is one fresh tool drawn from the training distribution (``U(-tool_range,
-    tool_range)``) observed at ``tuning_steps`` joint configurations drawn as the training data's
-    are (uniform within the joint limits), with the test measurements' noise. The generator has a
-    seed of its own (``config.seed + TUNING_SEED``), so neither the training samples nor the test
-    tasks are among them.
+    Each episode is a reach of a fresh arm: a tool drawn from the training distribution
+    (``U(-tool_range, tool_range)``) and a goal drawn as the test goals are, driven from the ready
+    pose by the PD law on the tool-less kinematics measured every step (so it knows nothing learned
+    and nothing of the test tasks). The episode holds the joints and the measured end effector at
+    ``tuning_steps`` evenly spaced steps of the ``config.steps``-step reach: the states the test
+    reaches pass through, where the training data's uniform random poses are mostly far away. The
+    generator has a seed of its own (``config.seed + TUNING_SEED``), so neither the training samples
+    nor the test tasks are among them.
 
     Example:
         >>> from smcd_rl.experiments.panda import PandaConfig
-        >>> episodes = tuning_episodes(PandaConfig(tuning_episodes=3, tuning_steps=4), "cpu")
+        >>> episodes = tuning_episodes(PandaConfig(tuning_episodes=3, tuning_steps=4, steps=40), "cpu")
         >>> episodes.batch_size, episodes["q"].shape, episodes["ee"].shape
         (torch.Size([3, 4]), torch.Size([3, 4, 7]), torch.Size([3, 4, 3]))
     """
     generator = torch.Generator().manual_seed(config.seed + TUNING_SEED)
     episodes, steps = config.tuning_episodes, config.tuning_steps
     tools = sample_tool_lengths(episodes, tool_range=config.tool_range, generator=generator)
-    q = sample_joint_configurations((episodes, steps), generator=generator)
-    ee = panda_fk(q, tools.unsqueeze(1))
-    if config.measurement_noise > 0:
-        ee = ee + config.measurement_noise * torch.randn(ee.shape, generator=generator)
-    return TensorDict({"q": q, "ee": ee}, batch_size=[episodes, steps]).to(device)
+    goals = sample_goals(tools, generator=generator)
+    pd = JacobianPD(lambda q: panda_fk(q, 0.0), k1=config.k1, k2=config.k2)
+    q = torch.tensor(READY_POSE, dtype=tools.dtype).expand(episodes, -1).clone()
+    q_dot = torch.zeros_like(q)
+    every = max(1, config.steps // steps)
+    joints, measured = [], []
+    for t in range(every * steps):
+        position = panda_fk(q, tools)
+        if config.measurement_noise > 0:
+            position = position + config.measurement_noise * torch.randn(position.shape, generator=generator)
+        if t % every == 0:
+            joints.append(q)
+            measured.append(position)
+        with torch.no_grad():
+            q, q_dot = integrate_panda(q, q_dot, pd(q, q_dot, goals, position), config.dt)
+    data = {"q": torch.stack(joints, 1), "ee": torch.stack(measured, 1)}
+    return TensorDict(data, batch_size=[episodes, steps]).to(device)
 
 
 Kinematics = Callable[[Tensor], Tensor]
