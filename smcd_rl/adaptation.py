@@ -165,6 +165,10 @@ class SMCD(Adaptation):
             runs every particle in full, ``"incremental"`` forces the incremental path.
         prediction: ``"mask"`` (the network under the MMSE mask, the paper's choice) or
             ``"predictive"`` (the posterior predictive mean).
+        likelihood: ``"gaussian"`` (eq. 1) or ``"student-t"``: independent Student-t errors of
+            scale ``noise_std`` and ``dof`` degrees of freedom per output, whose heavy tails let
+            a misspecified network's rare large residuals cost less than a Gaussian's.
+        dof: degrees of freedom of the Student-t likelihood (> 0).
 
     Example:
         >>> import smcd_rl
@@ -192,6 +196,8 @@ class SMCD(Adaptation):
         transition: Transition = "keep_rate",
         forward_path: ParticlePath = "auto",
         prediction: Literal["mask", "predictive"] = "mask",
+        likelihood: Literal["gaussian", "student-t"] = "gaussian",
+        dof: float = 4.0,
     ) -> None:
         super().__init__()
         check_scheme(resampling)
@@ -200,6 +206,10 @@ class SMCD(Adaptation):
                 f"prediction must be 'mask' (the MMSE mask) or 'predictive' (its mean), got {prediction!r}"
             )
         self.prediction: Literal["mask", "predictive"] = prediction
+        if likelihood not in ("gaussian", "student-t"):
+            raise ValueError(f"likelihood must be 'gaussian' or 'student-t', got {likelihood!r}")
+        self.likelihood: Literal["gaussian", "student-t"] = likelihood
+        self.dof = check_real(dof, "dof", low=0.0, open_low=True)
         self.num_particles = check_count(num_particles, "num_particles")
         self.flip_prob: float | Literal["auto"] = (
             "auto" if _is_auto(flip_prob) else check_real(flip_prob, "flip_prob", low=0.0, high=1.0)
@@ -233,6 +243,8 @@ class SMCD(Adaptation):
             "transition": self.transition,
             "forward_path": self.forward_path,
             "prediction": self.prediction,
+            "likelihood": self.likelihood,
+            "dof": self.dof,
         }
 
     def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
@@ -258,7 +270,12 @@ class SMCD(Adaptation):
         noise = noise.expand(net.out_features)
         self._sigma = noise / output_scale  # the same noise, in normalised units
         # Normalising constant in the target's own units, so log evidence is a true log density.
-        self._log_norm = -noise.log().sum() - 0.5 * net.out_features * math.log(2 * math.pi)
+        if self.likelihood == "gaussian":
+            self._log_norm = -noise.log().sum() - 0.5 * net.out_features * math.log(2 * math.pi)
+        else:  # the Student-t density's constant: lgamma((v+1)/2) - lgamma(v/2) - log(sqrt(v pi) sigma)
+            v = self.dof
+            per_output = math.lgamma((v + 1) / 2) - math.lgamma(v / 2) - 0.5 * math.log(v * math.pi)
+            self._log_norm = -noise.log().sum() + net.out_features * per_output
         self.particle_forward = ParticleForward(net, self.forward_path)
         device = next(net.parameters()).device
         generator = self._generator
@@ -291,6 +308,7 @@ class SMCD(Adaptation):
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
         sigma, log_norm, filt, forward = self._sigma, self._log_norm, self._filter, self.particle_forward
+        student, dof = self.likelihood == "student-t", self.dof
         assert forward is not None
         parents = filt.particles
         assert parents is not None
@@ -303,6 +321,8 @@ class SMCD(Adaptation):
             lineage = Lineage(parents, ancestors, filt.last_flips)
             predictions = forward(inputs, masks, lineage)
             residual = (targets.unsqueeze(-2) - predictions) / sigma
+            if student:
+                return log_norm - (dof + 1) / 2 * torch.log1p(residual.square() / dof).sum(-1)
             return log_norm - 0.5 * residual.square().sum(-1)
 
         self._filter.update(log_likelihood)
@@ -490,7 +510,7 @@ def make_adaptation(name: Literal["none", "gradient_descent", "smcd"] | str, **k
     Example:
         >>> import smcd_rl
         >>> smcd_rl.make_adaptation("smcd", num_particles=10)
-        SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0, transition='keep_rate', forward_path='auto', prediction='mask')
+        SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0, transition='keep_rate', forward_path='auto', prediction='mask', likelihood='gaussian', dof=4.0)
     """
     key = {"gd": "gradient_descent"}.get(name, name)
     if key not in ADAPTATIONS:

@@ -15,7 +15,8 @@ settings, every candidate's score and a step-by-step diagnosis of each strategy 
 (:func:`smcd_rl.diagnostics.trace`: one-step error, ESS, log evidence, kept share) go into the
 run's report and ``tuning-<model>.png``, with the one-step error of the calibrated SMCD under each
 of :data:`OPTIONS` (five times the particles; the posterior predictive mean instead of the MMSE
-mask), measured on the same tuning episodes and never on the test tasks.
+mask) and of SMCD with a Student-t likelihood calibrated by its own evidence, measured on the same
+tuning episodes and never on the test tasks.
 
 Example:
     >>> method_variant("M+S(paper)")
@@ -54,6 +55,8 @@ OPTIONS: dict[str, Callable[[smcd_rl.SMCD], dict[str, Any]]] = {
     "5x particles": lambda smcd: {"num_particles": 5 * smcd.num_particles},
     "predictive mean": lambda smcd: {"prediction": "predictive"},
 }
+#: The option of a Student-t likelihood (4 degrees of freedom), calibrated by its own evidence.
+STUDENT = "Student-t likelihood"
 
 
 @dataclass
@@ -104,7 +107,7 @@ class Tuning:
         for option, t in self.options.items():
             evidence = f"{t['log_evidence'][-1]:.1f}" if t["log_evidence"] else "-"
             ess = f"{min(t['ess']):.3f}" if t["ess"] else "-"
-            rows.append([f"{self.name}+S, {option}", "as S", t["rmse"], evidence, ess])
+            rows.append([f"{self.name}+S, {option}", t["settings"], t["rmse"], evidence, ess])
         return format_table(rows, ["method", "settings", "one-step RMSE", "log evidence / episode", "min ESS share"])
 
     def caption(self) -> str:
@@ -292,7 +295,25 @@ def _tune(
             assert isinstance(smcd, smcd_rl.SMCD)
             generator = torch.Generator(device=ex.device).manual_seed(seed)
             other = smcd_rl.SMCD(**{**smcd.config(), **changed(smcd)}, generator=generator)
-            options[option] = asdict(trace(model, episodes, other))
+            options[option] = {**asdict(trace(model, episodes, other)), "settings": "as S"}
+    with timer("student-t"):  # a likelihood of its own needs a noise of its own: calibrated by its evidence
+        chosen = model.calibration
+        student = calibrate(
+            model,
+            episodes,
+            base=smcd_rl.SMCD(num_particles=config.particles, likelihood="student-t"),
+            flip_probs=config.calibrate_flips,
+            seed=seed,
+            progress=ex.progress,
+        )
+        model.calibration = chosen  # the model keeps the Gaussian SMCD's calibration
+        generator = torch.Generator(device=ex.device).manual_seed(seed)
+        strategy = smcd_rl.SMCD(**student.strategy.config(), generator=generator)
+        student_noise = tuple(student.noise_std) if isinstance(student.noise_std, list) else student.noise_std
+        options[STUDENT] = {
+            **asdict(trace(model, episodes, strategy)),
+            "settings": f"noise {_noise_text(student_noise)}, flip {student.flip_prob:g}",
+        }
     return {
         "tuned": asdict(tuned),
         "paper": asdict(paper),

@@ -74,3 +74,28 @@ def test_predictive_mean_is_the_weighted_mean_of_the_particles_predictions() -> 
     assert torch.allclose(smcd.predict(extra), expected.unsqueeze(1).expand(2, 5, 2), atol=1e-6)
     with pytest.raises(ValueError, match="prediction must be 'mask'"):
         smcd_rl.SMCD(prediction="mean")
+
+
+@pytest.mark.parametrize("likelihood", ["gaussian", "student-t"])
+def test_first_step_evidence_is_the_mean_likelihood_of_the_prior_particles(likelihood: str) -> None:
+    """After one update from uniform weights the log evidence is log mean_i p(z | mask_i), with
+    p the Gaussian or the Student-t density of torch.distributions."""
+    model, episodes, _ = known_mask_episodes(episodes=2, steps=2)
+    smcd = smcd_rl.SMCD(num_particles=32, noise_std=[0.1, 0.2], flip_prob=0.0, likelihood=likelihood, dof=3.0)
+    adapted = model.with_adaptation(smcd)
+    adapted.reset(batch_shape=(2,))
+    prior = smcd.particles.clone()
+    adapted.observe(episodes[:, 0])
+    with torch.no_grad():
+        predicted = smcd.net.forward_particles(episodes["q"][:, 0], prior.float())  # [2, N, 2]
+    scale = torch.tensor([0.1, 0.2])
+    density = (
+        torch.distributions.Normal(predicted, scale)
+        if likelihood == "gaussian"
+        else torch.distributions.StudentT(3.0, predicted, scale)
+    )
+    log_p = density.log_prob(episodes["ee"][:, 0].unsqueeze(1)).sum(-1)
+    expected = torch.logsumexp(log_p, -1) - math.log(32)
+    assert torch.allclose(smcd.summary()["log_evidence"], expected, atol=1e-4)
+    with pytest.raises(ValueError, match="likelihood must be"):
+        smcd_rl.SMCD(likelihood="laplace")

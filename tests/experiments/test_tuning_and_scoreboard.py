@@ -50,7 +50,7 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     assert result.traces["S"]["log_evidence"][-1] > result.traces["S(paper)"]["log_evidence"][-1]
     assert "one-step RMSE" in result.table() and "held-out" in result.caption()
     # The options are measured on the same episodes, each a finite one-step error.
-    assert set(result.options) == set(tuning.OPTIONS)
+    assert set(result.options) == {*tuning.OPTIONS, tuning.STUDENT}
     assert all(math.isfinite(t["rmse"]) for t in result.options.values()) and "5x particles" in result.table()
     result.plot(tmp_path / "tuning.png")
     assert (tmp_path / "tuning.png").stat().st_size > 0
