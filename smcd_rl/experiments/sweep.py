@@ -178,6 +178,12 @@ class SweepConfig(ExperimentConfig):
             raise ValueError(
                 f"--device {self.device} needs --gpus-per-trial > 0: Ray hides GPUs from tasks that reserve none"
             )
+        gpus = torch.cuda.device_count()
+        if not self.address and self.gpus_per_trial > gpus:
+            raise ValueError(
+                f"--gpus-per-trial {self.gpus_per_trial:g} exceeds the local Ray's {gpus} GPUs; no trial could ever "
+                "be scheduled (use --gpus-per-trial 0 on a machine without a GPU)"
+            )
         if self.study == "drone" and self.dataset and not Path(self.dataset).is_file():
             raise FileNotFoundError(f"--dataset {self.dataset}: no such file; give a .npz dataset or leave it empty")
 

@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from smcd_rl import cli
 from smcd_rl.experiments import sweep
@@ -175,6 +176,11 @@ def test_summary_is_mean_std_min_over_the_other_parameters() -> None:
         (["--burn-in", "1", "0"], "--burn-in must be >= 1, got 0"),
         (["--cpus-per-trial", "0"], "--cpus-per-trial must be >= 1, got 0"),
         (["--gpus-per-trial", "-1"], "--gpus-per-trial must be >= 0.0"),
+        pytest.param(  # once hung: Ray waited for a GPU that does not exist
+            ["--gpus-per-trial", "1"],
+            "exceeds the local Ray's 0 GPUs",
+            marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU"),
+        ),
         (["--threads", "-2"], "--threads must be >= 0"),
         (["--study", "drone", "--dataset", "missing.npz"], "--dataset missing.npz: no such file"),
     ],
