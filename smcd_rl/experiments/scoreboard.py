@@ -5,7 +5,7 @@ Each experiment writes into its ``results.json`` the cell of its table that stan
 "SMCD (paper)" and "SMCD (calibrated)" and their paired verdicts (:func:`scoreboard_entry`). The
 scoreboard reads those entries from the given run directories and writes one row per task: each
 strategy's mean with its 95 % CI, and the verdicts of both SMCD variants against none and GD (the
-experiment's own comparisons, over the same trials). The plot shows each strategy relative to none.
+experiment's own comparisons, over the same trials). The plot has a panel per task in its own metric.
 
 Example:
     >>> rows = [{"T": 10, "method": "M+N", "rmse_mean": 0.2, "rmse_low": 0.1, "rmse_high": 0.3, "trials": 9}]
@@ -197,36 +197,31 @@ def _verdict(pairs: Mapping[tuple[str, str], Mapping[str, Any]], a: str, b: str)
 
 
 def _plot(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
-    """Each strategy's mean and CI relative to none's mean, one group of bars per task."""
+    """One panel per task (its own metric and scale): each strategy's mean with its 95 % CI."""
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(1.8 * len(rows) + 2.5, 3.6))
-    width = 0.8 / len(COLUMNS)
-    for j, column in enumerate(COLUMNS):
-        xs: list[float] = []
-        ys: list[float] = []
-        errors: list[list[float]] = [[], []]
-        for i, row in enumerate(rows):
-            base = row["none"]
-            if not (math.isfinite(row[column]) and math.isfinite(base) and base != 0):
-                continue
-            xs.append(i + (j - 1.5) * width)
-            ys.append(row[column] / base)
-            errors[0].append((row[column] - row[f"{column} low"]) / abs(base))
-            errors[1].append((row[f"{column} high"] - row[column]) / abs(base))
-        ax.bar(xs, ys, width, yerr=errors, capsize=2, label=column)
-    ax.axhline(1.0, color="black", linewidth=0.8)
-    ax.set_xticks(range(len(rows)))
-    ax.set_xticklabels(
-        [f"{r['task']}\n{r['metric']}, {'lower' if r['lower_is_better'] else 'higher'} is better" for r in rows],
-        fontsize=7,
-    )
-    ax.set_ylabel("relative to none (mean, 95% CI)")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
+    fig, axes = plt.subplots(1, len(rows), figsize=(2.4 * len(rows) + 1.5, 3.4), squeeze=False)
+    for ax, row in zip(axes[0], rows, strict=True):
+        for j, column in enumerate(COLUMNS):
+            mean = row[column]
+            if not math.isfinite(mean):
+                continue  # not run
+            error = [[mean - row[f"{column} low"]], [row[f"{column} high"] - mean]]
+            ax.bar(j, mean, 0.8, yerr=error, capsize=2, color=f"C{j}", label=column)
+        ax.set_xticks([])
+        ax.set_title("\n".join(textwrap.wrap(row["task"], 22)), fontsize=8)
+        better = "lower" if row["lower_is_better"] else "higher"
+        ax.set_ylabel(f"{row['metric']}, {better} is better", fontsize=7)
+        ax.tick_params(labelsize=7)
+        ax.grid(axis="y", alpha=0.3)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(COLUMNS), fontsize=8)
+    fig.suptitle("Scoreboard: mean and 95% CI of each task's headline metric", fontsize=10)
+    fig.tight_layout(rect=(0, 0.08, 1, 0.95))
     fig.savefig(path, dpi=120)
     plt.close(fig)
