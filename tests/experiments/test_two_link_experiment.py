@@ -107,6 +107,7 @@ def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> 
 def test_full_preset_fills_only_options_not_given() -> None:
     config = cli.make_config("two-link", {"full": True, "trials": 7})
     assert config.trials == 7 and config.hidden == two_link.FULL["hidden"] and config.tasks == 1000
+    assert config.burn_in == (1, 5, 10, 20)  # the paper's burn-ins; the default leaves out T = 20
     assert cli.make_config("two-link", {}).hidden == two_link.TwoLinkConfig().hidden
 
 
