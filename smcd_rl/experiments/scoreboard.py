@@ -125,13 +125,14 @@ def run(config: ScoreboardConfig, *, progress: bool = True) -> dict[str, Any]:
         table_rows = [
             [
                 row["task"],
+                row["metric"] + ("" if row["lower_is_better"] else ", higher is better"),
                 row["cell"],
                 *(row[f"{c} text"] for c in COLUMNS),
                 *(row[f"{m} vs {a}"] for m, a in VERDICTS),
             ]
             for row in rows
         ]
-        header = ["task", "cell", *COLUMNS, *(f"{m.split(' ')[1][1:-1]} vs {a}" for m, a in VERDICTS)]
+        header = ["task", "metric", "cell", *COLUMNS, *(f"{m.split(' ')[1][1:-1]} vs {a}" for m, a in VERDICTS)]
         ex.write(
             experiment="scoreboard: every task, none / GD / SMCD (paper settings) / SMCD (calibrated)",
             tables={

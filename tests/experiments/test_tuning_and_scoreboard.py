@@ -108,8 +108,9 @@ def test_scoreboard_tables_every_run_with_its_verdicts(tmp_path, capsys) -> None
     # SMCD (paper) is 0.1 below none and 0.1 above GD. b's pairs are stored as (GD, SMCD): read reversed.
     assert lines["task a"].count("better") == 3 and lines["task a"].rstrip(" |").endswith("worse 0.100 [0.100, 0.100]")
     cells = [c.strip() for c in lines["task b"].split("|")]
-    assert cells[7].startswith("no significant difference") and cells[8].startswith("worse 0.2")
-    assert cells[9].startswith("better -0.1") and cells[10].startswith("worse 0.1")
+    assert cells[8].startswith("no significant difference") and cells[9].startswith("worse 0.2")
+    assert cells[10].startswith("better -0.1") and cells[11].startswith("worse 0.1")
+    assert cells[2] == "rmse (m)"  # the metric and its unit
     for name in ("results.csv", "results.json", "scoreboard.png", "report.md"):
         assert (out / name).is_file(), name
 
