@@ -24,7 +24,7 @@ import torch
 import smcd_rl
 from smcd_rl.experiments.harness import ExperimentConfig, setting
 
-__all__ = ["AdaptationConfig", "AdaptationSettings", "StrategySettings", "make_adaptation", "LETTERS"]
+__all__ = ["TuningConfig", "AdaptationConfig", "AdaptationSettings", "StrategySettings", "make_adaptation", "LETTERS"]
 
 #: The paper's letters for the strategies: none, gradient descent, SMCD.
 LETTERS = ("N", "G", "S")
@@ -44,20 +44,14 @@ class AdaptationSettings(Protocol):
 
 
 @dataclass
-class AdaptationConfig(ExperimentConfig):
-    """The settings of SMCD and of online gradient descent, shared by every experiment that adapts.
+class TuningConfig(ExperimentConfig):
+    """The settings of the fair protocol (:mod:`smcd_rl.experiments.tuning`), shared by every experiment that adapts.
 
-    SMCD's ``noise_std`` and ``flip_prob`` are the paper's fixed settings (variant ``S(paper)``); the
-    calibrated SMCD (``S``) and gradient descent (``G``) are tuned on ``tuning_episodes`` held-out
-    training-task episodes, GD over the grid ``gd_lr x gd_steps x gd_window`` (see
-    :mod:`smcd_rl.experiments.tuning`).
+    The calibrated SMCD (``S``) and gradient descent (``G``) are tuned on ``tuning_episodes``
+    held-out training-task episodes, GD over the grid ``gd_lr x gd_steps x gd_window``. An
+    experiment redeclares ``tuning_episodes`` to say what its episodes are.
     """
 
-    particles: int = setting(1000, "SMCD mask particles", low=1)
-    flip_prob: float = setting(0.01, "bit-flip probability per step of SMCD at the paper's settings", low=0.0, high=1.0)
-    noise_std: float = setting(
-        0.05, "likelihood noise std of SMCD at the paper's settings (observation units)", above=0.0
-    )
     tuning_episodes: int = setting(
         32, "held-out episodes of fresh training-distribution tasks that SMCD and GD are tuned on", low=2
     )
@@ -71,6 +65,21 @@ class AdaptationConfig(ExperimentConfig):
     )
 
     NON_EMPTY: ClassVar[tuple[str, ...]] = ("gd_lr", "gd_steps", "gd_window", "calibrate_flips")
+
+
+@dataclass
+class AdaptationConfig(TuningConfig):
+    """The settings of SMCD and of online gradient descent, shared by every experiment that adapts.
+
+    SMCD's ``noise_std`` and ``flip_prob`` are the paper's fixed settings (variant ``S(paper)``); the
+    tuned variants' settings come from :class:`TuningConfig`'s fields.
+    """
+
+    particles: int = setting(1000, "SMCD mask particles", low=1)
+    flip_prob: float = setting(0.01, "bit-flip probability per step of SMCD at the paper's settings", low=0.0, high=1.0)
+    noise_std: float = setting(
+        0.05, "likelihood noise std of SMCD at the paper's settings (observation units)", above=0.0
+    )
 
 
 @dataclass(frozen=True)

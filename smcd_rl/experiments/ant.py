@@ -87,10 +87,11 @@ import torch
 
 import smcd_rl
 from smcd_rl.digests import content_digest, model_digest
+from smcd_rl.experiments.adaptations import TuningConfig
 from smcd_rl.experiments.ant_episodes import ACTION_DIM, OBS_DIM, TASKS, collect, run_cell, validation_error
 from smcd_rl.experiments.ant_prediction import prediction_errors, random_episodes
 from smcd_rl.experiments.common import format_table
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
+from smcd_rl.experiments.harness import Experiment, setting
 from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.tuning import VARIANTS, Tuning, tune
@@ -125,7 +126,7 @@ ADAPTIVE = ("M+S", "M+S(paper)", "M+G")
 
 
 @dataclass
-class AntConfig(ExperimentConfig):
+class AntConfig(TuningConfig):
     """Settings of ``smcd-rl ant``; the defaults finish in about 12 minutes on 2 CPU cores."""
 
     out: str = setting("runs/ant", "output directory (results, plot, report, data, trained model)")
@@ -186,14 +187,6 @@ class AntConfig(ExperimentConfig):
         32, "held-out random-action episodes of the healthy Ant (training distribution) SMCD and GD are tuned on", low=2
     )
     tuning_steps: int = setting(25, "steps per tuning episode", low=2)
-    gd_lr: tuple[float, ...] = setting(
-        (0.003, 0.01, 0.03, 0.1), "gradient-descent learning rates tried in tuning (normalised units)", above=0.0
-    )
-    gd_steps: tuple[int, ...] = setting((1, 5), "gradient steps per observation tried in tuning", low=1)
-    gd_window: tuple[int, ...] = setting((5, 10), "recent transitions in the gradient-descent loss tried", low=1)
-    calibrate_flips: tuple[float, ...] = setting(
-        (0.001, 0.003, 0.01, 0.03), "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
-    )
     full: bool = setting(
         False,
         "the paper's scale: 3 x 1024 model, 10^6 transitions, every planner and adaptation, 110 episodes of 1000 steps",
@@ -204,11 +197,7 @@ class AntConfig(ExperimentConfig):
         "adaptations",
         "conditions",
         "crippled_legs",
-        "gd_lr",
-        "gd_steps",
-        "gd_window",
-        "calibrate_flips",
-    )
+    )  # and TuningConfig's
     SELECTION = ("planners", "adaptations", "conditions")  # which cells run: a subset rerun reuses cells
 
     def validate(self) -> None:

@@ -51,8 +51,8 @@ from smcd_rl.envs.drone_operators import save_dataset
 from smcd_rl.experiments import interpret_drone as drone
 from smcd_rl.experiments import interpret_links as links
 from smcd_rl.experiments import interpret_lookahead as lookahead
-from smcd_rl.experiments.adaptations import StrategySettings
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
+from smcd_rl.experiments.adaptations import StrategySettings, TuningConfig
+from smcd_rl.experiments.harness import Experiment, setting
 from smcd_rl.experiments.interpret_masks import shared_prior
 from smcd_rl.experiments.multipart import PartsReport
 from smcd_rl.experiments.scoreboard import scoreboard_entry
@@ -75,7 +75,7 @@ SIMULATED_LABELS: tuple[str, ...] = ("skill", "strategy", "phase", "success", "t
 
 
 @dataclass
-class InterpretConfig(ExperimentConfig):
+class InterpretConfig(TuningConfig):
     """Settings of ``smcd-rl interpret``; the defaults finish in a few minutes on 2 CPU cores."""
 
     out: str = setting("runs/interpret", "output directory (results, plots, report, dataset, trained models)")
@@ -146,7 +146,7 @@ class InterpretConfig(ExperimentConfig):
     horizons: tuple[float, ...] = setting(
         (0.1, 0.25, 0.5), "look-ahead horizon as a fraction of the trajectory", above=0.0, below=1.0
     )
-    # --- the fair protocol (smcd_rl.experiments.tuning; the same fields as AdaptationConfig's)
+    # --- the fair protocol (smcd_rl.experiments.tuning): the grid fields come from TuningConfig
     tuning_episodes: int = setting(
         32,
         "held-out training-distribution flights SMCD and GD are tuned on (fresh simulated operators, or "
@@ -154,14 +154,6 @@ class InterpretConfig(ExperimentConfig):
         low=2,
     )
     tuning_steps: int = setting(20, "steps of each tuning flight used (flights shorter are not drawn)", low=2)
-    gd_lr: tuple[float, ...] = setting(
-        (0.003, 0.01, 0.03, 0.1), "gradient-descent learning rates tried in tuning (normalised units)", above=0.0
-    )
-    gd_steps: tuple[int, ...] = setting((1, 5), "gradient steps per observation tried in tuning", low=1)
-    gd_window: tuple[int, ...] = setting((5, 10), "recent transitions in the gradient-descent loss tried", low=1)
-    calibrate_flips: tuple[float, ...] = setting(
-        (0.001, 0.003, 0.01, 0.03), "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
-    )
     reptile_epochs: int = setting(20, "Reptile epochs (operators as tasks)", low=1)
     reptile_batch_size: int = setting(64, "Reptile inner mini-batch", low=1)
     reptile_lr: float = setting(0.1, "Reptile outer step size", above=0.0)
@@ -178,11 +170,7 @@ class InterpretConfig(ExperimentConfig):
         "methods",
         "burn_in",
         "horizons",
-        "gd_lr",
-        "gd_steps",
-        "gd_window",
-        "calibrate_flips",
-    )
+    )  # and TuningConfig's
 
     def validate(self) -> None:
         """The declared bounds, then the checks across fields and of the dataset file."""
