@@ -209,7 +209,7 @@ class SMCD(Adaptation):
         if likelihood not in ("gaussian", "student-t"):
             raise ValueError(f"likelihood must be 'gaussian' or 'student-t', got {likelihood!r}")
         self.likelihood: Literal["gaussian", "student-t"] = likelihood
-        self.dof = check_real(dof, "dof", low=0.0, open_low=True)
+        self.dof = check_real(dof, "dof", low=0.0, high=1e12, open_low=True)  # beyond, use likelihood="gaussian"
         self.num_particles = check_count(num_particles, "num_particles")
         self.flip_prob: float | Literal["auto"] = (
             "auto" if _is_auto(flip_prob) else check_real(flip_prob, "flip_prob", low=0.0, high=1.0)
@@ -274,7 +274,7 @@ class SMCD(Adaptation):
             self._log_norm = -noise.log().sum() - 0.5 * net.out_features * math.log(2 * math.pi)
         else:  # the Student-t density's constant: lgamma((v+1)/2) - lgamma(v/2) - log(sqrt(v pi) sigma)
             v = self.dof
-            per_output = math.lgamma((v + 1) / 2) - math.lgamma(v / 2) - 0.5 * math.log(v * math.pi)
+            per_output = _log_gamma_ratio(v / 2) - 0.5 * math.log(v * math.pi)
             self._log_norm = -noise.log().sum() + net.out_features * per_output
         self.particle_forward = ParticleForward(net, self.forward_path)
         device = next(net.parameters()).device
@@ -516,3 +516,12 @@ def make_adaptation(name: Literal["none", "gradient_descent", "smcd"] | str, **k
     if key not in ADAPTATIONS:
         raise ValueError(f"unknown adaptation {name!r}; choose one of {sorted(ADAPTATIONS)} (or 'gd')")
     return ADAPTATIONS[key](**kwargs)
+
+
+def _log_gamma_ratio(x: float) -> float:
+    """``lgamma(x + 1/2) - lgamma(x)``, accurate also where the two lgammas are huge (large ``x``)."""
+    if x < 1e4:
+        return math.lgamma(x + 0.5) - math.lgamma(x)
+    # The asymptotic series: its next term is below 1e-19 here, where the difference of lgammas
+    # would have lost every digit.
+    return 0.5 * math.log(x) - 1 / (8 * x) + 1 / (192 * x**3)

@@ -65,6 +65,13 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
         ``rmse`` is ``inf`` and the lists end at the refused step.
     """
     model = _checked_model(model)
+    if not isinstance(strategy, Adaptation):
+        raise TypeError(f"trace takes a strategy such as smcd_rl.SMCD(...), got {type(strategy).__name__}")
+    if strategy._net is not None:
+        raise ValueError(
+            "trace needs a fresh strategy: this one is attached to a model, whose state tracing would reset; "
+            "pass a new one, e.g. smcd_rl.SMCD(**strategy.config())"
+        )
     td = _stacked(episodes)
     x, y = _pairs(model, td)
     num_episodes, steps = x.shape[:2]

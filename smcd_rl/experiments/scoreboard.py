@@ -120,8 +120,10 @@ def _in_cell(row: Mapping[str, Any], cell: Mapping[str, Any]) -> bool:
 
 def run(config: ScoreboardConfig, *, progress: bool = True) -> dict[str, Any]:
     """Read every run's scoreboard entries and write the table, plot and report."""
+    config.validate()
+    # Every input is read and checked before --out is made or anything in it is touched.
+    rows = [_row(entry) for run_dir in _run_dirs(config) for entry in _entries(run_dir)]
     with Experiment(config, progress=progress) as ex:
-        rows = [_row(entry) for run_dir in config.runs for entry in _entries(Path(run_dir))]
         table_rows = [
             [
                 row["task"],
@@ -146,8 +148,50 @@ def run(config: ScoreboardConfig, *, progress: bool = True) -> dict[str, Any]:
     return ex.result
 
 
+def _run_dirs(config: ScoreboardConfig) -> list[Path]:
+    """The run directories, each once, none of them ``--out`` (whose results the scoreboard would replace)."""
+    out = Path(config.out).resolve()
+    seen: dict[Path, str] = {}
+    for given in config.runs:
+        path = Path(given)
+        if path.resolve() in seen:
+            raise ValueError(f"RUN_DIR {given} is the same directory as {seen[path.resolve()]}; give each run once")
+        if path.resolve() == out:
+            raise ValueError(
+                f"--out {config.out} is one of the run directories: the scoreboard would replace that run's results; "
+                "pick another, e.g. --out runs/scoreboard"
+            )
+        seen[path.resolve()] = given
+    earlier = out / "results.json"
+    if earlier.is_file():  # never replace an experiment's results with the scoreboard's
+        try:
+            experiment = json.loads(earlier.read_text()).get("experiment", "")
+        except (OSError, ValueError, AttributeError):
+            experiment = ""
+        if not str(experiment).startswith("scoreboard"):
+            raise ValueError(
+                f"--out {config.out} holds the results of another command ({experiment or 'unreadable'}); "
+                "pick another, e.g. --out runs/scoreboard"
+            )
+    return list(seen)
+
+
+#: The keys of a scoreboard entry and their types (what :func:`scoreboard_entry` writes).
+_ENTRY = {
+    "task": str,
+    "cell": dict,
+    "metric": str,
+    "unit": str,
+    "lower_is_better": bool,
+    "estimates": dict,
+    "verdicts": dict,
+}
+
+
 def _entries(run_dir: Path) -> list[dict[str, Any]]:
-    """Every scoreboard entry of the run in ``run_dir``, or a clear error."""
+    """Every scoreboard entry of the run in ``run_dir``, checked, or a clear error."""
+    if run_dir.is_file():
+        raise ValueError(f"{run_dir} is a file; give the run's directory, e.g. {run_dir.parent}")
     path = run_dir / "results.json"
     if not path.is_file():
         raise FileNotFoundError(
@@ -157,13 +201,34 @@ def _entries(run_dir: Path) -> list[dict[str, Any]]:
         results = json.loads(path.read_text())
     except (OSError, ValueError) as err:
         raise ValueError(f"{path}: not readable as JSON ({err}); rerun the experiment to rewrite it") from err
+    if isinstance(results, dict) and str(results.get("experiment", "")).startswith("scoreboard"):
+        raise ValueError(f"{run_dir} is a scoreboard's output, not an experiment run; leave it out of RUN_DIR")
     entries = results.get("scoreboard") if isinstance(results, dict) else None
     if entries is None:
         raise ValueError(
             f"{path}: no scoreboard entry; it was written by a command without one (bench, sweep) or an older "
             "version: rerun the experiment"
         )
-    return entries if isinstance(entries, list) else [entries]
+    entries = entries if isinstance(entries, list) else [entries]
+    if not entries:
+        raise ValueError(f"{path}: its scoreboard list is empty; rerun the experiment to rewrite it")
+    for i, entry in enumerate(entries):
+        _check_entry(entry, f"{path}: scoreboard entry {i}")
+    return entries
+
+
+def _check_entry(entry: Any, where: str) -> None:
+    """A clear error unless ``entry`` has the shape :func:`scoreboard_entry` writes."""
+    fix = "rerun the experiment to rewrite it"
+    if not isinstance(entry, dict):
+        raise ValueError(f"{where} is a {type(entry).__name__}, not a mapping; {fix}")
+    for key, kind in _ENTRY.items():
+        if not isinstance(entry.get(key), kind):
+            raise ValueError(f"{where} has no {kind.__name__} {key!r}; {fix}")
+    for column, estimate in entry["estimates"].items():
+        numbers = [estimate.get(k) if isinstance(estimate, dict) else None for k in ("mean", "low", "high")]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
+            raise ValueError(f"{where}: the estimate of {column!r} needs numbers mean, low and high; {fix}")
 
 
 def _row(entry: Mapping[str, Any]) -> dict[str, Any]:

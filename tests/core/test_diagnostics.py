@@ -99,3 +99,28 @@ def test_first_step_evidence_is_the_mean_likelihood_of_the_prior_particles(likel
     assert torch.allclose(smcd.summary()["log_evidence"], expected, atol=1e-4)
     with pytest.raises(ValueError, match="likelihood must be"):
         smcd_rl.SMCD(likelihood="laplace")
+
+
+def test_student_t_with_many_degrees_of_freedom_is_the_gaussian() -> None:
+    """Its normalising constant stays exact where lgamma(v/2) is huge: at v = 1e9 the Student-t
+    density is the Gaussian to about 1e-8, so the evidence must agree (it was off by nats once)."""
+    model, episodes, _ = known_mask_episodes(episodes=3, steps=4)
+    results = []
+    for likelihood in ("gaussian", "student-t"):
+        smcd = smcd_rl.SMCD(num_particles=16, noise_std=0.1, likelihood=likelihood, dof=1e9)
+        smcd._generator = torch.Generator().manual_seed(0)
+        results.append(trace(model, episodes, smcd).log_evidence[-1])
+    assert results[1] == pytest.approx(results[0], abs=1e-3)
+    with pytest.raises(ValueError, match="dof"):
+        smcd_rl.SMCD(likelihood="student-t", dof=float("inf"))
+
+
+def test_trace_refuses_a_strategy_attached_to_a_model() -> None:
+    model, episodes, _ = known_mask_episodes(episodes=3, steps=4)
+    live = model.with_adaptation(smcd_rl.SMCD(num_particles=8, noise_std=0.1))
+    live.reset(batch_shape=(7,))
+    with pytest.raises(ValueError, match="fresh strategy"):
+        trace(model, episodes, live.adaptation)
+    assert live.batch_shape == (7,)  # untouched
+    with pytest.raises(TypeError, match="strategy"):
+        trace(model, episodes, None)

@@ -123,3 +123,33 @@ def test_scoreboard_names_a_directory_without_results(tmp_path, capsys) -> None:
     assert "no scoreboard entry" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         cli.main(["scoreboard"])  # at least one run directory
+
+
+def test_scoreboard_never_overwrites_a_run_and_checks_every_entry(tmp_path, capsys) -> None:
+    fake_run(tmp_path / "a", "task a", better=True)
+    before = (tmp_path / "a" / "results.json").read_text()
+    # --out one of the runs: refused before anything is written (it once replaced that run's results)
+    assert cli.main(["scoreboard", str(tmp_path / "a"), "--out", str(tmp_path / "a")]) == 2
+    assert "is one of the run directories" in capsys.readouterr().err
+    assert (tmp_path / "a" / "results.json").read_text() == before
+    assert cli.main(["scoreboard", str(tmp_path / "a"), str(tmp_path / "a") + "/", "--out", str(tmp_path / "o")]) == 2
+    assert "same directory" in capsys.readouterr().err
+    for name, entry, message in [
+        ("strings", ["a"], "is a str, not a mapping"),
+        ("nocell", {"task": "x"}, "has no dict 'cell'"),
+        ("badmean", {**json.loads(before)["scoreboard"], "estimates": {"none": {"mean": "a"}}}, "needs numbers"),
+        ("empty", [], "scoreboard list is empty"),
+    ]:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps({"scoreboard": entry}))
+        assert cli.main(["scoreboard", str(tmp_path / name), "--out", str(tmp_path / "out")]) == 2, name
+        assert message in capsys.readouterr().err, name
+    assert not (tmp_path / "out").exists()  # every input is checked before --out is made
+    # a scoreboard's own output is not a run, and --out never replaces another command's results
+    assert cli.main(["scoreboard", str(tmp_path / "a"), "--out", str(tmp_path / "board")]) == 0
+    assert cli.main(["scoreboard", str(tmp_path / "a"), str(tmp_path / "board"), "--out", str(tmp_path / "b2")]) == 2
+    assert "a scoreboard's output" in capsys.readouterr().err
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "results.json").write_text(json.dumps({"experiment": "two-link look-ahead"}))
+    assert cli.main(["scoreboard", str(tmp_path / "a"), "--out", str(tmp_path / "other")]) == 2
+    assert "holds the results of another command" in capsys.readouterr().err
