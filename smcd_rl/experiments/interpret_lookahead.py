@@ -43,7 +43,7 @@ from smcd_rl.envs.drone_operators import TrajectoryDataset, simulate_operators
 from smcd_rl.experiments.common import format_table
 from smcd_rl.experiments.interpret_drone import SETS
 from smcd_rl.experiments.interpret_masks import padded
-from smcd_rl.experiments.tuning import Tuning, method_variant
+from smcd_rl.experiments.tuning import Tuning, method_variant, strategy_for
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.interpret import InterpretConfig
@@ -133,11 +133,8 @@ def make_method(
 ) -> smcd_rl.AdaptiveModel:
     """Method ``name``: its trained network (``M`` or ``R``) with its strategy (``N``, tuned ``G``,
     calibrated ``S`` or ``S(paper)``, from that network's :class:`~smcd_rl.experiments.tuning.Tuning`)."""
-    network, variant = method_variant(name)
-    base = bases[network]
-    if variant == "N":
-        return base.with_adaptation(smcd_rl.NoAdaptation())
-    return base.with_adaptation(tunings[network].strategy(variant, seed=config.seed + 41, device=device))
+    strategy = strategy_for(name, tunings, seed=config.seed + 41, device=device)
+    return bases[method_variant(name)[0]].with_adaptation(strategy)
 
 
 def method_builder(

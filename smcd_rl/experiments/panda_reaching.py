@@ -23,7 +23,7 @@ from smcd_rl.envs.panda_reach import (
     sample_goals,
     sample_tool_lengths,
 )
-from smcd_rl.experiments.tuning import Tuning, method_variant
+from smcd_rl.experiments.tuning import Tuning, strategy_for
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.panda import PandaConfig
@@ -103,14 +103,8 @@ def method_kinematics(
     """
     if label == "FK":
         return (lambda q: panda_fk(q, 0.0)), None  # the tool is unknown: assume none
-    _, variant = method_variant(label)
-    if variant == "N":
-        strategy: smcd_rl.Adaptation = smcd_rl.NoAdaptation()
-    elif tuning is None:
-        raise ValueError(f"{label} adapts with tuned settings, but no tuning was given")
-    else:
-        strategy = tuning.strategy(variant, seed=config.seed * 1_000_003 + seed, device=device)
-    adapted = model.with_adaptation(strategy)
+    tunings = {} if tuning is None else {"M": tuning}
+    adapted = model.with_adaptation(strategy_for(label, tunings, seed=config.seed * 1_000_003 + seed, device=device))
     adapted.reset(batch_shape=(tools.shape[0],))
 
     def observe(q: Tensor, measured: Tensor) -> None:

@@ -25,7 +25,7 @@ from smcd_rl.envs.two_link_telescoping import (
     sample_initial_state,
     telescoping_link_lengths,
 )
-from smcd_rl.experiments.tuning import Tuning, method_variant
+from smcd_rl.experiments.tuning import Tuning, method_variant, strategy_for
 from smcd_rl.experiments.two_link_family import oracle
 
 if TYPE_CHECKING:
@@ -61,10 +61,8 @@ def make_method(
         return None
     if name == "O+P":
         return oracle(config, device)
-    family, variant = method_variant(name)
-    if variant == "N":
-        return models[family].with_adaptation(smcd_rl.NoAdaptation())
-    return models[family].with_adaptation(tunings[family].strategy(variant, seed=config.seed + 11, device=device))
+    strategy = strategy_for(name, tunings, seed=config.seed + 11, device=device)
+    return models[method_variant(name)[0]].with_adaptation(strategy)
 
 
 def _kinematics(method: Any, k: int, l1: Tensor) -> Callable[[Tensor], Tensor]:

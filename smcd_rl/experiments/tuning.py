@@ -44,7 +44,7 @@ from smcd_rl.experiments.adaptations import StrategySettings
 from smcd_rl.experiments.common import format_table
 from smcd_rl.experiments.harness import Experiment
 
-__all__ = ["Tuning", "tune", "VARIANTS", "method_variant"]
+__all__ = ["Tuning", "tune", "VARIANTS", "method_variant", "strategy_for"]
 
 #: The strategies a method name may end in: none, tuned GD, calibrated SMCD, SMCD at the paper's settings.
 VARIANTS = ("N", "G", "S", "S(paper)")
@@ -101,13 +101,9 @@ class Tuning:
                 "S": f"noise {_noise_text(self.tuned.noise_std)}, flip {self.tuned.flip_prob:g}",
                 "S(paper)": f"noise {_noise_text(self.paper.noise_std)}, flip {self.paper.flip_prob:g}",
             }[variant]
-            evidence = f"{t['log_evidence'][-1]:.1f}" if t["log_evidence"] else "-"
-            ess = f"{min(t['ess']):.3f}" if t["ess"] else "-"
-            rows.append([f"{self.name}+{variant}", settings, t["rmse"], evidence, ess])
+            rows.append([f"{self.name}+{variant}", settings, *_scores(t)])
         for option, t in self.options.items():
-            evidence = f"{t['log_evidence'][-1]:.1f}" if t["log_evidence"] else "-"
-            ess = f"{min(t['ess']):.3f}" if t["ess"] else "-"
-            rows.append([f"{self.name}+S, {option}", t["settings"], t["rmse"], evidence, ess])
+            rows.append([f"{self.name}+S, {option}", t["settings"], *_scores(t)])
         return format_table(rows, ["method", "settings", "one-step RMSE", "log evidence / episode", "min ESS share"])
 
     def caption(self) -> str:
@@ -169,6 +165,21 @@ def method_variant(name: str) -> tuple[str, str]:
     return model, variant
 
 
+def strategy_for(
+    name: str, tunings: Mapping[str, Tuning], *, seed: int, device: torch.device | str = "cpu"
+) -> smcd_rl.Adaptation:
+    """The strategy of method ``name`` (``"M+G"``, ``"R+S(paper)"``...) from its network's tuning.
+
+    ``N`` needs none (an experiment runs no tuning when only unadapted methods run).
+    """
+    network, variant = method_variant(name)
+    if variant == "N":
+        return smcd_rl.NoAdaptation()
+    if network not in tunings:
+        raise ValueError(f"{name} adapts with tuned settings, but {network} was not tuned")
+    return tunings[network].strategy(variant, seed=seed, device=device)
+
+
 def tune(
     ex: Experiment,
     model: smcd_rl.AdaptiveModel,
@@ -222,8 +233,7 @@ def tune(
 
 
 def _settings(values: Mapping[str, Any]) -> StrategySettings:
-    noise = values["noise_std"]
-    return StrategySettings(**{**values, "noise_std": tuple(noise) if isinstance(noise, (list, tuple)) else noise})
+    return StrategySettings(**{**values, "noise_std": _as_tuple(values["noise_std"])})
 
 
 def _tune(
@@ -244,17 +254,7 @@ def _tune(
         result = calibrate(
             model, episodes, base=base, flip_probs=config.calibrate_flips, seed=seed, progress=ex.progress
         )
-    calibration = [
-        {
-            "stage": c.stage,
-            "factor": c.factor,
-            "noise_std": c.noise_std,
-            "flip_prob": c.flip_prob,
-            "log_evidence": c.log_evidence,
-            "one_step_rmse": c.one_step_rmse,
-        }
-        for c in result.candidates
-    ]
+    calibration = [asdict(c) for c in result.candidates]
 
     with timer("gd_grid"):
         grid = list(product(config.gd_lr, config.gd_steps, config.gd_window))
@@ -264,10 +264,9 @@ def _tune(
             gd_grid.append({"lr": lr, "steps": gd_steps, "window": window, "one_step_rmse": _rmse(model, episodes, gd)})
     best = min(gd_grid, key=lambda row: row["one_step_rmse"])  # the first of equals: the grid's order
 
-    noise = result.noise_std
     tuned = StrategySettings(
         particles=config.particles,
-        noise_std=tuple(noise) if isinstance(noise, list) else noise,
+        noise_std=_as_tuple(result.noise_std),
         flip_prob=result.flip_prob,
         gd_lr=best["lr"],
         gd_steps=best["steps"],
@@ -309,10 +308,9 @@ def _tune(
         model.calibration = chosen  # the model keeps the Gaussian SMCD's calibration
         generator = torch.Generator(device=ex.device).manual_seed(seed)
         strategy = smcd_rl.SMCD(**student.strategy.config(), generator=generator)
-        student_noise = tuple(student.noise_std) if isinstance(student.noise_std, list) else student.noise_std
         options[STUDENT] = {
             **asdict(trace(model, episodes, strategy)),
-            "settings": f"noise {_noise_text(student_noise)}, flip {student.flip_prob:g}",
+            "settings": f"noise {_noise_text(_as_tuple(student.noise_std))}, flip {student.flip_prob:g}",
         }
     return {
         "tuned": asdict(tuned),
@@ -330,6 +328,18 @@ def _tune(
 def _rmse(model: smcd_rl.AdaptiveModel, episodes: TensorDictBase, strategy: smcd_rl.Adaptation) -> float:
     result: Trace = trace(model, episodes, strategy)
     return result.rmse if math.isfinite(result.rmse) else math.inf
+
+
+def _as_tuple(noise: float | Sequence[float]) -> float | tuple[float, ...]:
+    """A noise as :class:`StrategySettings` holds it: a float, or a tuple of per-dimension ones."""
+    return noise if isinstance(noise, (int, float)) else tuple(noise)
+
+
+def _scores(t: Mapping[str, Any]) -> list[Any]:
+    """A trace's table cells: one-step RMSE, final log evidence and smallest ESS share (``-`` without SMCD)."""
+    evidence = f"{t['log_evidence'][-1]:.1f}" if t["log_evidence"] else "-"
+    ess = f"{min(t['ess']):.3f}" if t["ess"] else "-"
+    return [t["rmse"], evidence, ess]
 
 
 def _noise_text(noise: float | tuple[float, ...]) -> str:

@@ -27,7 +27,7 @@ from smcd_rl.experiments.common import format_table
 from smcd_rl.experiments.harness import Experiment, setting
 from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.tuning import Tuning, method_variant, tune
+from smcd_rl.experiments.tuning import Tuning, method_variant, strategy_for, tune
 from smcd_rl.experiments.two_link_family import (
     TwoLinkFamilyConfig,
     babbling_data,
@@ -253,12 +253,9 @@ def _method(
     if name == "O+P":
         return oracle(config, "cpu")
     # M and R differ only in how the network was trained; they adapt with identical strategies.
-    network, variant = method_variant(name)
-    trained = {"M": model, "R": reptile}[network]
+    trained = {"M": model, "R": reptile}[method_variant(name)[0]]
     assert trained is not None
-    if variant == "N":
-        return trained.with_adaptation(smcd_rl.NoAdaptation())
-    return trained.with_adaptation(tunings[network].strategy(variant, seed=config.seed + 11, device=config.device))
+    return trained.with_adaptation(strategy_for(name, tunings, seed=config.seed + 11, device=config.device))
 
 
 @torch.no_grad()

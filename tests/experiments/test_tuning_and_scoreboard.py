@@ -70,6 +70,11 @@ def test_unknown_variant_is_refused() -> None:
     result = tuning.Tuning("M", settings, settings, [], [], {}, {}, {}, episodes=2, steps=2)
     with pytest.raises(ValueError, match="unknown strategy 'X'"):
         result.strategy("X", seed=0)
+    # A method's strategy: N needs no tuning; the others come from their network's.
+    assert isinstance(tuning.strategy_for("R+N", {}, seed=0), smcd_rl.NoAdaptation)
+    assert tuning.strategy_for("M+G", {"M": result}, seed=0).lr == 0.1
+    with pytest.raises(ValueError, match="R was not tuned"):
+        tuning.strategy_for("R+S", {"M": result}, seed=0)
 
 
 def test_an_empty_grid_is_refused_before_any_work(tmp_path) -> None:
