@@ -5,6 +5,10 @@ A network trained with dropout is an ensemble of sub-networks, one per dropout m
 :class:`AdaptiveModel` predicts with the adapted (MMSE) mask. Importing the package registers the
 gymnasium tasks ``smcd_rl/...``.
 
+The public names are loaded when first used (:pep:`562`): ``import smcd_rl`` itself imports
+gymnasium but not torch or tensordict, so the ``smcd-rl`` command's ``--help`` starts at once;
+the first use of ``smcd_rl.SMCD``, ``from smcd_rl import fit`` and the like imports what it needs.
+
 Example:
     >>> import smcd_rl
     >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(64, 64), dropout=0.5)
@@ -13,14 +17,26 @@ Example:
 
 from __future__ import annotations
 
-from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation, make_adaptation
-from smcd_rl.calibration import Calibration, calibrate
+import importlib
+import importlib.util
+from typing import TYPE_CHECKING, Any
+
 from smcd_rl.envs import register_all as _register_envs
-from smcd_rl.files import FileWriteError, UnreadableFileError
-from smcd_rl.filter import ParticleFilter, SMCDFilter
-from smcd_rl.masked_mlp import MaskedMLP
-from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel, CheckpointMismatchError, UnfittedModelWarning, load
-from smcd_rl.training import fit, fit_dynamics, fit_reptile
+
+if TYPE_CHECKING:
+    from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation, make_adaptation
+    from smcd_rl.calibration import Calibration, calibrate
+    from smcd_rl.files import FileWriteError, UnreadableFileError
+    from smcd_rl.filter import ParticleFilter, SMCDFilter
+    from smcd_rl.masked_mlp import MaskedMLP
+    from smcd_rl.model import (
+        AdaptiveDynamicsModel,
+        AdaptiveModel,
+        CheckpointMismatchError,
+        UnfittedModelWarning,
+        load,
+    )
+    from smcd_rl.training import fit, fit_dynamics, fit_reptile
 
 _register_envs()
 
@@ -48,3 +64,35 @@ __all__ = [
     "calibrate",
     "Calibration",
 ]
+
+#: Where each public name is defined: its module is imported on the name's first use.
+_SOURCES: dict[str, str] = {
+    **dict.fromkeys(["SMCD", "Adaptation", "GradientDescent", "NoAdaptation", "make_adaptation"], "adaptation"),
+    **dict.fromkeys(["Calibration", "calibrate"], "calibration"),
+    **dict.fromkeys(["FileWriteError", "UnreadableFileError"], "files"),
+    **dict.fromkeys(["ParticleFilter", "SMCDFilter"], "filter"),
+    "MaskedMLP": "masked_mlp",
+    **dict.fromkeys(
+        ["AdaptiveDynamicsModel", "AdaptiveModel", "CheckpointMismatchError", "UnfittedModelWarning", "load"], "model"
+    ),
+    **dict.fromkeys(["fit", "fit_dynamics", "fit_reptile"], "training"),
+}
+
+
+def _load(name: str) -> Any:
+    """A public name, imported from its module on first use; or a submodule (``smcd_rl.model``), imported."""
+    if name in _SOURCES:
+        value = getattr(importlib.import_module(f"{__name__}.{_SOURCES[name]}"), name)
+        globals()[name] = value  # later uses find it without this function
+        return value
+    if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        return importlib.import_module(f"{__name__}.{name}")  # as when the package imported them all
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})
+
+
+if not TYPE_CHECKING:  # for mypy the names are the imports above: a misspelt one stays an error, not Any
+    __getattr__ = _load

@@ -4,6 +4,15 @@ Every sub-command is a config dataclass (its field help is the ``--help`` text),
 ``--full`` preset (the paper's scale; options given explicitly still win) and a ``run`` function.
 A name with a space in :data:`COMMANDS` is a nested command: ``"bench planners"`` runs as
 ``smcd-rl bench planners``.
+
+The parser is built from the configs alone, which live in torch-free modules
+(:mod:`smcd_rl.experiments.configs`); a command's experiment module, and with it torch, is
+imported only once its options have parsed, so ``--help`` and option errors come back at once.
+
+Example:
+    >>> config = make_config("bench planners", {"full": True, "repeats": 7})
+    >>> config.repeats, config.warmup
+    (7, 5)
 """
 
 from __future__ import annotations
@@ -14,66 +23,91 @@ import importlib
 import sys
 import typing
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
-__all__ = ["main", "COMMANDS"]
+__all__ = ["main", "COMMANDS", "Command", "build_parser", "make_config"]
 
-#: sub-command -> (module, config class, one-line description)
-COMMANDS: dict[str, tuple[str, str, str]] = {
-    "two-link": (
-        "smcd_rl.experiments.two_link",
+
+class Command(NamedTuple):
+    """One ``smcd-rl`` command: where its config is (a torch-free module) and where its ``run`` is."""
+
+    #: The module of its config class and ``FULL`` preset; it must import no torch, so ``--help`` stays fast.
+    config_module: str
+    #: The config dataclass: its fields are the command's options.
+    config_class: str
+    #: The module whose ``run(config)`` runs the command, imported only once the options are parsed.
+    run_module: str
+    #: The one-line description in ``smcd-rl --help``.
+    summary: str
+
+
+#: sub-command -> its :class:`Command`.
+COMMANDS: dict[str, Command] = {
+    "two-link": Command(
+        "smcd_rl.experiments.configs.two_link",
         "TwoLinkConfig",
+        "smcd_rl.experiments.two_link",
         "two-link arm look-ahead prediction after T burn-in steps (paper Fig. 2)",
     ),
-    "panda": (
-        "smcd_rl.experiments.panda",
+    "panda": Command(
+        "smcd_rl.experiments.configs.panda",
         "PandaConfig",
+        "smcd_rl.experiments.panda",
         "7-DOF Panda reaching with an unknown tool, measured every n-th step: FK, M+N, M+G, M+S (paper Fig. 3)",
     ),
-    "telescoping": (
-        "smcd_rl.experiments.telescoping",
+    "telescoping": Command(
+        "smcd_rl.experiments.configs.telescoping",
         "TelescopingConfig",
+        "smcd_rl.experiments.telescoping",
         "PD tracking of a circling target with a telescoping link, adapted Jacobians (paper appendix A.4, Fig. 8)",
     ),
-    "interpret": (
-        "smcd_rl.experiments.interpret",
+    "interpret": Command(
+        "smcd_rl.experiments.configs.interpret",
         "InterpretConfig",
+        "smcd_rl.experiments.interpret",
         "mask interpretability: link lengths (Fig. 9), drone skill/strategy/phase/success (Figs. 4, 13), drone look-ahead (Fig. 14)",
     ),
-    "sweep": (
-        "smcd_rl.experiments.sweep",
+    "sweep": Command(
+        "smcd_rl.experiments.configs.sweep",
         "SweepConfig",
+        "smcd_rl.experiments.sweep",
         "hyper-parameter ablations on Ray: training loss (Figs. 5, 12) and SMCD look-ahead error (Fig. 6)",
     ),
-    "ant": (
-        "smcd_rl.experiments.ant",
+    "ant": Command(
+        "smcd_rl.experiments.configs.ant",
         "AntConfig",
+        "smcd_rl.experiments.ant",
         "crippled-leg Ant: planners x adaptations, healthy and crippled (paper appendix C, Fig. 15)",
     ),
-    "scoreboard": (
-        "smcd_rl.experiments.scoreboard",
+    "scoreboard": Command(
+        "smcd_rl.experiments.configs.scoreboard",
         "ScoreboardConfig",
+        "smcd_rl.experiments.scoreboard",
         "one table and plot of every task from experiments' run directories: none, GD, SMCD (paper), SMCD (calibrated)",
     ),
-    "bench planners": (
-        "smcd_rl.experiments.bench_planners",
+    "bench planners": Command(
+        "smcd_rl.experiments.configs.bench_planners",
         "BenchPlannersConfig",
+        "smcd_rl.experiments.bench_planners",
         "time our CEM against torchrl's CEMPlanner on the same model, with the bare forwards as the floor",
     ),
-    "bench filter": (
-        "smcd_rl.experiments.bench_filter",
+    "bench filter": Command(
+        "smcd_rl.experiments.configs.bench_filter",
         "BenchFilterConfig",
+        "smcd_rl.experiments.bench_filter",
         "time one SMCD update against a dense matmul and a naive update, realistic and worst case; peak memory",
     ),
-    "bench control": (
-        "smcd_rl.experiments.bench_control",
+    "bench control": Command(
+        "smcd_rl.experiments.configs.bench_control",
         "BenchControlConfig",
+        "smcd_rl.experiments.bench_control",
         "time the Panda reaching loop (observe + Jacobian + PD) with SMCD against gradient descent and the analytic chain",
     ),
 }
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``smcd-rl`` and all its commands; it imports their configs only (no torch)."""
     parser = argparse.ArgumentParser(
         prog="smcd-rl",
         description="Sequential Monte Carlo Dropout: experiments and benchmarks. "
@@ -81,8 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     groups: dict[str, Any] = {}  # group name -> its sub-parsers
-    for name, (module, config_name, summary) in COMMANDS.items():
-        config_cls = getattr(importlib.import_module(module), config_name)
+    for name, (config_module, config_name, _, summary) in COMMANDS.items():
+        config_cls = getattr(importlib.import_module(config_module), config_name)
         group, _, leaf = name.rpartition(" ")
         if group and group not in groups:  # "bench planners": a "bench" command with its own sub-commands
             parent = commands.add_parser(group, help=f"{group} commands", description=f"{group} commands.")
@@ -124,8 +158,8 @@ def _escape_percent(text: str) -> str:
 
 def make_config(command: str, given: dict[str, Any]) -> Any:
     """The config of ``command`` from explicitly given options, with ``--full`` applied under them."""
-    module_name, config_name, _ = COMMANDS[command]
-    module = importlib.import_module(module_name)
+    config_module, config_name, _, _ = COMMANDS[command]
+    module = importlib.import_module(config_module)
     given = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items()}
     config = getattr(module, config_name)(**given)
     if getattr(config, "full", False):
@@ -146,7 +180,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         name = f"smcd-rl {args._command}"
         given = {k: v for k, v in vars(args).items() if k != "command" and not k.startswith("_")}
         config = make_config(args._command, given)
-        module = importlib.import_module(COMMANDS[args._command][0])
+        module = importlib.import_module(COMMANDS[args._command].run_module)  # torch etc.: only now
         module.run(config)
     except KeyboardInterrupt:
         # Experiments save each finished piece (trained models, caches) as they go, atomically.

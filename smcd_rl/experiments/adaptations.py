@@ -17,12 +17,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar, Protocol
+from typing import Protocol
 
 import torch
 
 import smcd_rl
-from smcd_rl.experiments.harness import ExperimentConfig, setting
+from smcd_rl.experiments.configs.adaptations import AdaptationConfig, TuningConfig
 
 __all__ = ["TuningConfig", "AdaptationConfig", "AdaptationSettings", "StrategySettings", "make_adaptation", "LETTERS"]
 
@@ -41,45 +41,6 @@ class AdaptationSettings(Protocol):
     def gd_steps(self) -> int: ...
     @property
     def gd_window(self) -> int: ...
-
-
-@dataclass
-class TuningConfig(ExperimentConfig):
-    """The settings of the fair protocol (:mod:`smcd_rl.experiments.tuning`), shared by every experiment that adapts.
-
-    The calibrated SMCD (``S``) and gradient descent (``G``) are tuned on ``tuning_episodes``
-    held-out training-task episodes, GD over the grid ``gd_lr x gd_steps x gd_window``. An
-    experiment redeclares ``tuning_episodes`` to say what its episodes are.
-    """
-
-    tuning_episodes: int = setting(
-        32, "held-out episodes of fresh training-distribution tasks that SMCD and GD are tuned on", low=2
-    )
-    gd_lr: tuple[float, ...] = setting(
-        (0.003, 0.01, 0.03, 0.1), "gradient-descent learning rates tried in tuning (normalised units)", above=0.0
-    )
-    gd_steps: tuple[int, ...] = setting((1, 5), "gradient steps per observation tried in tuning", low=1)
-    gd_window: tuple[int, ...] = setting((5, 10), "recent transitions in the gradient-descent loss tried", low=1)
-    calibrate_flips: tuple[float, ...] = setting(
-        (0.001, 0.003, 0.01, 0.03), "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
-    )
-
-    NON_EMPTY: ClassVar[tuple[str, ...]] = ("gd_lr", "gd_steps", "gd_window", "calibrate_flips")
-
-
-@dataclass
-class AdaptationConfig(TuningConfig):
-    """The settings of SMCD and of online gradient descent, shared by every experiment that adapts.
-
-    SMCD's ``noise_std`` and ``flip_prob`` are the paper's fixed settings (variant ``S(paper)``); the
-    tuned variants' settings come from :class:`TuningConfig`'s fields.
-    """
-
-    particles: int = setting(1000, "SMCD mask particles", low=1)
-    flip_prob: float = setting(0.01, "bit-flip probability per step of SMCD at the paper's settings", low=0.0, high=1.0)
-    noise_std: float = setting(
-        0.05, "likelihood noise std of SMCD at the paper's settings (observation units)", above=0.0
-    )
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import time
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, TypedDict
+from typing import TYPE_CHECKING, Any
 
 import gymnasium
 import numpy as np
@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 import smcd_rl
 from smcd_rl.agents.mpc import MPCAgent
 from smcd_rl.agents.planners import CEM, MPPI, Planner, RandomShooting
+from smcd_rl.experiments.configs.ant import TASKS, RewardWeights
 from smcd_rl.integrations.gymnasium import AdaptationWrapper, collect_transitions
 
 if TYPE_CHECKING:
@@ -37,29 +38,6 @@ __all__ = ["RewardWeights", "TASKS", "OBS_DIM", "ACTION_DIM", "make_env", "colle
 #: The Ant's observation (without contact forces) and action sizes.
 OBS_DIM, ACTION_DIM = 41, 8
 _X = 0  # torso x position in the observation (OBS_SLICES["qpos"].start)
-
-
-class RewardWeights(TypedDict, total=False):
-    """Keyword arguments of :func:`~smcd_rl.envs.crippled_ant.ant_reward` that a task changes."""
-
-    ctrl_cost_weight: float
-    healthy_reward: float
-
-
-#: Per task: CrippledAntEnv arguments, the planners' reward weights, whether episodes end on a fall.
-TASKS: dict[str, tuple[dict[str, Any], RewardWeights, bool]] = {
-    "l2a": (
-        {
-            "ctrl_cost_weight": 0.0,
-            "contact_cost_weight": 0.0,
-            "healthy_reward": 0.05,
-            "terminate_when_unhealthy": False,
-        },
-        {"ctrl_cost_weight": 0.0, "healthy_reward": 0.05},
-        False,
-    ),
-    "ant-v5": ({}, {}, True),
-}
 
 
 def make_env(task: str, legs: tuple[int, ...] | None, max_steps: int) -> gymnasium.Env[np.ndarray, np.ndarray]:

@@ -42,7 +42,6 @@ import re
 import statistics
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -52,50 +51,14 @@ from tqdm.auto import tqdm
 
 import smcd_rl
 from smcd_rl.experiments.bench_filter_report import GOAL_PARTICLES, GOALS, SCHEDULES, goals, report
-from smcd_rl.experiments.benchmarking import BenchConfig, publish, scale_to_unit_spread
+from smcd_rl.experiments.benchmarking import publish, scale_to_unit_spread
 from smcd_rl.experiments.common import config_dict, machine_info, seed_everything
-from smcd_rl.experiments.harness import Experiment, setting
+from smcd_rl.experiments.configs.bench_filter import FULL, BenchFilterConfig
+from smcd_rl.experiments.harness import Experiment
 from smcd_rl.particle_forward import ParticlePath
 
 __all__ = ["BenchFilterConfig", "FULL", "GOALS", "GOAL_PARTICLES", "NaiveSMCD", "SCHEDULES", "run"]
 
-
-@dataclass
-class BenchFilterConfig(BenchConfig):
-    """Settings of ``smcd-rl bench filter``; the defaults are issue 4's reference setting."""
-
-    out: str = setting("runs/bench-filter", "output directory (results.json, results.csv)")
-    # Two threads, not the harness's one: issue 4's goals are ratios to a matmul measured on the
-    # 2-core reference machine with 2 threads (REFERENCE.md), and the README's figures are at 2.
-    threads: int = setting(2, "torch CPU threads (0: torch's default); the goals were set at 2", low=0)
-    particles: tuple[int, ...] = setting((100, 1000, 5000), "particle counts N to time", low=1)
-    inputs: int = setting(4, "network input size", low=1)
-    outputs: int = setting(2, "network output size", low=1)
-    hidden: tuple[int, ...] = setting(
-        (1024, 1024), "hidden widths (every hidden layer carries mask bits)", low=1, repeats=True
-    )
-    dropout: float = setting(0.5, "dropout probability of the network (keep_prob = 1 - dropout)", low=0.0, below=1.0)
-    flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
-    noise_std: float = setting(
-        0.05,
-        "observation noise of the realistic regime, in the network's output units (std 1, as after "
-        "training on normalised targets; the two-link arm's 5 cm is about 0.04 there)",
-        above=0.0,
-    )
-    steps: int = setting(100, "steps of the realistic adaptation run", low=1)
-    repeats: int = setting(20, "timed updates in the worst case", low=1)
-    warmup: int = setting(3, "untimed updates per contender first", low=0)
-    memory_particles: int = setting(5000, "N of the peak-memory measurement (0 skips it)", low=0)
-    memory_hidden: tuple[int, ...] = setting(
-        (1024, 1024, 1024), "hidden widths of the peak-memory network", low=1, repeats=True
-    )
-    full: bool = setting(False, "more worst-case repeats for steadier medians")
-
-    NON_EMPTY = ("particles", "hidden", "memory_hidden")
-
-
-#: What ``--full`` changes (options given explicitly still win).
-FULL = {"repeats": 100, "warmup": 5}
 
 #: A likelihood noise this large makes every particle's weight equal in float32: the worst case.
 _FLAT_NOISE = 1e6

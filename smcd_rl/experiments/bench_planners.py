@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import statistics
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -41,9 +40,10 @@ from torch import Tensor
 import smcd_rl
 from smcd_rl.agents.mpc import model_reward_objective
 from smcd_rl.agents.planners import CEM
-from smcd_rl.experiments.benchmarking import BenchConfig, machine_line, publish
+from smcd_rl.experiments.benchmarking import machine_line, publish
 from smcd_rl.experiments.common import config_dict, format_table, interleaved_times, machine_info
-from smcd_rl.experiments.harness import Experiment, setting
+from smcd_rl.experiments.configs.bench_planners import FULL, BenchPlannersConfig
+from smcd_rl.experiments.harness import Experiment
 
 __all__ = ["BenchPlannersConfig", "FULL", "GOAL_SPEEDUP", "GOAL_FLOOR", "run", "bench_reward"]
 
@@ -51,38 +51,6 @@ __all__ = ["BenchPlannersConfig", "FULL", "GOAL_SPEEDUP", "GOAL_FLOOR", "run", "
 GOAL_SPEEDUP = 2.0
 #: ... and at most this many times the bare model-forward floor.
 GOAL_FLOOR = 1.3
-
-
-@dataclass
-class BenchPlannersConfig(BenchConfig):
-    """Settings of ``smcd-rl bench planners``; the defaults are the reference setting (Ant-v5 sizes)."""
-
-    out: str = setting("runs/bench-planners", "output directory (results.json, results.csv)")
-    observation: int = setting(27, "observation size (Ant-v5 without contact forces: 27)", low=1)
-    action: int = setting(8, "action size (Ant: 8)", low=1)
-    hidden: tuple[int, ...] = setting((256, 256), "hidden layer widths of the model", low=1, repeats=True)
-    horizon: int = setting(15, "planning horizon H", low=1)
-    candidates: int = setting(500, "action sequences per iteration", low=2)
-    top_k: int = setting(50, "elites per iteration (2 to --candidates)", low=2)
-    steps: int = setting(5, "optimisation steps (iterations) per plan", low=1)
-    adaptation: str = setting(
-        "none", "strategy the model plans with: none, or smcd (MMSE mask)", choices=("none", "smcd")
-    )
-    particles: int = setting(100, "SMCD particles (--adaptation smcd)", low=1)
-    repeats: int = setting(20, "timed plans per planner (medians are reported)", low=1)
-    warmup: int = setting(2, "untimed plans per planner first", low=0)
-    full: bool = setting(False, "more repeats for steadier medians")
-
-    NON_EMPTY = ("hidden",)
-
-    def validate(self) -> None:
-        super().validate()
-        if self.top_k > self.candidates:
-            raise ValueError(f"--top-k must be at most --candidates ({self.candidates}), got {self.top_k}")
-
-
-#: What ``--full`` changes (options given explicitly still win).
-FULL = {"repeats": 100, "warmup": 5}
 
 
 def bench_reward(obs: Tensor, action: Tensor, next_obs: Tensor) -> Tensor:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,17 +26,9 @@ import torch
 
 import smcd_rl
 from smcd_rl.experiments.common import write_csv, write_json
-from smcd_rl.experiments.harness import ExperimentConfig, setting
+from smcd_rl.experiments.configs.benchmarking import BenchConfig
 
 __all__ = ["BenchConfig", "scale_to_unit_spread", "machine_line", "publish"]
-
-
-@dataclass
-class BenchConfig(ExperimentConfig):
-    """The settings every benchmark shares: it times on the GPU when there is one, and can print JSON."""
-
-    device: str = setting("auto", "torch device: auto (cuda when available), cpu, cuda, cuda:1, ...")
-    json: bool = setting(False, "print the results as JSON (for tools) instead of the table")
 
 
 def scale_to_unit_spread(net: smcd_rl.MaskedMLP, generator: torch.Generator, probes: int = 256) -> None:

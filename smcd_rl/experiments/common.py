@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import dataclasses
 import hashlib
 import json
 import os
@@ -16,6 +15,8 @@ from typing import Any
 
 import torch
 from tqdm.auto import tqdm
+
+from smcd_rl.experiments.configs import config_dict
 
 __all__ = [
     "config_dict",
@@ -29,11 +30,6 @@ __all__ = [
     "interleaved_times",
     "settings_fingerprint",
 ]
-
-
-def config_dict(config: Any) -> dict[str, Any]:
-    """A JSON-ready dict of a config dataclass (tuples become lists)."""
-    return json.loads(json.dumps(dataclasses.asdict(config), default=list))
 
 
 def machine_info() -> dict[str, Any]:

@@ -18,23 +18,19 @@ code), never by a file name, so no rerun ever picks up a stale result.
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import math
+import sys
 import time
-import typing
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import ExitStack
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import Any, TypeVar
 
 import torch
 from tqdm.auto import tqdm
 
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.common import (
-    config_dict,
     machine_info,
     resolve_device,
     seed_everything,
@@ -43,7 +39,9 @@ from smcd_rl.experiments.common import (
     write_csv,
     write_json,
 )
+from smcd_rl.experiments.configs import OUTPUT_ONLY, ExperimentConfig, config_dict, setting
 from smcd_rl.experiments.result_store import ResultStore
+from smcd_rl.experiments.stages import StagePlan, duration
 
 __all__ = [
     "ExperimentConfig",
@@ -53,131 +51,6 @@ __all__ = [
 ]
 
 T = TypeVar("T")
-
-#: Settings that change where or how fast a run goes, never its numbers.
-OUTPUT_ONLY = ("out", "full")
-
-
-def setting(
-    default: Any,
-    help: str,  # noqa: A002 - mirrors argparse's name
-    *,
-    low: float | None = None,
-    above: float | None = None,
-    high: float | None = None,
-    below: float | None = None,
-    choices: Sequence[Any] | None = None,
-    repeats: bool = False,
-    positional: bool = False,
-) -> Any:
-    """A config field: ``help`` becomes its ``--help`` text; the bounds are checked before any work.
-
-    Args:
-        default: the default value (a list or tuple becomes a tuple field).
-        help: the ``--help`` text.
-        low: the smallest allowed value (inclusive), for a number or each item of a tuple.
-        above: values must be strictly greater than this.
-        high: the largest allowed value (inclusive).
-        below: values must be strictly smaller than this.
-        choices: the allowed values (of each item, for a tuple).
-        repeats: whether a tuple may hold a value twice (layer widths may; methods, horizons and
-            the like may not: each would be run, tabled and compared twice).
-        positional: a tuple field given as the command's positional arguments instead of an option.
-
-    Example:
-        >>> from dataclasses import dataclass
-        >>> @dataclass
-        ... class C(ExperimentConfig):
-        ...     particles: int = setting(100, "SMCD particles", low=1)
-        >>> C(particles=0).validate()
-        Traceback (most recent call last):
-        ...
-        ValueError: --particles must be >= 1, got 0
-    """
-    metadata = {
-        "help": help,
-        "low": low,
-        "above": above,
-        "high": high,
-        "below": below,
-        "choices": None if choices is None else tuple(choices),
-        "repeats": repeats,
-        "positional": positional,
-    }
-    if isinstance(default, (list, tuple)):
-        value = tuple(default)
-        return dataclasses.field(default_factory=lambda: value, metadata=metadata)
-    return dataclasses.field(default=default, metadata=metadata)
-
-
-@dataclass
-class ExperimentConfig:
-    """The settings every experiment command shares; a command's config derives from this.
-
-    A derived config redeclares a field to change its default (e.g. ``out``) and adds its own.
-    """
-
-    out: str = setting("runs/experiment", "output directory (results, plot, report, trained models)")
-    # Experiments derive further seeds from this one (e.g. seed * 1_000_003 + k): 2^31 keeps them in torch's range.
-    seed: int = setting(0, "seed of data, training, trials and filters", low=0, high=2**31 - 1)
-    threads: int = setting(
-        1, "torch CPU threads (0: torch's default); results repeat bit for bit per thread count", low=0, high=256
-    )
-    device: str = setting("cpu", "torch device: cpu, cuda, cuda:1 or auto")
-    full: bool = setting(False, "the paper's scale (options given explicitly still win)")
-
-    #: Fields whose values must be non-empty when given as tuples (e.g. methods, horizons); a
-    #: subclass's list adds to those of the classes it derives from.
-    NON_EMPTY: ClassVar[tuple[str, ...]] = ()
-    #: Fields the method cache leaves out: those that choose which methods or cells run (not what
-    #: any of them computes), so a rerun with more methods reuses the finished ones, and paths of
-    #: inputs whose content the cache is keyed by instead.
-    SELECTION: ClassVar[tuple[str, ...]] = ()
-
-    def validate(self) -> None:
-        """Check every field against its declared type and bounds; raise ValueError naming the option."""
-        hints = typing.get_type_hints(type(self))
-        non_empty = {name for cls in type(self).__mro__ for name in vars(cls).get("NON_EMPTY", ())}
-        for field in dataclasses.fields(self):
-            value, flag = getattr(self, field.name), "--" + field.name.replace("_", "-")
-            items = value if isinstance(value, tuple) else (value,)
-            if isinstance(value, tuple) and not value and field.name in non_empty:
-                raise ValueError(f"{flag} needs at least one value")
-            repeated = sorted({item for item in items if items.count(item) > 1}, key=repr)
-            if isinstance(value, tuple) and repeated and not field.metadata.get("repeats"):
-                raise ValueError(f"{flag} repeats {repeated}; give each value once")
-            kind = hints[field.name]
-            item_kind = typing.get_args(kind)[0] if typing.get_origin(kind) is tuple else kind
-            for item in items:
-                _check_item(flag, item, item_kind, field.metadata)
-        if not self.out.strip():
-            raise ValueError("--out must name a directory (it is empty)")
-        resolve_device(self.device)
-
-    def settings(self, *, exclude: Sequence[str] = ()) -> dict[str, Any]:
-        """The JSON-ready settings that determine the results (output-only fields left out)."""
-        return {k: v for k, v in config_dict(self).items() if k not in (*OUTPUT_ONLY, *exclude)}
-
-
-def _check_item(flag: str, value: Any, kind: Any, metadata: Mapping[str, Any]) -> None:
-    if kind is float and isinstance(value, int) and not isinstance(value, bool):
-        value = float(value)
-    if kind in (int, float, str, bool) and not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-        raise ValueError(f"{flag} must be a {kind.__name__}, got {value!r}")
-    if kind is float and not math.isfinite(value):
-        raise ValueError(f"{flag} must be a finite number, got {value}")
-    low, above, choices = metadata.get("low"), metadata.get("above"), metadata.get("choices")
-    high, below = metadata.get("high"), metadata.get("below")
-    if low is not None and value < low:
-        raise ValueError(f"{flag} must be >= {low}, got {value}")
-    if above is not None and value <= above:
-        raise ValueError(f"{flag} must be > {above}, got {value}")
-    if high is not None and value > high:
-        raise ValueError(f"{flag} must be <= {high}, got {value}")
-    if below is not None and value >= below:
-        raise ValueError(f"{flag} must be < {below}, got {value}")
-    if choices is not None and value not in choices:
-        raise ValueError(f"{flag}: unknown value {value!r}; choose from {list(choices)}")
 
 
 class Experiment:
@@ -205,6 +78,8 @@ class Experiment:
         self.result: dict[str, Any] = {}  # what :meth:`write` returned
         self._stack = ExitStack()
         self._started = 0.0
+        #: The overall progress line: each stage (train, tune, evaluate a method) prints one as it starts.
+        self.stages = StagePlan(self.out.name or "experiment", quiet=not progress)
 
     def __enter__(self) -> Experiment:
         self.config.validate()
@@ -218,6 +93,7 @@ class Experiment:
         self._stack.enter_context(torch_threads(self.config.threads))
         self.generator = seed_everything(self.config.seed)
         self._started = time.perf_counter()
+        self.stages = StagePlan(self.stages.command, self.stages.costs, quiet=not self.progress)
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -244,6 +120,20 @@ class Experiment:
         }
         return self.out / f"{name}-{settings_fingerprint(key)[:12]}.ckpt"
 
+    def plan(self, costs: Mapping[str, float]) -> None:
+        """Declare the run's stages for the overall progress line: name -> relative cost.
+
+        The names are those :meth:`train` (``"train NAME"``, or ``NAME`` if it starts with
+        "train"), :meth:`evaluate` (``"evaluate NAME"``)
+        and :meth:`stage` use; the costs need only be right relative to each other (e.g. the
+        seconds each took on some machine), since the time left is scaled by this run's speed.
+        """
+        self.stages.plan(costs)
+
+    def stage(self, name: str) -> Any:
+        """A context manager around one stage of work: prints the overall progress line as it starts."""
+        return self.stages.stage(name)
+
     def train(self, name: str, trainer: Callable[..., T], model: torch.nn.Module, data: Any, **settings: Any) -> T:
         """Train ``model`` on ``data`` with ``trainer(model, data, **settings)``, or resume its checkpoint.
 
@@ -251,7 +141,8 @@ class Experiment:
         """
         path = self.checkpoint(name, trainer, model, data, **settings)
         started = time.perf_counter()
-        result = trainer(model, data, checkpoint=path, progress=self.progress, **settings)
+        with self.stage(name if name.startswith("train") else f"train {name}"):
+            result = trainer(model, data, checkpoint=path, progress=self.progress, **settings)
         self.timings[f"train {name}"] = time.perf_counter() - started
         return result
 
@@ -285,11 +176,12 @@ class Experiment:
         results: dict[str, dict[str, Any]] = {}
         for name, factory in methods.items():
             key = {"method": name, "settings": settings, "content": _content(content, name)}
-            done = self.store.get(kind, key)
-            if done is None:
-                started = time.perf_counter()
-                done = {**evaluate(name, factory()), "seconds": time.perf_counter() - started}
-                self.store.put(kind, key, done)
+            with self.stage(f"evaluate {name}" if kind == "method" else f"{kind} {name}"):
+                done = self.store.get(kind, key)
+                if done is None:
+                    started = time.perf_counter()
+                    done = {**evaluate(name, factory()), "seconds": time.perf_counter() - started}
+                    self.store.put(kind, key, done)
             results[name] = done
             self.timings[f"evaluate {name}"] = done["seconds"]
         return results
@@ -359,6 +251,8 @@ class Experiment:
         for caption, text in tables.items():
             print(f"{caption}\n\n{text}\n")
         print(f"wrote {self.out}/: {', '.join(written)}")
+        if self.progress:
+            print(f"{self.stages.command} done in {duration(self.elapsed)}", file=sys.stderr, flush=True)
         self.written = written
         self.result = result
         return result

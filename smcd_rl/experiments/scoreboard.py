@@ -19,12 +19,12 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from smcd_rl.experiments.common import format_table
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
+from smcd_rl.experiments.configs.scoreboard import ScoreboardConfig
+from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.stats import Estimate
 
 __all__ = ["ScoreboardConfig", "run", "scoreboard_entry", "HEADLINE", "COLUMNS"]
@@ -40,20 +40,6 @@ VERDICTS = (
     ("SMCD (paper)", "none"),
     ("SMCD (paper)", "GD"),
 )
-
-
-@dataclass
-class ScoreboardConfig(ExperimentConfig):
-    """Settings of ``smcd-rl scoreboard``."""
-
-    runs: tuple[str, ...] = setting(
-        (),
-        "run directories of experiments (each with its results.json), e.g. runs/two-link runs/panda",
-        positional=True,
-    )
-    out: str = setting("runs/scoreboard", "output directory (scoreboard table, plot, report)")
-
-    NON_EMPTY = ("runs",)
 
 
 def scoreboard_entry(

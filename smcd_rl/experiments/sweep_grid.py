@@ -20,10 +20,11 @@ from typing import TYPE_CHECKING, Any
 
 from smcd_rl.digests import file_digest
 from smcd_rl.experiments.common import config_dict, resolve_device
-from smcd_rl.experiments.harness import ExperimentConfig
+from smcd_rl.experiments.configs import ExperimentConfig
+from smcd_rl.experiments.configs.sweep import DESIGNS, STUDIES
 
 if TYPE_CHECKING:
-    from smcd_rl.experiments.sweep import SweepConfig
+    from smcd_rl.experiments.configs.sweep import SweepConfig
 
 __all__ = [
     "STUDIES",
@@ -35,9 +36,6 @@ __all__ = [
     "resolve_grid",
     "trial_configs",
 ]
-
-STUDIES = ("training", "smcd", "drone")
-DESIGNS = ("factorial", "one-at-a-time")
 
 #: The parameters each study sweeps (config fields; the names ``--grid`` takes).
 PARAMETERS: dict[str, tuple[str, ...]] = {

@@ -1,0 +1,80 @@
+"""The overall progress line: stage k of n, elapsed, and a time left scaled by the run's own speed."""
+
+import io
+import re
+
+import pytest
+
+from smcd_rl.experiments import stages
+from smcd_rl.experiments.stages import StagePlan
+
+
+class Clock:
+    """A perf_counter the test advances by hand."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def clock(monkeypatch) -> Clock:
+    clock = Clock()
+    monkeypatch.setattr(stages.time, "perf_counter", clock)
+    return clock
+
+
+def test_time_left_is_the_remaining_cost_at_the_measured_speed(clock: Clock) -> None:
+    plan = StagePlan("run", {"train": 2.0, "tune": 1.0, "evaluate": 3.0}, stream=io.StringIO())
+    with plan.stage("train"):
+        clock.now += 20.0  # cost 2 took 20 s: 10 s per unit, so 4 units are 40 s
+    with plan.stage("tune"):
+        clock.now += 10.0
+    with plan.stage("evaluate"):
+        pass
+    lines = plan.stream.getvalue().splitlines()
+    assert lines[0] == "run [1/3] train | 0 s elapsed"  # nothing timed yet: no estimate
+    assert lines[1] == "run [2/3] tune | 20 s elapsed, about 40 s left"
+    assert lines[2] == "run [3/3] evaluate | 30 s elapsed, about 30 s left"
+
+
+def test_resumed_stages_do_not_count_as_fast_work(clock: Clock) -> None:
+    plan = StagePlan("run", {"train": 5.0, "tune": 1.0, "evaluate": 1.0}, stream=io.StringIO())
+    with plan.stage("train"):
+        clock.now += 0.1  # resumed from its checkpoint: says nothing about speed
+    with plan.stage("tune"):
+        clock.now += 30.0
+    with plan.stage("evaluate"):
+        pass
+    last = plan.stream.getvalue().splitlines()[-1]
+    assert last.endswith("about 30 s left"), last  # 30 s per unit from tune alone, not 30.1 / 6
+
+
+def test_an_unplanned_stage_still_prints_and_quiet_prints_nothing(clock: Clock) -> None:
+    plan = StagePlan("run", {"train": 1.0}, stream=io.StringIO())
+    with plan.stage("train"):
+        clock.now += 65.0
+    with plan.stage("extra"):
+        pass
+    assert plan.stream.getvalue().splitlines()[-1] == "run [2] extra | 1 min 5 s elapsed, about 0 s left"
+    quiet = StagePlan("run", {"train": 1.0}, stream=io.StringIO(), quiet=True)
+    with quiet.stage("train"):
+        pass
+    assert quiet.stream.getvalue() == ""
+
+
+def test_an_experiment_prints_its_stages_in_plan_order(tmp_path, capsys) -> None:
+    from smcd_rl import cli
+
+    options = ["--tasks", "2", "--episodes", "2", "--steps", "2", "--hidden", "8", "--epochs", "1", "--trials", "2"]
+    options += ["--burn-in", "1", "--horizons", "1", "--methods", "M+N", "LV+N", "--lv-epochs", "1"]
+    assert cli.main(["two-link", "--out", str(tmp_path / "run"), *options]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if re.match(r"run \[\d", line)]
+    assert [line.split(" | ")[0] for line in lines] == [
+        "run [1/4] train",
+        "run [2/4] train latent",
+        "run [3/4] evaluate M+N",
+        "run [4/4] evaluate LV+N",
+    ]
