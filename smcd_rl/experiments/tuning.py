@@ -42,12 +42,10 @@ from smcd_rl.diagnostics import Trace, trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.adaptations import StrategySettings
 from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.configs.adaptations import VARIANTS
 from smcd_rl.experiments.harness import Experiment
 
 __all__ = ["Tuning", "tune", "VARIANTS", "method_variant", "strategy_for"]
-
-#: The strategies a method name may end in: none, tuned GD, calibrated SMCD, SMCD at the paper's settings.
-VARIANTS = ("N", "G", "S", "S(paper)")
 
 #: Options of SMCD measured on the tuning episodes only (their one-step error goes into the tuning
 #: table beside the calibrated S): option -> the settings it changes, from the calibrated SMCD's.
@@ -188,6 +186,7 @@ def tune(
     *,
     name: str = "M",
     paper_noise_std: float | Sequence[float] | None = None,
+    options: bool = True,
 ) -> Tuning:
     """Tune ``model``'s strategies on ``episodes`` (held-out training-task episodes), or reuse a rerun's result.
 
@@ -199,6 +198,9 @@ def tune(
         config: an experiment config with :class:`~smcd_rl.experiments.adaptations.AdaptationConfig`'s fields.
         name: the model's name in the method labels.
         paper_noise_std: the fixed likelihood noise of ``S(paper)`` (default ``config.noise_std``).
+        options: also trace the calibrated SMCD with each of :data:`OPTIONS` and with a Student-t
+            likelihood of its own calibration (diagnosis only: no method uses them; about as long
+            again as the calibration).
     """
     paper_noise = config.noise_std if paper_noise_std is None else paper_noise_std
     paper_noise = tuple(float(v) for v in paper_noise) if isinstance(paper_noise, Sequence) else float(paper_noise)
@@ -206,15 +208,17 @@ def tune(
         "model": model_digest(model),
         "episodes": content_digest(episodes),
         "paper_noise": paper_noise,
+        "options": options,
         "settings": {
             k: getattr(config, k)
             for k in ("particles", "flip_prob", "seed", "gd_lr", "gd_steps", "gd_window", "calibrate_flips")
         },
     }
-    found = ex.store.get(f"tuning-{name}", key)
-    if found is None:
-        found = _tune(ex, model, episodes, config, name=name, paper_noise=paper_noise)
-        ex.store.put(f"tuning-{name}", key, found)
+    with ex.stage(f"tune {name}"):
+        found = ex.store.get(f"tuning-{name}", key)
+        if found is None:
+            found = _tune(ex, model, episodes, config, name=name, paper_noise=paper_noise, options=options)
+            ex.store.put(f"tuning-{name}", key, found)
     tuning = Tuning(
         name=name,
         tuned=_settings(found["tuned"]),
@@ -244,6 +248,7 @@ def _tune(
     *,
     name: str,
     paper_noise: float | tuple[float, ...],
+    options: bool,
 ) -> dict[str, Any]:
     num_episodes, steps = episodes.batch_size
     seed = config.seed + 23
@@ -287,8 +292,33 @@ def _tune(
             settings = paper if variant == "S(paper)" else tuned
             strategy = settings.strategy(variant[0], seed=seed, device=ex.device)
             traces[variant] = asdict(trace(model, episodes, strategy))
+    traced = _trace_options(ex, model, episodes, config, tuned, seed=seed, timer=timer) if options else {}
+    return {
+        "tuned": asdict(tuned),
+        "paper": asdict(paper),
+        "gd_grid": gd_grid,
+        "calibration": calibration,
+        "traces": traces,
+        "options": traced,
+        "seconds": timer.seconds,
+        "episodes": int(num_episodes),
+        "steps": int(steps),
+    }
+
+
+def _trace_options(
+    ex: Experiment,
+    model: smcd_rl.AdaptiveModel,
+    episodes: TensorDictBase,
+    config: Any,
+    tuned: StrategySettings,
+    *,
+    seed: int,
+    timer: _Timer,
+) -> dict[str, dict[str, Any]]:
+    """The calibrated SMCD's trace with each option changed, and with a Student-t likelihood of its own calibration."""
+    options = {}
     with timer("options"):
-        options = {}
         for option, changed in OPTIONS.items():
             smcd = tuned.strategy("S", seed=seed, device=ex.device)
             assert isinstance(smcd, smcd_rl.SMCD)
@@ -312,17 +342,7 @@ def _tune(
             **asdict(trace(model, episodes, strategy)),
             "settings": f"noise {_noise_text(_as_tuple(student.noise_std))}, flip {student.flip_prob:g}",
         }
-    return {
-        "tuned": asdict(tuned),
-        "paper": asdict(paper),
-        "gd_grid": gd_grid,
-        "calibration": calibration,
-        "traces": traces,
-        "options": options,
-        "seconds": timer.seconds,
-        "episodes": int(num_episodes),
-        "steps": int(steps),
-    }
+    return options
 
 
 def _rmse(model: smcd_rl.AdaptiveModel, episodes: TensorDictBase, strategy: smcd_rl.Adaptation) -> float:

@@ -11,7 +11,6 @@ trial's RMSE), ``results.json`` (settings, table, training losses, timings, mach
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,12 +23,12 @@ from smcd_rl.baselines import LatentVariableModel, fit_latent
 from smcd_rl.digests import model_digest
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, sample_link_lengths, two_link_fk
 from smcd_rl.experiments.common import format_table
-from smcd_rl.experiments.harness import Experiment, setting
+from smcd_rl.experiments.configs.two_link import DEFAULT_METHODS, FULL, METHODS, TwoLinkConfig
+from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.tuning import Tuning, method_variant, strategy_for, tune
 from smcd_rl.experiments.two_link_family import (
-    TwoLinkFamilyConfig,
     babbling_data,
     fit_settings,
     network,
@@ -38,59 +37,7 @@ from smcd_rl.experiments.two_link_family import (
     tuning_episodes,
 )
 
-__all__ = ["TwoLinkConfig", "FULL", "METHODS", "run", "table"]
-
-#: Method labels of Fig. 2 that this command runs: S is calibrated SMCD, S(paper) SMCD at the paper's settings.
-METHODS = ("O+P", "M+N", "M+G", "M+S", "M+S(paper)", "R+N", "R+G", "R+S", "R+S(paper)", "LV+N")
-#: What runs by default (R+S(paper) only on request: the R network's comparison is R+S against R+G).
-DEFAULT_METHODS = tuple(m for m in METHODS if m != "R+S(paper)")
-
-
-@dataclass
-class TwoLinkConfig(TwoLinkFamilyConfig):
-    """Settings of ``smcd-rl two-link``; the defaults finish in minutes on 2 CPU cores."""
-
-    out: str = setting("runs/two-link", "output directory (results, plot, report, trained models)")
-    trials: int = setting(500, "held-out arms to evaluate on", low=2)
-    chunk: int = setting(100, "trials evaluated at once (bounds memory: chunk x particles x hidden)", low=1)
-    # T = 20 (the paper's longest) doubles the filtering time of every method and of the tuning
-    # episodes: --burn-in 1 5 10 20 adds it; the default keeps the run within 15 minutes on 2 cores.
-    burn_in: tuple[int, ...] = setting((1, 5, 10), "burn-in (adaptation) steps T", low=1)
-    horizons: tuple[int, ...] = setting((1, 5, 10, 20), "look-ahead horizons H", low=1)
-    methods: tuple[str, ...] = setting(
-        DEFAULT_METHODS,
-        "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G (tuned), S (calibrated) or "
-        "S(paper); LV+N (VRNN)",
-        choices=METHODS,
-    )
-    lv_epochs: int = setting(20, "training epochs of the latent-variable (VRNN) model", low=1)
-    lv_width: int = setting(128, "width of the VRNN's layers (its recurrent state h has 8 dims)", low=1)
-    lv_batch_size: int = setting(256, "VRNN batch size (two-step windows)", low=1)
-    lv_lr: float = setting(1e-3, "VRNN Adam learning rate", above=0.0)
-    full: bool = setting(
-        False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials, Reptile 1000 and LV 200 epochs"
-    )
-
-    NON_EMPTY = ("burn_in", "horizons", "methods")
-    SELECTION = ("methods",)  # each method's errors are its own: a rerun with more methods reuses the others
-
-
-#: What ``--full`` changes (options given explicitly still win).
-FULL = {
-    "tasks": 1000,
-    "episodes": 150,
-    "hidden": 1024,
-    "epochs": 200,
-    "batch_size": 64,
-    "lr": 1e-4,
-    "trials": 1000,
-    "chunk": 25,
-    "burn_in": (1, 5, 10, 20),
-    "reptile_epochs": 1000,
-    "lv_epochs": 200,
-    "lv_batch_size": 64,
-    "threads": 0,
-}
+__all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "run", "table"]
 
 #: Offset of the test arms' seed from ``--seed`` (a stream of their own, disjoint from training and tuning).
 TEST_ARMS_SEED = 1_000_003
@@ -102,6 +49,7 @@ ADAPTIVE = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N", "LV+N
 def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the experiment and write its files; returns the JSON payload."""
     with Experiment(config, progress=progress) as ex:
+        ex.plan(stage_costs(config))
         # --- seed, data, models -----------------------------------------------------------------
         data = babbling_data(config, ex)
         model = smcd_rl.AdaptiveModel(network(config, ex.device), in_keys=["q"], out_key="ee")
@@ -112,7 +60,7 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         # --- the fair protocol: SMCD and GD tuned on held-out babbling of fresh training arms -------
         episodes = tuning_episodes(config, ex.device, steps=max(2, *config.burn_in))  # calibration needs 2 steps
         tunings = {
-            name: tune(ex, trained, episodes, config, name=name)
+            name: tune(ex, trained, episodes, config, name=name, options=config.tuning_options)
             for name, trained in (("M", model), ("R", reptile))
             if any(m.startswith(name + "+") and m[2:] in ("G", "S", "S(paper)") for m in config.methods)
             and trained is not None
@@ -178,6 +126,46 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
             },
         )
     return ex.result
+
+
+#: Seconds of each stage at the defaults on 2 cores (Intel Xeon, one thread): the overall progress
+#: line scales these by the settings and by this run's measured speed to say how long is left.
+_REFERENCE_SECONDS = {
+    "train": 53.0,
+    "train reptile": 51.0,
+    "train latent": 58.0,
+    "tune": 93.0,  # calibration, GD grid and diagnosis of one network; the options add as much again
+    "evaluate G": 45.0,  # per method over 500 arms at T = 1, 5, 10
+    "evaluate S": 56.0,
+    "evaluate O+P": 1.0,
+    "evaluate N": 0.1,
+}
+
+
+def stage_costs(config: TwoLinkConfig) -> dict[str, float]:
+    """Each stage's expected relative cost at ``config``, in the order the stages run.
+
+    Example:
+        >>> costs = stage_costs(TwoLinkConfig())
+        >>> list(costs)[:4], costs["evaluate M+S"] > costs["evaluate M+N"]
+        (['train', 'train latent', 'tune M', 'evaluate O+P'], True)
+    """
+    ref = _REFERENCE_SECONDS
+    data = config.tasks * config.episodes * config.steps / 100_000 * (config.hidden / 512) ** 2 * config.depth / 2
+    filtering = config.trials / 500 * sum(config.burn_in) / 16
+    networks = [n for n in ("M", "R") if any(m.startswith(n + "+") and m[2:] != "N" for m in config.methods)]
+    costs = {"train": ref["train"] * config.epochs / 20 * data}
+    if any(m.startswith("R+") for m in config.methods):
+        costs["train reptile"] = ref["train reptile"] * config.reptile_epochs / 20 * data
+    if "LV+N" in config.methods:
+        costs["train latent"] = ref["train latent"] * config.lv_epochs / 20 * config.tasks * config.episodes / 10_000
+    tuning = config.tuning_episodes / 32 * max(config.burn_in) / 10 * (2 if config.tuning_options else 1)
+    costs.update({f"tune {n}": ref["tune"] * tuning * config.particles / 1000 for n in networks})
+    for name in config.methods:
+        variant = "O+P" if name == "O+P" else "N" if name.endswith("+N") else name.split("+")[1][0]
+        particles = {"O+P": config.oracle_particles, "S": config.particles}.get(variant, 1000)
+        costs[f"evaluate {name}"] = ref[f"evaluate {variant}"] * filtering * particles / 1000
+    return costs
 
 
 def table(rows: list[dict[str, Any]], config: TwoLinkConfig) -> str:

@@ -11,6 +11,7 @@ import torch
 
 import smcd_rl
 from smcd_rl import cli
+from smcd_rl.calibration import calibrate
 from smcd_rl.experiments import scoreboard, tuning
 from smcd_rl.experiments.adaptations import AdaptationConfig
 from smcd_rl.experiments.harness import Experiment
@@ -63,6 +64,15 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     with Experiment(config, progress=False) as ex:
         again = tuning.tune(ex, model, episodes, config)
     assert again.tuned == result.tuned and again.gd_grid == result.gd_grid
+
+    # Without the options the same choice is made (from a tuning of its own, not the stored one):
+    # only one calibration runs, the Gaussian one, and the table lists the four strategies.
+    calls = []
+    monkeypatch.setattr(tuning, "calibrate", lambda *a, **k: calls.append(k["base"].likelihood) or calibrate(*a, **k))
+    with Experiment(config, progress=False) as ex:
+        lean = tuning.tune(ex, model, episodes, config, options=False)
+    assert calls == ["gaussian"] and lean.options == {} and lean.tuned == result.tuned
+    assert "5x particles" not in lean.table() and len(lean.table().splitlines()) == 2 + len(tuning.VARIANTS)
 
 
 def test_unknown_variant_is_refused() -> None:
