@@ -179,7 +179,9 @@ def drone_transition(
     ground): it is then set on the surface, at rest.
 
     Args:
-        position, velocity, command: ``[..., 3]`` each, broadcastable.
+        position: ``[..., 3]``, broadcastable against the others.
+        velocity: ``[..., 3]``.
+        command: ``[..., 3]``, the velocity command.
         dt: step in seconds.
         tau: velocity time constant in seconds.
         max_speed: command bound per axis, m/s.

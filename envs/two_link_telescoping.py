@@ -189,7 +189,9 @@ def sample_initial_state(
 
     Args:
         shape: Batch shape.
-        link_length_mean, link_length_std, min_link_length: The prior of ``l1``.
+        link_length_mean: Mean of the prior of ``l1``.
+        link_length_std: Standard deviation of the prior of ``l1``.
+        min_link_length: Truncation of the prior of ``l1`` from below.
         radius_range: ``(low, high)`` of the target circle's radius, ``0 < low <= high``.
         generator: Source of randomness (on ``device``).
         device: Device of the tensors.

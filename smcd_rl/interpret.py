@@ -67,7 +67,7 @@ def confidence_score(
 ) -> Tensor:
     """Eq. (9): confidence of assigning a label to each query mask, from its ``k`` nearest stored masks.
 
-    With ``A`` the ``k`` stored masks nearest to the query ``m`` and ``c_j`` their labels::
+    With ``A`` the ``k`` stored masks nearest to the query ``m`` and ``c_j`` their labels:
 
         D = sum_{j in A, c_j = label} exp(-|m - m_j|) / sum_{j in A} exp(-|m - m_j|)
 

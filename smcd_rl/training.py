@@ -172,7 +172,7 @@ def fit_reptile(
     weights are copied and trained by plain SGD (``inner_lr``) for ``inner_epochs`` passes over
     the task's samples in mini-batches of ``batch_size``, with one Bernoulli(``keep_prob``)
     dropout mask per sample as in :func:`fit`, so the result works with :class:`smcd_rl.SMCD`.
-    The meta weights then move toward the adapted ones::
+    The meta weights then move toward the adapted ones:
 
         theta <- theta + lr * mean_over_tasks(theta_task - theta)
 

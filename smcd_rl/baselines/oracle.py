@@ -32,7 +32,10 @@ class ParameterFilter(ParticleFilter):
         jitter_std: standard deviation of the random walk per step (keeps the particle set
             diverse after resampling, and lets it follow slowly changing parameters).
         lower: parameters are clamped from below at this value (e.g. a minimum link length).
-        resampling, ess_threshold, generator, device: see :class:`smcd_rl.ParticleFilter`.
+        resampling: see :class:`smcd_rl.ParticleFilter`.
+        ess_threshold: see :class:`smcd_rl.ParticleFilter`.
+        generator: see :class:`smcd_rl.ParticleFilter`.
+        device: see :class:`smcd_rl.ParticleFilter`.
 
     Example:
         >>> import torch
@@ -89,7 +92,10 @@ class OracleModel(TensorDictModuleBase):
         in_keys: keys concatenated into ``inputs``.
         out_key: where predictions are written; also the measurement key in :meth:`observe`.
         noise_std: measurement noise of the Gaussian likelihood.
-        num_particles, jitter_std, lower, generator: see :class:`ParameterFilter`.
+        num_particles: see :class:`ParameterFilter`.
+        jitter_std: see :class:`ParameterFilter`.
+        lower: see :class:`ParameterFilter`.
+        generator: see :class:`ParameterFilter`.
 
     Example:
         >>> import torch
