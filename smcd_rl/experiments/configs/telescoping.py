@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from smcd_rl.experiments.configs import setting
-from smcd_rl.experiments.configs.two_link_family import TwoLinkFamilyConfig
+from smcd_rl.experiments.configs.two_link_family import FAMILY_FULL, TwoLinkFamilyConfig
 
 __all__ = ["TelescopingConfig", "FULL", "METHODS", "DEFAULT_METHODS", "TELESCOPING_DT", "TARGET_ANGULAR_SPEED"]
 
@@ -89,16 +89,5 @@ class TelescopingConfig(TwoLinkFamilyConfig):
             )
 
 
-#: What ``--full`` changes (options given explicitly still win). The Reptile epochs follow the
-#: paper's remark that its Reptile model trained for 1000 epochs against the M model's 200.
-FULL = {
-    "tasks": 1000,
-    "episodes": 150,
-    "hidden": 1024,
-    "epochs": 200,
-    "batch_size": 64,
-    "lr": 1e-4,
-    "reptile_epochs": 1000,
-    "trials": 1000,
-    "threads": 0,
-}
+#: What ``--full`` changes (options given explicitly still win).
+FULL = {**FAMILY_FULL, "trials": 1000}

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from smcd_rl.experiments.configs import setting
-from smcd_rl.experiments.configs.two_link_family import TwoLinkFamilyConfig
+from smcd_rl.experiments.configs.two_link_family import FAMILY_FULL, TwoLinkFamilyConfig
 
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "REPTILE_METHODS"]
 
@@ -62,19 +62,12 @@ class TwoLinkConfig(TwoLinkFamilyConfig):
 
 #: What ``--full`` changes (options given explicitly still win).
 FULL = {
-    "tasks": 1000,
-    "episodes": 150,
-    "hidden": 1024,
-    "epochs": 200,
-    "batch_size": 64,
-    "lr": 1e-4,
+    **FAMILY_FULL,
     "trials": 1000,
     "chunk": 25,
     "burn_in": (1, 5, 10, 20),
     "methods": (*DEFAULT_METHODS[:-1], *REPTILE_METHODS, DEFAULT_METHODS[-1]),
     "tuning_options": True,
-    "reptile_epochs": 1000,
     "lv_epochs": 200,
     "lv_batch_size": 64,
-    "threads": 0,
 }

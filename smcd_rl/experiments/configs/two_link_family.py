@@ -12,7 +12,21 @@ from dataclasses import dataclass
 from smcd_rl.experiments.configs import setting
 from smcd_rl.experiments.configs.adaptations import AdaptationConfig
 
-__all__ = ["TwoLinkFamilyConfig"]
+__all__ = ["TwoLinkFamilyConfig", "FAMILY_FULL"]
+
+#: The paper's scale of the shared data and training, which every two-link command's ``--full``
+#: starts from (1000 arms x 150 episodes, hidden 1024, 200 epochs; Reptile trained 1000 epochs
+#: against the M model's 200, as the paper remarks), with all CPU threads.
+FAMILY_FULL = {
+    "tasks": 1000,
+    "episodes": 150,
+    "hidden": 1024,
+    "epochs": 200,
+    "batch_size": 64,
+    "lr": 1e-4,
+    "reptile_epochs": 1000,
+    "threads": 0,
+}
 
 
 @dataclass
