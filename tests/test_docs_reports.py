@@ -27,6 +27,7 @@ REPORTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "two-link/report.md": ("two-link", ()),
     "panda/report.md": ("panda", ()),
     "telescoping/report.md": ("telescoping", ()),
+    "telescoping/measured/report.md": ("telescoping", ("feedback",)),
     "interpret/report.md": ("interpret", ()),
     "ant/report.md": ("ant", ()),
     "sweep/training/report.md": ("sweep", ()),
