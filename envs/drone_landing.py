@@ -26,7 +26,10 @@ import gymnasium
 import numpy as np
 import torch
 from gymnasium import spaces
+from numpy.typing import ArrayLike
 from torch import Tensor
+
+from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, Canvas, check_render_mode
 
 __all__ = [
     "DT",
@@ -41,6 +44,7 @@ __all__ = [
     "ACTION_DIM",
     "SUCCESS_REWARD",
     "DroneLandingEnv",
+    "drone_frame",
     "drone_observation",
     "drone_reward",
     "drone_transition",
@@ -252,6 +256,71 @@ def drone_reward(position: Tensor, next_position: Tensor, target: Tensor | int, 
     return progress + torch.where(touched_down, bonus, torch.zeros_like(bonus))
 
 
+_PLATFORM_COLOR, _TARGET_COLOR, _ARENA_COLOR = (170, 170, 165), (235, 150, 40), (120, 120, 115)
+_DRONE_COLOR, _ROTOR_COLOR, _TRAIL_COLOR = (40, 70, 120), (210, 50, 40), (150, 170, 205)
+# The frame shows the top view (x right, y up) above the side view (x right, z up): a top-view
+# point (x, y) is drawn at (x, y + _TOP_OFFSET) in one world plane with the side view's (x, z).
+_TOP_OFFSET = ARENA_HIGH[2] - ARENA_LOW[1] + 0.8
+_VIEW_HIGH = _TOP_OFFSET + ARENA_HIGH[1]
+
+
+def drone_frame(
+    position: ArrayLike,
+    target: int | None = None,
+    *,
+    trail: ArrayLike | None = None,
+    height: int = FRAME_SIZE[0],
+    width: int = FRAME_SIZE[1],
+) -> np.ndarray:
+    """An RGB frame of the drone over the platforms: top view above, side view below; a pure function of the state.
+
+    The platforms are grey (the target orange), the drone a blue cross with red rotors in both
+    views, and an optional ``trail`` of earlier positions a light blue line.
+
+    Args:
+        position: the drone's ``(x, y, z)`` (m).
+        target: the target platform's index, or ``None``.
+        trail: optional earlier positions ``[n, 3]``.
+        height: frame height in pixels.
+        width: frame width in pixels.
+
+    Returns:
+        ``uint8 [height, width, 3]``.
+
+    Example:
+        >>> frame = drone_frame(START, target=2)
+        >>> frame.shape, bool((frame != drone_frame((3.0, -1.5, 1.0), target=2)).any())
+        ((480, 480, 3), True)
+    """
+    p = np.asarray(position, dtype=np.float64).reshape(3)
+    span = max(ARENA_HIGH[0] - ARENA_LOW[0], _VIEW_HIGH - ARENA_LOW[2])
+    centre = ((ARENA_LOW[0] + ARENA_HIGH[0]) / 2, (ARENA_LOW[2] + _VIEW_HIGH) / 2)
+    canvas = Canvas(center=centre, extent=0.52 * span, height=height, width=width)
+    (x0, y0, z0), (x1, y1, z1) = ARENA_LOW, ARENA_HIGH
+    canvas.box((x0, y0 + _TOP_OFFSET), (x1, y1 + _TOP_OFFSET), color=_ARENA_COLOR, width=0.05)
+    canvas.box((x0, z0), (x1, z1), color=_ARENA_COLOR, width=0.05)
+    for i, (px, py, top, half) in enumerate(PLATFORMS):
+        color = _TARGET_COLOR if i == target else _PLATFORM_COLOR
+        canvas.box((px - half, py - half + _TOP_OFFSET), (px + half, py + half + _TOP_OFFSET), color=color)
+        canvas.box((px - half, 0.0), (px + half, top), color=color)
+    if trail is not None:
+        points = np.asarray(trail, dtype=np.float64).reshape(-1, 3)
+        canvas.polyline(points[:, :2] + (0.0, _TOP_OFFSET), color=_TRAIL_COLOR, width=0.06)
+        canvas.polyline(points[:, [0, 2]], color=_TRAIL_COLOR, width=0.06)
+    arm = 0.45  # m, half the drone's span as drawn
+    top_view = p[:2] + (0.0, _TOP_OFFSET)
+    for dx, dy in ((1, 1), (1, -1)):
+        offset = arm * np.array([dx, dy]) / math.sqrt(2)
+        canvas.line(top_view - offset, top_view + offset, color=_DRONE_COLOR, width=0.08)
+    for dx, dy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        canvas.disc(top_view + arm * np.array([dx, dy]) / math.sqrt(2), 0.14, color=_ROTOR_COLOR)
+    side_view = p[[0, 2]]
+    canvas.line(side_view - (arm, 0.0), side_view + (arm, 0.0), color=_DRONE_COLOR, width=0.1)
+    for rotor in (-arm, arm):
+        canvas.box(side_view + (rotor - 0.12, 0.05), side_view + (rotor + 0.12, 0.12), color=_ROTOR_COLOR)
+    return canvas.image
+
+
 class DroneLandingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     """Land a velocity-commanded drone on one of five platforms.
 
@@ -316,7 +385,8 @@ class DroneLandingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     - `dt`: control period in seconds (default `0.2`).
     - `tau`: velocity time constant in seconds (default `0.4`).
     - `max_speed`: command bound per axis in m/s (default `2.0`).
-    - `render_mode`: only `None` is supported.
+    - `render_mode`: `None` or `"rgb_array"` (a 480 x 480 frame, top view above side view, of the
+      drone and the platforms, the target orange: `drone_frame`).
 
     ```python
     >>> import gymnasium, numpy as np
@@ -337,13 +407,12 @@ class DroneLandingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     * v0: Initial version.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: dict[str, Any] = {"render_modes": list(RENDER_MODES), "render_fps": round(1 / DT)}
 
     def __init__(
-        self, dt: float = DT, tau: float = TAU, max_speed: float = MAX_SPEED, render_mode: None = None
+        self, dt: float = DT, tau: float = TAU, max_speed: float = MAX_SPEED, render_mode: str | None = None
     ) -> None:
-        if render_mode is not None:
-            raise ValueError(f"render_mode must be None (no rendering), got {render_mode!r}.")
+        check_render_mode(render_mode)
         for name, value in (("dt", dt), ("tau", tau), ("max_speed", max_speed)):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}.")
@@ -431,6 +500,25 @@ class DroneLandingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             info["landed_on"] = int(platform_index(position[:2]))
             info["success"] = bool(landing_success(position, self._target))
         return self._observation(), reward, terminated, False, info
+
+    def render(self) -> np.ndarray | None:
+        """The drone and the platforms as ``uint8 [480, 480, 3]`` (``render_mode="rgb_array"``), else None.
+
+        Example:
+            >>> env = DroneLandingEnv(render_mode="rgb_array")
+            >>> _ = env.reset(seed=0)
+            >>> env.render().shape
+            (480, 480, 3)
+        """
+        if self.render_mode is None:
+            gymnasium.logger.warn(
+                "You are calling render method without specifying any render mode; "
+                'pass render_mode="rgb_array" at initialization.'
+            )
+            return None
+        if self._position is None:
+            raise RuntimeError("call reset() before render().")
+        return drone_frame(self._position, self._target)
 
     def _observation(self) -> np.ndarray:
         assert self._position is not None

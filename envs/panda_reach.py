@@ -17,6 +17,7 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from typing import Any, SupportsFloat
@@ -28,6 +29,8 @@ from gymnasium import spaces
 from numpy.typing import ArrayLike
 from tensordict import TensorDict
 from torch import Tensor
+
+from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, Canvas, check_render_mode
 
 __all__ = [
     "ACCELERATION_LIMITS",
@@ -45,7 +48,9 @@ __all__ = [
     "integrate_panda",
     "joint_limits",
     "panda_fk",
+    "panda_frame",
     "panda_kinematics_data",
+    "panda_points",
     "sample_goals",
     "sample_joint_configurations",
     "sample_tool_lengths",
@@ -145,6 +150,140 @@ def panda_fk(q: Tensor, tool_length: float | Tensor = 0.0) -> Tensor:
             position = position + d * rotation[..., :, 2]
     reach = FLANGE_LENGTH + torch.as_tensor(tool_length, dtype=q.dtype, device=q.device)
     return position + reach.unsqueeze(-1) * rotation[..., :, 2]
+
+
+def panda_points(q: Tensor, tool_length: float | Tensor = 0.0) -> Tensor:
+    """The points of the Panda's stick figure: base, the chain's offsets, flange and tool tip, ``[..., 9, 3]``.
+
+    The chain of :func:`panda_fk`, keeping the position after each of its translations (joint 1's
+    ``d``, joint 3's ``d``, joint 4's ``a``, joint 5's ``a`` and ``d``, joint 7's ``a``), then the
+    flange and the tool tip; the last point is :func:`panda_fk`'s end effector.
+
+    Example:
+        >>> import torch
+        >>> q = torch.tensor(READY_POSE)
+        >>> points = panda_points(q, 0.2)
+        >>> points.shape, bool(torch.allclose(points[-1], panda_fk(q, 0.2)))
+        (torch.Size([9, 3]), True)
+    """
+    if q.shape[-1:] != (_N_JOINTS,):
+        raise ValueError(f"q must have shape [..., 7] (the Panda's joint angles), got {list(q.shape)}")
+    batch = q.shape[:-1]
+    rotation = torch.eye(3, dtype=q.dtype, device=q.device).expand(*batch, 3, 3)
+    position = torch.zeros(*batch, 3, dtype=q.dtype, device=q.device)
+    points = [position]
+    zero, one = torch.zeros_like(q[..., 0]), torch.ones_like(q[..., 0])
+    for i, (a, d, alpha) in enumerate(DH_TABLE):
+        if a != 0.0:
+            position = position + a * rotation[..., :, 0]
+            points.append(position)
+        if alpha != 0.0:
+            rotation = rotation @ _rot_x(alpha, q)
+        c, s = torch.cos(q[..., i]), torch.sin(q[..., i])
+        rot_z = torch.stack(
+            (torch.stack((c, -s, zero), -1), torch.stack((s, c, zero), -1), torch.stack((zero, zero, one), -1)), -2
+        )
+        rotation = rotation @ rot_z
+        if d != 0.0:
+            position = position + d * rotation[..., :, 2]
+            points.append(position)
+    points.append(position + FLANGE_LENGTH * rotation[..., :, 2])
+    reach = FLANGE_LENGTH + torch.as_tensor(tool_length, dtype=q.dtype, device=q.device)
+    points.append(position + reach.unsqueeze(-1) * rotation[..., :, 2])
+    return torch.stack(points, dim=-2)
+
+
+#: The camera of :func:`panda_frame`: azimuth and elevation (rad) of an orthographic view.
+_VIEW_AZIMUTH, _VIEW_ELEVATION = math.radians(35.0), math.radians(20.0)
+_ARM_COLOR, _JOINT_COLOR, _TOOL_COLOR = (40, 70, 120), (20, 20, 20), (210, 50, 40)
+_GOAL_COLOR, _FLOOR_COLOR, _SHADOW_COLOR = (30, 150, 60), (215, 215, 208), (185, 185, 178)
+
+
+def _project(points: np.ndarray) -> np.ndarray:
+    """World points ``[..., 3]`` to the view plane ``[..., 2]`` (orthographic, z up on screen)."""
+    ca, sa = math.cos(_VIEW_AZIMUTH), math.sin(_VIEW_AZIMUTH)
+    ce, se = math.cos(_VIEW_ELEVATION), math.sin(_VIEW_ELEVATION)
+    right = np.array([-sa, ca, 0.0])
+    up = np.array([-ca * se, -sa * se, ce])
+    return np.stack((points @ right, points @ up), axis=-1)
+
+
+_FLOOR_HALF = 0.7  # m: the floor grid spans [-0.7, 0.7]^2
+_VIEW_CENTER, _VIEW_EXTENT = (0.0, 0.4), 1.0  # view-plane centre and half span (m)
+
+
+@functools.lru_cache(maxsize=4)
+def _floor(height: int, width: int) -> np.ndarray:
+    """The static part of every Panda frame, the floor grid, drawn once per frame size."""
+    canvas = Canvas(center=_VIEW_CENTER, extent=_VIEW_EXTENT, height=height, width=width)
+    for v in np.linspace(-_FLOOR_HALF, _FLOOR_HALF, 9):
+        for start, end in (
+            ((v, -_FLOOR_HALF, 0.0), (v, _FLOOR_HALF, 0.0)),
+            ((-_FLOOR_HALF, v, 0.0), (_FLOOR_HALF, v, 0.0)),
+        ):
+            canvas.line(_project(np.array(start)), _project(np.array(end)), color=_FLOOR_COLOR)
+    canvas.image.flags.writeable = False  # shared by every frame of this size
+    return canvas.image
+
+
+def panda_frame(
+    q: ArrayLike,
+    tool_length: float,
+    goal: ArrayLike | None = None,
+    *,
+    measured: bool = False,
+    height: int = FRAME_SIZE[0],
+    width: int = FRAME_SIZE[1],
+) -> np.ndarray:
+    """An RGB frame of the Panda as a stick figure in an oblique orthographic view: a pure function of the state.
+
+    The arm (blue, joints black) stands on a floor grid of 1.4 x 1.4 m; the tool from the flange to
+    the end effector is red, the goal a green ring, and the goal's and the end effector's
+    shadows on the floor (grey) show their heights. ``measured`` draws a ring round the end
+    effector: the steps at which the true position was measured.
+
+    Args:
+        q: joint angles ``[7]`` (rad).
+        tool_length: the tool's extension beyond the flange (m).
+        goal: an optional goal ``(x, y, z)``.
+        measured: mark the end effector as measured at this step.
+        height: frame height in pixels.
+        width: frame width in pixels.
+
+    Returns:
+        ``uint8 [height, width, 3]``.
+
+    Example:
+        >>> frame = panda_frame(READY_POSE, 0.1, goal=(0.5, 0.2, 0.4))
+        >>> frame.shape, frame.dtype
+        ((480, 480, 3), dtype('uint8'))
+    """
+    joints = torch.as_tensor(np.asarray(q, dtype=np.float64))
+    points = panda_points(joints, float(tool_length)).numpy()
+    canvas = Canvas(
+        center=_VIEW_CENTER, extent=_VIEW_EXTENT, height=height, width=width, background=_floor(height, width)
+    )
+    unit = 0.01
+    tip = points[-1]
+    shadows = [tip] if goal is None else [tip, np.asarray(goal, dtype=np.float64)]
+    for point in shadows:
+        floor = point * np.array([1.0, 1.0, 0.0])
+        canvas.line(_project(floor), _project(point), color=_SHADOW_COLOR, width=0.4 * unit)
+        canvas.disc(_project(floor), 1.2 * unit, color=_SHADOW_COLOR)
+    screen = _project(points)
+    canvas.box(screen[0] - 4 * unit, screen[0] + 4 * unit, color=_JOINT_COLOR)  # the base
+    canvas.polyline(screen[:-1], color=_ARM_COLOR, width=2.2 * unit)
+    for point in screen[1:-1]:
+        canvas.disc(point, 1.4 * unit, color=_JOINT_COLOR)
+    canvas.line(screen[-2], screen[-1], color=_TOOL_COLOR, width=1.4 * unit)
+    if goal is not None:
+        centre = _project(np.asarray(goal, dtype=np.float64))
+        canvas.ring(centre, GOAL_TOLERANCE, color=_GOAL_COLOR, width=0.8 * unit)
+        canvas.disc(centre, 0.8 * unit, color=_GOAL_COLOR)
+    canvas.disc(screen[-1], 1.6 * unit, color=_TOOL_COLOR)
+    if measured:
+        canvas.ring(screen[-1], 3.2 * unit, color=_TOOL_COLOR, width=0.6 * unit)
+    return canvas.image
 
 
 def _rot_x(alpha: float, like: Tensor) -> Tensor:
@@ -364,7 +503,8 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     - `dt`: control period in seconds (default 0.05).
     - `tool_range`: tools are drawn from `U(-tool_range, tool_range)` (default 0.5 m).
     - `goal_tolerance`: success distance in m (default 0.05).
-    - `render_mode`: only `None` is supported.
+    - `render_mode`: `None` or `"rgb_array"` (a 480 x 480 stick figure of the arm with its tool and
+      the goal, `panda_frame`; a ring marks a measured step).
 
     ```python
     >>> import gymnasium, numpy as np, smcd_rl
@@ -382,7 +522,7 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     * v0: Initial version (paper section 4.2).
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: dict[str, Any] = {"render_modes": list(RENDER_MODES), "render_fps": round(1 / DEFAULT_DT)}
     # Narrowed from gymnasium.Env's Space: __init__ always sets Boxes, and _observation clips to their bounds.
     action_space: spaces.Box
     observation_space: spaces.Box
@@ -394,10 +534,9 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         dt: float = DEFAULT_DT,
         tool_range: float = TOOL_RANGE,
         goal_tolerance: float = GOAL_TOLERANCE,
-        render_mode: None = None,
+        render_mode: str | None = None,
     ) -> None:
-        if render_mode is not None:
-            raise ValueError(f"render_mode must be None (no rendering), got {render_mode!r}")
+        check_render_mode(render_mode)
         if (
             isinstance(measurement_interval, bool)
             or not isinstance(measurement_interval, int)
@@ -432,6 +571,7 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self._tool = 0.0
         self._goal = np.zeros(3)
         self._measured = np.zeros(3)
+        self._fresh = False  # whether the last step measured (for render)
         self._steps = 0
 
     def reset(
@@ -477,6 +617,7 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self._steps = 0
         ee = self._ee_true()
         self._measure(ee)
+        self._fresh = True
         return self._observation(fresh=True), self._info(ee, fresh=True)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
@@ -505,8 +646,28 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         ee = self._ee_true()
         if fresh:
             self._measure(ee)
+        self._fresh = fresh
         info = self._info(ee, fresh=fresh)
         return self._observation(fresh=fresh), -info["distance"], info["is_success"], False, info
+
+    def render(self) -> np.ndarray | None:
+        """The arm, its tool and the goal as ``uint8 [480, 480, 3]`` (``render_mode="rgb_array"``), else None.
+
+        Example:
+            >>> env = PandaReachEnv(render_mode="rgb_array")
+            >>> _ = env.reset(seed=0)
+            >>> env.render().shape
+            (480, 480, 3)
+        """
+        if self.render_mode is None:
+            gymnasium.logger.warn(
+                "You are calling render method without specifying any render mode; "
+                'pass render_mode="rgb_array" at initialization.'
+            )
+            return None
+        if self._q is None:
+            raise RuntimeError("call reset() before render()")
+        return panda_frame(self._q.numpy(), self._tool, self._goal, measured=self._fresh)
 
     def _ee_true(self) -> np.ndarray:
         assert self._q is not None

@@ -21,8 +21,11 @@ import gymnasium
 import numpy as np
 import torch
 from gymnasium import spaces
+from numpy.typing import ArrayLike
 from tensordict import TensorDict
 from torch import Tensor
+
+from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, Canvas, check_render_mode
 
 __all__ = [
     "DEFAULT_DT",
@@ -31,6 +34,7 @@ __all__ = [
     "motor_babbling",
     "sample_link_lengths",
     "two_link_fk",
+    "two_link_frame",
     "wrap_angle",
 ]
 
@@ -172,6 +176,71 @@ def sample_link_lengths(
         out[rejected] = mean + std * redraw
         rejected = out < min_length
     return out
+
+
+#: Colours of the two-link frames (links, joints, end effector, goal, the goal's path).
+LINK_COLOR, JOINT_COLOR, EE_COLOR = (40, 70, 120), (20, 20, 20), (210, 50, 40)
+GOAL_COLOR, PATH_COLOR = (30, 150, 60), (200, 200, 195)
+
+
+def two_link_frame(
+    q: ArrayLike,
+    link_lengths: ArrayLike,
+    goal: ArrayLike | None = None,
+    *,
+    path_radius: float | None = None,
+    extent: float | None = None,
+    height: int = FRAME_SIZE[0],
+    width: int = FRAME_SIZE[1],
+) -> np.ndarray:
+    """An RGB frame of the planar arm at joint angles ``q``: a pure function of the state.
+
+    The base sits at the centre; the links are drawn in blue, the end effector red, a ``goal``
+    (if any) as a green ring and a ``path_radius`` (the telescoping task's target circle) as a
+    grey circle about the base.
+
+    Args:
+        q: joint angles ``(q1, q2)`` (rad).
+        link_lengths: ``(l1, l2)`` (m).
+        goal: an optional target point ``(x, y)``.
+        path_radius: an optional circle about the base to draw (m).
+        extent: metres from the centre to the frame's nearer edge; by default 1.15 times the
+            farthest of the arm's reach, the goal and the circle, so pass it to keep the scale
+            fixed across a video whose lengths change.
+        height: frame height in pixels.
+        width: frame width in pixels.
+
+    Returns:
+        ``uint8 [height, width, 3]``.
+
+    Example:
+        >>> frame = two_link_frame((0.0, 0.5), (1.0, 0.8), goal=(1.0, 1.0))
+        >>> frame.shape, frame.dtype
+        ((480, 480, 3), dtype('uint8'))
+        >>> bool((frame != two_link_frame((0.3, 0.5), (1.0, 0.8), goal=(1.0, 1.0))).any())
+        True
+    """
+    q1, q2 = (float(v) for v in np.asarray(q, dtype=np.float64).reshape(2))
+    l1, l2 = (float(v) for v in np.asarray(link_lengths, dtype=np.float64).reshape(2))
+    elbow = np.array([l1 * math.cos(q1), l1 * math.sin(q1)])
+    ee = elbow + l2 * np.array([math.cos(q1 + q2), math.sin(q1 + q2)])
+    if extent is None:
+        far = [abs(l1) + abs(l2), path_radius or 0.0]
+        if goal is not None:
+            far.append(float(np.linalg.norm(np.asarray(goal, dtype=np.float64))))
+        extent = 1.15 * max(max(far), 0.1)
+    canvas = Canvas(extent=extent, height=height, width=width)
+    unit = extent / 40  # line widths and marker sizes scale with the view
+    if path_radius is not None:
+        canvas.ring((0.0, 0.0), path_radius, color=PATH_COLOR, width=0.5 * unit)
+    if goal is not None:
+        canvas.ring(goal, 1.6 * unit, color=GOAL_COLOR, width=0.7 * unit)
+        canvas.disc(goal, 0.5 * unit, color=GOAL_COLOR)
+    canvas.box((-1.5 * unit, -1.5 * unit), (1.5 * unit, 1.5 * unit), color=JOINT_COLOR)  # the fixed base
+    canvas.polyline(np.stack([np.zeros(2), elbow, ee]), color=LINK_COLOR, width=1.0 * unit)
+    canvas.disc(elbow, 0.9 * unit, color=JOINT_COLOR)
+    canvas.disc(ee, 1.0 * unit, color=EE_COLOR)
+    return canvas.image
 
 
 def _check_positive_int(name: str, value: int) -> None:
@@ -345,7 +414,7 @@ class TwoLinkArmEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     - `min_link_length`: smallest physical link length (default `0.1`).
     - `measurement_noise`: std of the Gaussian end-effector measurement noise (default `0`).
     - `max_speed`: joint velocity bound in rad/s (default `3.0`).
-    - `render_mode`: only `None` is supported.
+    - `render_mode`: `None` or `"rgb_array"` (a 480 x 480 frame of the arm, `two_link_frame`).
 
     ```python
     >>> import gymnasium
@@ -365,7 +434,7 @@ class TwoLinkArmEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     * v0: Initial version (paper section 4.1).
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: dict[str, Any] = {"render_modes": list(RENDER_MODES), "render_fps": round(1 / DEFAULT_DT)}
 
     def __init__(
         self,
@@ -375,10 +444,9 @@ class TwoLinkArmEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         min_link_length: float = 0.1,
         measurement_noise: float = 0.0,
         max_speed: float = 3.0,
-        render_mode: None = None,
+        render_mode: str | None = None,
     ) -> None:
-        if render_mode is not None:
-            raise ValueError(f"render_mode must be None (no rendering), got {render_mode!r}.")
+        check_render_mode(render_mode)
         if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be finite and > 0, got {dt!r}; pass e.g. dt={DEFAULT_DT}.")
         if not (math.isfinite(max_speed) and max_speed > 0):
@@ -483,6 +551,25 @@ class TwoLinkArmEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self._q = integrate_joints(torch.as_tensor(self._q), torch.as_tensor(u), self.dt).numpy()
         obs, info = self._observe()
         return obs, 0.0, False, False, info
+
+    def render(self) -> np.ndarray | None:
+        """The current arm as ``uint8 [480, 480, 3]`` (``render_mode="rgb_array"``), else None with a warning.
+
+        Example:
+            >>> env = TwoLinkArmEnv(render_mode="rgb_array")
+            >>> _ = env.reset(seed=0)
+            >>> env.render().shape
+            (480, 480, 3)
+        """
+        if self.render_mode is None:
+            gymnasium.logger.warn(
+                "You are calling render method without specifying any render mode; "
+                'pass render_mode="rgb_array" at initialization.'
+            )
+            return None
+        if self._q is None:
+            raise RuntimeError("call reset() before render().")
+        return two_link_frame(self._q, self._link_lengths)
 
     def _observe(self) -> tuple[np.ndarray, dict[str, Any]]:
         assert self._q is not None

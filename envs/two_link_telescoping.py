@@ -22,13 +22,16 @@ import gymnasium
 import numpy as np
 import torch
 from gymnasium import spaces
+from numpy.typing import ArrayLike
 from torch import Tensor
 
+from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, check_render_mode
 from smcd_rl.envs.two_link_arm import (
     _check_link_length_prior,
     _check_non_negative,
     sample_link_lengths,
     two_link_fk,
+    two_link_frame,
     wrap_angle,
 )
 
@@ -40,6 +43,7 @@ __all__ = [
     "circle_target",
     "integrate_acceleration",
     "sample_initial_state",
+    "telescoping_frame",
     "telescoping_length",
     "telescoping_link_lengths",
     "tracking_reward",
@@ -223,6 +227,43 @@ def sample_initial_state(
     return {"l1": l1, "q": q, "radius": radius, "start_angle": start_angle}
 
 
+def telescoping_frame(
+    q: ArrayLike,
+    l1: float,
+    k: int,
+    target: ArrayLike,
+    radius: float,
+    *,
+    height: int = FRAME_SIZE[0],
+    width: int = FRAME_SIZE[1],
+) -> np.ndarray:
+    """An RGB frame of the arm at step ``k`` (second link ``telescoping_length(k)``), its target and the circle.
+
+    A pure function of the state, on a scale fixed over the episode (the longest the arm gets,
+    ``l1 + 1.25``, or the circle), so the frames of one episode make a steady video.
+
+    Args:
+        q: joint angles ``(q1, q2)`` (rad).
+        l1: length of the first link (m).
+        k: the step, which sets the second link's length.
+        target: the target's position ``(x, y)``.
+        radius: the target circle's radius (m).
+        height: frame height in pixels.
+        width: frame width in pixels.
+
+    Returns:
+        ``uint8 [height, width, 3]``.
+
+    Example:
+        >>> frame = telescoping_frame((0.0, 0.0), 1.0, 0, (1.0, 0.0), 1.0)
+        >>> frame.shape, bool((frame != telescoping_frame((0.0, 0.0), 1.0, 10, (1.0, 0.0), 1.0)).any())
+        ((480, 480, 3), True)
+    """
+    lengths = (float(l1), float(telescoping_length(k)))
+    extent = 1.15 * max(abs(float(l1)) + 1.25, float(radius))
+    return two_link_frame(q, lengths, target, path_radius=radius, extent=extent, height=height, width=width)
+
+
 class TwoLinkTelescopingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     """Two-link arm with a telescoping second link, following a target around a circle.
 
@@ -296,7 +337,8 @@ class TwoLinkTelescopingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
       `N(1, 0.3)` truncated at 0.1, the training prior of the two-link task).
     - `measurement_noise`: std of the Gaussian end-effector measurement noise (default `0`).
     - `max_acceleration`: joint acceleration bound in rad/s^2 (default `100`).
-    - `render_mode`: only `None` is supported.
+    - `render_mode`: `None` or `"rgb_array"` (a 480 x 480 frame of the arm, its target and the
+      circle, `telescoping_frame`).
 
     ```python
     >>> import gymnasium, numpy as np
@@ -317,7 +359,7 @@ class TwoLinkTelescopingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     * v0: Initial version (paper appendix A.4).
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: dict[str, Any] = {"render_modes": list(RENDER_MODES), "render_fps": round(1 / TELESCOPING_DT)}
 
     def __init__(
         self,
@@ -328,10 +370,9 @@ class TwoLinkTelescopingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         min_link_length: float = 0.1,
         measurement_noise: float = 0.0,
         max_acceleration: float = 100.0,
-        render_mode: None = None,
+        render_mode: str | None = None,
     ) -> None:
-        if render_mode is not None:
-            raise ValueError(f"render_mode must be None (no rendering), got {render_mode!r}.")
+        check_render_mode(render_mode)
         if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be finite and > 0, got {dt!r}; pass e.g. dt={TELESCOPING_DT}.")
         if not math.isfinite(angular_speed):
@@ -443,6 +484,28 @@ class TwoLinkTelescopingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         obs, info = self._observe()
         reward = float(tracking_reward(torch.as_tensor(info["ee_true"], dtype=torch.float64), self._target()))
         return obs, reward, False, False, info
+
+    def render(self) -> np.ndarray | None:
+        """The arm, its target and the circle as ``uint8 [480, 480, 3]`` (``render_mode="rgb_array"``), else None.
+
+        Example:
+            >>> env = TwoLinkTelescopingEnv(render_mode="rgb_array")
+            >>> _ = env.reset(seed=0)
+            >>> env.render().shape
+            (480, 480, 3)
+        """
+        if self.render_mode is None:
+            gymnasium.logger.warn(
+                "You are calling render method without specifying any render mode; "
+                'pass render_mode="rgb_array" at initialization.'
+            )
+            return None
+        if self._state is None:
+            raise RuntimeError("call reset() before render().")
+        state = self._state
+        return telescoping_frame(
+            state["q"].numpy(), float(state["l1"]), self._k, self._target().numpy(), float(state["radius"])
+        )
 
     def _target(self) -> Tensor:
         assert self._state is not None

@@ -1,5 +1,8 @@
 """Fixtures shared across test files: a small trained two-link forward-kinematics model."""
 
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless MuJoCo rendering for every test; before mujoco is imported
 import pytest
 import torch
 

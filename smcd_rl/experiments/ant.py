@@ -87,7 +87,7 @@ import torch
 
 import smcd_rl
 from smcd_rl.digests import content_digest, model_digest
-from smcd_rl.experiments.ant_episodes import ACTION_DIM, OBS_DIM, collect, run_cell, validation_error
+from smcd_rl.experiments.ant_episodes import ACTION_DIM, OBS_DIM, collect, render_states, run_cell, validation_error
 from smcd_rl.experiments.ant_prediction import prediction_errors, random_episodes
 from smcd_rl.experiments.common import format_table
 from smcd_rl.experiments.configs.ant import ADAPTATIONS, CONDITIONS, FULL, PLANNERS, TASKS, AntConfig
@@ -95,6 +95,7 @@ from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.tuning import VARIANTS, Tuning, tune
+from smcd_rl.experiments.video import video_name, write_gif
 
 __all__ = [
     "AntConfig",
@@ -206,10 +207,14 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
                 episode_seeds=episode_seeds,
                 device=ex.device,
                 progress=progress,
+                record=min(config.video, config.episodes),  # --video: the first episodes keep their states
             )
             for cell in cells
         }
-        done = ex.evaluate(cell_runs, lambda name, result: result, content=content)
+        # Recorded videos are part of a cell's results, so their count keys them (only when recorded).
+        cell_content = {**content, **({"video": config.video} if config.video else {})}
+        done = ex.evaluate(cell_runs, lambda name, result: result, content=cell_content)
+        videos = _write_videos({cell: done["/".join(cell)] for cell in cells}, config, ex.out)
         episodes = {cell: done["/".join(cell)]["episodes"] for cell in cells}
         returns: dict[tuple[str, str], dict[str, torch.Tensor]] = {}
         for (planner, adaptation, condition), records in episodes.items():
@@ -301,8 +306,20 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
                 ],
             },
             plots=plots,
+            files=videos,
         )
     return ex.result
+
+
+def _write_videos(done: dict[tuple[str, str, str], dict[str, Any]], config: AntConfig, out: Path) -> list[str]:
+    """``videos/<planner>-<adaptation>-<condition>-<k>.gif``: each cell's first ``--video`` MPC episodes, redrawn by MuJoCo."""
+    names = []
+    for (planner, adaptation, condition), result in done.items():
+        for k, episode in enumerate(result.get("video", ())):
+            frames, fps = render_states(config.task, episode["leg"], episode["states"], max_steps=config.episode_steps)
+            names.append(video_name(f"{PLANNERS[planner]}-{ADAPTATIONS[adaptation]}-{condition}", k))
+            write_gif(frames, out / names[-1], fps=fps)
+    return names
 
 
 def _strategy(tuning: Tuning, config: AntConfig, device: torch.device, variant: str) -> smcd_rl.Adaptation:

@@ -14,6 +14,7 @@ used, so that ``smcd-rl --help`` works without it.
 from __future__ import annotations
 
 import functools
+import os
 import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -33,20 +34,67 @@ from smcd_rl.integrations.gymnasium import AdaptationWrapper, collect_transition
 if TYPE_CHECKING:
     from smcd_rl.experiments.ant import AntConfig
 
-__all__ = ["RewardWeights", "TASKS", "OBS_DIM", "ACTION_DIM", "make_env", "collect", "validation_error", "run_cell"]
+__all__ = [
+    "RewardWeights",
+    "TASKS",
+    "OBS_DIM",
+    "ACTION_DIM",
+    "make_env",
+    "collect",
+    "validation_error",
+    "run_cell",
+    "render_states",
+]
 
 #: The Ant's observation (without contact forces) and action sizes.
 OBS_DIM, ACTION_DIM = 41, 8
 _X = 0  # torso x position in the observation (OBS_SLICES["qpos"].start)
 
 
-def make_env(task: str, legs: tuple[int, ...] | None, max_steps: int) -> gymnasium.Env[np.ndarray, np.ndarray]:
+def make_env(
+    task: str, legs: tuple[int, ...] | None, max_steps: int, *, render_mode: str | None = None
+) -> gymnasium.Env[np.ndarray, np.ndarray]:
     """The task's Ant, crippling a leg drawn from ``legs`` per episode (``None``: healthy)."""
     from smcd_rl.envs.crippled_ant import CrippledAntEnv
 
     return gymnasium.wrappers.TimeLimit(
-        CrippledAntEnv(crippled_legs=legs, **TASKS[task][0]), max_episode_steps=max_steps
+        CrippledAntEnv(crippled_legs=legs, render_mode=render_mode, **TASKS[task][0]), max_episode_steps=max_steps
     )
+
+
+def _mujoco_state(env: gymnasium.Env[Any, Any]) -> np.ndarray:
+    """The simulator's ``(qpos, qvel)``, concatenated: what a video needs to redraw the step."""
+    data = env.unwrapped.data  # type: ignore[attr-defined]
+    return np.concatenate([data.qpos, data.qvel])
+
+
+def render_states(task: str, leg: int, states: np.ndarray, *, max_steps: int) -> tuple[list[np.ndarray], float]:
+    """MuJoCo frames of recorded ``(qpos, qvel)`` states ``[T, nq + nv]`` of an episode with leg ``leg`` crippled (-1: none).
+
+    The env is made with ``render_mode="rgb_array"`` and reset with that leg, then set to each
+    state in turn (``MujocoEnv.set_state``) and rendered; nothing is simulated.
+
+    Without a display and with no ``MUJOCO_GL`` chosen, MuJoCo renders through EGL (headless);
+    gymnasium reads the variable when the renderer is made.
+
+    Returns:
+        The frames and the env's frame rate (``metadata["render_fps"]``).
+    """
+    if not os.environ.get("DISPLAY"):
+        os.environ.setdefault("MUJOCO_GL", "egl")  # glfw, gymnasium's first choice, needs a display
+    env = make_env(task, None, max_steps, render_mode="rgb_array")
+    env.reset(seed=0, options={"crippled_leg": None if leg < 0 else leg})
+    mujoco_env = env.unwrapped
+    nq = mujoco_env.model.nq  # type: ignore[attr-defined]
+    frames = []
+    for state in states:
+        mujoco_env.set_state(state[:nq], state[nq:])  # type: ignore[attr-defined]
+        frame = env.render()
+        assert isinstance(frame, np.ndarray)
+        frames.append(frame)
+    fps = float(env.metadata.get("render_fps") or 20)
+    env.close()
+    return frames, fps
 
 
 def collect(config: AntConfig, *, progress: bool) -> dict[str, Any]:
@@ -122,6 +170,7 @@ def run_cell(
     episode_seeds: Sequence[int],
     device: torch.device,
     progress: bool,
+    record: int = 0,
 ) -> dict[str, Any]:
     """The episodes of one (planner, adaptation, condition) cell: ``{"episodes": [one record per episode]}``.
 
@@ -135,6 +184,9 @@ def run_cell(
         episode_seeds: one env seed per episode (its start state and, crippled, its leg).
         device: torch device of the model and planner.
         progress: show a progress bar over the cell's steps.
+        record: keep the simulator states of the first ``record`` episodes, under ``"video"``
+            (``{"leg": ..., "states": [steps + 1, nq + nv]}`` each, for :func:`render_states`);
+            recording changes no number.
     """
     from smcd_rl.envs.crippled_ant import ant_reward, ant_termination
 
@@ -151,7 +203,7 @@ def run_cell(
         functools.partial(ant_reward, **weights),
         ant_termination if terminates else None,
     )
-    episodes = []
+    episodes, videos = [], []
     bar = tqdm(
         total=len(episode_seeds) * config.episode_steps,
         desc="/".join(cell),
@@ -164,11 +216,16 @@ def run_cell(
         obs, info = env.reset(seed=episode_seed)
         agent.reset()
         x0, total, steps, terminated, truncated = float(obs[_X]), 0.0, 0, False, False
+        states = [_mujoco_state(env)] if k < record else None
         while not (terminated or truncated):
             obs, reward, terminated, truncated, info = env.step(agent.act(obs))
             total += float(reward)
             steps += 1
             bar.update(1)
+            if states is not None:
+                states.append(_mujoco_state(env))
+        if states is not None:
+            videos.append({"leg": int(info["crippled_leg"]), "states": np.stack(states)})
         bar.update(config.episode_steps - steps)
         episodes.append(
             {
@@ -184,4 +241,4 @@ def run_cell(
         )
     bar.close()
     env.close()
-    return {"episodes": episodes}
+    return {"episodes": episodes, **({"video": videos} if record else {})}

@@ -69,9 +69,7 @@ from torch import Tensor
 
 import smcd_rl
 from smcd_rl.digests import model_digest
-from smcd_rl.envs.panda_reach import (
-    panda_kinematics_data,
-)
+from smcd_rl.envs.panda_reach import panda_frame, panda_kinematics_data
 from smcd_rl.experiments.common import format_table
 from smcd_rl.experiments.configs.panda import DEFAULT_INTERVALS, FULL, METHODS, PandaConfig
 from smcd_rl.experiments.harness import Experiment
@@ -79,6 +77,7 @@ from smcd_rl.experiments.panda_reaching import method_kinematics, reach, sample_
 from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.tuning import tune
+from smcd_rl.experiments.video import video_name, write_gif
 
 __all__ = [
     "PandaConfig",
@@ -122,21 +121,43 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
         # --- every (method, n) on the same arms: each seed's tasks run as one batch -----------------
         labels = method_labels(config)
         runs = {f"{label} n={n}": (label, n) for label in labels for n in _intervals(label, config)}
+        video_n = _video_interval(config)
 
         def evaluate(name: str, unit: tuple[str, int]) -> dict[str, Tensor]:
             label, n = unit
-            per_seed = []
+            per_seed: list[dict[str, Tensor]] = []
+            videos: list[dict[str, Tensor]] = []
             for s in ex.bar(range(config.seeds), desc=name, unit="seed"):
                 tools, goals = sample_tasks(config, s, ex.device)
                 kinematics, observe = method_kinematics(label, model, tools, tuning, config, s, ex.device)
                 # Measurement noise (if any) from the seed alone: every method and n sees the same draws.
                 noise = torch.Generator(device=ex.device).manual_seed(config.seed * 1_000_003 + 104_729 * (s + 1))
-                outcome = reach(kinematics, observe, tools, goals, interval=n, config=config, generator=noise)
+                # --video: the first arms (seed 0's, then seed 1's, ...) keep their joint angles at every step.
+                record = (
+                    min(config.video - sum(int(v["q"].shape[0]) for v in videos), config.tasks) if n == video_n else 0
+                )
+                outcome = reach(
+                    kinematics, observe, tools, goals, interval=n, config=config, generator=noise, record=record
+                )
+                if record > 0:
+                    trajectory = outcome.pop("trajectory")
+                    first_arms = {"tools": tools[:record], "goals": goals[:record], "steps": outcome["steps"][:record]}
+                    videos.append({"q": trajectory, **{key: value.cpu() for key, value in first_arms.items()}})
                 per_seed.append({**outcome, "tools": tools})
-            return {key: torch.stack([r[key].cpu() for r in per_seed]) for key in per_seed[0]}  # [seeds, tasks]
+            result = {key: torch.stack([r[key].cpu() for r in per_seed]) for key in per_seed[0]}  # [seeds, tasks]
+            if videos:
+                result |= {f"video_{key}": torch.cat([v[key] for v in videos]) for key in videos[0]}
+            return result
 
         units = {name: functools.partial(_unit, *unit) for name, unit in runs.items()}
-        done = ex.evaluate(units, evaluate, content={"model": model_digest(model)})
+        digest = model_digest(model)
+        done = ex.evaluate(
+            units,
+            evaluate,
+            # The recorded videos are part of those results, so their count keys them (only where recorded).
+            content=lambda name: {"model": digest, **({"video": config.video} if runs[name][1] == video_n else {})},
+        )
+        videos = _write_videos({unit: done[name] for name, unit in runs.items()}, video_n, config, ex.out)
 
         # --- results: success over all arms per (n, method), CIs, paired verdicts -------------------
         results = {unit: done[name] for name, unit in runs.items()}
@@ -190,12 +211,40 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
                 "panda.png": lambda path: _plot(rows, config, path),
                 **{f"tuning-{name}.png": t.plot for name, t in tunings.items()},
             },
+            files=videos,
         )
     return ex.result
 
 
 def _unit(label: str, n: int) -> tuple[str, int]:
     return label, n
+
+
+def _video_interval(config: PandaConfig) -> int | None:
+    """The interval whose reaches ``--video`` records: the scoreboard's (or the largest), ``None`` without videos."""
+    if not config.video:
+        return None
+    return HEADLINE_INTERVAL if HEADLINE_INTERVAL in config.intervals else max(config.intervals)
+
+
+def _write_videos(
+    results: dict[tuple[str, int], dict[str, Any]], interval: int | None, config: PandaConfig, out: Path
+) -> list[str]:
+    """``videos/<method>-<k>.gif``: the first ``--video`` arms of each method at ``interval``, until they reach the goal.
+
+    A ring round the end effector marks the steps at which it was measured.
+    """
+    names = []
+    for (label, n), r in results.items():
+        if n != interval:
+            continue
+        for k in range(len(r["video_q"])):
+            last = min(int(r["video_steps"][k]), config.steps)  # the first arrival ends the episode
+            tool, goal = float(r["video_tools"][k]), r["video_goals"][k].numpy()
+            frames = [panda_frame(r["video_q"][k, t].numpy(), tool, goal, measured=t % n == 0) for t in range(last + 1)]
+            names.append(video_name(label, k))
+            write_gif(frames, out / names[-1], fps=1 / config.dt)
+    return names
 
 
 def _intervals(label: str, config: PandaConfig) -> list[int]:

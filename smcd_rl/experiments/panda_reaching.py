@@ -122,6 +122,7 @@ def reach(
     interval: int,
     config: PandaConfig,
     generator: torch.Generator | None = None,
+    record: int = 0,
 ) -> dict[str, Tensor]:
     """Drive a batch of arms from the ready pose towards their goals with Jacobian PD control.
 
@@ -137,11 +138,15 @@ def reach(
         interval: a measurement every ``interval``-th step.
         config: gains, step, tolerance, step count and measurement noise.
         generator: random source of the measurement noise.
+        record: keep the joint angles of the first ``record`` arms at every step (for videos);
+            recording changes no number.
 
     Returns:
         ``reached`` (bool ``[B]``: within ``config.tolerance`` at some step), ``steps`` (the first
         such step, ``config.steps + 1`` if never) and ``final_distance`` (m) after the last step
-        (``config.steps``, or earlier once every arm has reached its goal).
+        (``config.steps``, or earlier once every arm has reached its goal); with ``record``, also
+        ``trajectory``, the first arms' joint angles ``[record, config.steps + 1, 7]`` from the
+        start (after an early stop the last angles repeat).
 
     Example:
         >>> import torch
@@ -159,6 +164,7 @@ def reach(
     q_dot = torch.zeros_like(q)
     reached = torch.zeros(batch, dtype=torch.bool, device=tools.device)
     first = torch.full((batch,), config.steps + 1, device=tools.device)
+    trajectory = [q[:record].cpu()] if record else []  # (a copy to the CPU syncs a GPU: only when recording)
     for t in range(config.steps):
         position = None
         if t % interval == 0:
@@ -180,7 +186,13 @@ def reach(
             close = (panda_fk(q, tools) - goals).norm(dim=-1) < config.tolerance
         first = torch.where(close & ~reached, torch.full_like(first, t + 1), first)
         reached |= close
+        if record:
+            trajectory.append(q[:record].cpu())
         if bool(reached.all()):  # success is decided at the first arrival: nothing left to learn
             break
     final = (panda_fk(q, tools) - goals).norm(dim=-1)
-    return {"reached": reached, "steps": first, "final_distance": final}
+    result = {"reached": reached, "steps": first, "final_distance": final}
+    if record:
+        trajectory += trajectory[-1:] * (config.steps + 1 - len(trajectory))
+        result["trajectory"] = torch.stack(trajectory, dim=1)
+    return result

@@ -33,12 +33,13 @@ from torch import Tensor
 
 import smcd_rl
 from smcd_rl.digests import model_digest
+from smcd_rl.envs.two_link_telescoping import circle_target, telescoping_frame
 from smcd_rl.experiments.common import format_table, write_csv
 from smcd_rl.experiments.configs.telescoping import DEFAULT_METHODS, FULL, METHODS, TelescopingConfig
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.telescoping_tracking import make_method, sample_episodes, track
+from smcd_rl.experiments.telescoping_tracking import make_method, sample_episodes, track_recorded
 from smcd_rl.experiments.tuning import tune
 from smcd_rl.experiments.two_link_family import (
     babbling_data,
@@ -47,6 +48,7 @@ from smcd_rl.experiments.two_link_family import (
     train_reptile,
     tuning_episodes,
 )
+from smcd_rl.experiments.video import video_name, write_gif
 
 __all__ = ["TelescopingConfig", "FULL", "METHODS", "DEFAULT_METHODS", "run", "table"]
 
@@ -86,13 +88,24 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
 
         # --- every method on the same episodes, cached by the digest of the model it adapts ---------
         episodes, noise = sample_episodes(config, ex.device)
+        record = min(config.video, config.trials)  # --video: the first episodes keep their joint angles
+
+        def evaluate(name: str, method: Any) -> dict[str, Tensor]:
+            errors, trajectory = track_recorded(name, method, episodes, noise, config, progress=progress, record=record)
+            return {"errors": errors, **({"video_q": trajectory} if record else {})}
+
+        def content(name: str) -> dict[str, Any]:
+            # "": the true kinematics and the oracle, which use no trained model; recorded videos key their results too
+            family = {_family(name): model_digest(models[_family(name)])} if _family(name) else {}
+            return family | ({"video": record} if record else {})
+
         done = ex.evaluate(
             {name: functools.partial(make_method, name, models, tunings, config, ex.device) for name in config.methods},
-            lambda name, method: {"errors": track(name, method, episodes, noise, config, progress=progress)},
-            # "": the true kinematics and the oracle, which use no trained model
-            content=lambda name: {_family(name): model_digest(models[_family(name)])} if _family(name) else {},
+            evaluate,
+            content=content,
         )
         errors = {name: done[name]["errors"] for name in config.methods}
+        videos = _write_videos({name: done[name] for name in config.methods}, episodes, config, ex.out)
 
         # --- results: per-episode error at each report step and over the episode, CIs, verdicts -----
         scores: dict[tuple[Any, ...], dict[str, Tensor]] = {
@@ -140,8 +153,30 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
                 "tracking.png": lambda path: _plot(errors, config, path),
                 **{f"tuning-{name}.png": t.plot for name, t in tunings.items()},
             },
+            files=videos,
         )
     return ex.result
+
+
+def _write_videos(
+    done: dict[str, dict[str, Any]], episodes: dict[str, Tensor], config: TelescopingConfig, out: Path
+) -> list[str]:
+    """``videos/<method>-<k>.gif``: each method's first ``--video`` episodes, the arm, its target and the circle."""
+    names = []
+    step_angle = config.angular_speed * config.dt
+    for name, result in done.items():
+        for k, trajectory in enumerate(result.get("video_q", ())):
+            l1, radius = float(episodes["l1"][k]), float(episodes["radius"][k])
+            targets = circle_target(
+                torch.arange(config.horizon + 1), radius, float(episodes["start_angle"][k]), step_angle=step_angle
+            )
+            frames = [
+                telescoping_frame(trajectory[t].numpy(), l1, t, targets[t].numpy(), radius)
+                for t in range(config.horizon + 1)
+            ]
+            names.append(video_name(name, k))
+            write_gif(frames, out / names[-1], fps=1 / config.dt)
+    return names
 
 
 def table(rows: list[dict[str, Any]], config: TelescopingConfig) -> str:

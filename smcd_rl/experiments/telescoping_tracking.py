@@ -31,7 +31,7 @@ from smcd_rl.experiments.two_link_family import oracle
 if TYPE_CHECKING:
     from smcd_rl.experiments.telescoping import TelescopingConfig
 
-__all__ = ["sample_episodes", "make_method", "track"]
+__all__ = ["sample_episodes", "make_method", "track", "track_recorded"]
 
 
 def sample_episodes(config: TelescopingConfig, device: torch.device) -> tuple[dict[str, Tensor], Tensor]:
@@ -82,6 +82,25 @@ def track(
     name: str, method: Any, episodes: dict[str, Tensor], noise: Tensor, config: TelescopingConfig, *, progress: bool
 ) -> Tensor:
     """Distances end effector - target ``[trials, horizon + 1]`` (k = 0 is the start) of one method."""
+    return track_recorded(name, method, episodes, noise, config, progress=progress, record=0)[0]
+
+
+def track_recorded(
+    name: str,
+    method: Any,
+    episodes: dict[str, Tensor],
+    noise: Tensor,
+    config: TelescopingConfig,
+    *,
+    progress: bool,
+    record: int,
+) -> tuple[Tensor, Tensor]:
+    """:func:`track`, also keeping the joint angles of the first ``record`` episodes (for videos).
+
+    Returns:
+        The distances ``[trials, horizon + 1]`` (the very numbers of :func:`track`) and the joint
+        angles ``[record, horizon + 1, 2]`` at every step ``k``.
+    """
     l1, radius, start_angle = episodes["l1"], episodes["radius"], episodes["start_angle"]
     q = episodes["q"].clone()
     q_dot = torch.zeros_like(q)
@@ -90,7 +109,10 @@ def track(
         method.reset(batch_shape=(batch,))
     step_angle = config.angular_speed * config.dt
     errors = torch.empty(batch, config.horizon + 1)
+    trajectory = []
     for k in tqdm(range(config.horizon + 1), desc=name, unit="step", disable=not progress):
+        if record:  # (a copy to the CPU syncs a GPU: only when recording)
+            trajectory.append(q[:record].cpu())
         ee_true = two_link_fk(q, telescoping_link_lengths(k, l1))
         target = circle_target(k, radius, start_angle, step_angle=step_angle)
         errors[:, k] = (ee_true - target).norm(dim=-1).cpu()
@@ -105,4 +127,4 @@ def track(
         with torch.no_grad():
             u = controller(q, q_dot, target, position=position).clamp(-config.max_acceleration, config.max_acceleration)
         q, q_dot = integrate_acceleration(q, q_dot, u, config.dt)
-    return errors
+    return errors, torch.stack(trajectory, dim=1) if record else torch.empty(0, config.horizon + 1, 2)

@@ -29,7 +29,7 @@ from typing import Any, ClassVar
 __all__ = ["ExperimentConfig", "setting", "config_dict", "OUTPUT_ONLY"]
 
 #: Settings that change where or how fast a run goes, never its numbers.
-OUTPUT_ONLY = ("out", "full")
+OUTPUT_ONLY = ("out", "full", "video")
 
 
 def config_dict(config: Any) -> dict[str, Any]:
@@ -104,6 +104,7 @@ class ExperimentConfig:
     )
     device: str = setting("cpu", "torch device: cpu, cuda, cuda:1 or auto")
     full: bool = setting(False, "the paper's scale (options given explicitly still win)")
+    video: int = setting(0, "episodes per method to write as GIFs in out/videos (0: none)", low=0)
 
     #: Fields whose values must be non-empty when given as tuples (e.g. methods, horizons); a
     #: subclass's list adds to those of the classes it derives from.
