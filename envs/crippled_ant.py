@@ -34,6 +34,8 @@ from gymnasium.spaces import Box
 from numpy.typing import NDArray
 from torch import Tensor
 
+from smcd_rl.integrations.task_family import ModelParameters
+
 __all__ = [
     "LEGS",
     "OBS_DIM",
@@ -64,9 +66,7 @@ OBS_DIM: int = 41
 
 _X, _Z = 0, 2  # torso x and z positions in the observation (qpos[0], qpos[2])
 _N_LEGS = 4
-_CRIPPLED_RGBA = np.array([1.0, 0.0, 0.0])  # Learning to Adapt paints the crippled leg red
-# Model arrays that crippling writes; copies of their pristine values are restored on every reset.
-_MODEL_FIELDS = ("geom_size", "geom_pos", "geom_sameframe", "geom_rgba", "actuator_gear")
+_CRIPPLED_RGBA = (1.0, 0.0, 0.0)  # Learning to Adapt paints the crippled leg red
 # Ant-v5 arguments that would change the observation this env fixes.
 _FIXED_ANT_KWARGS = (
     "exclude_current_positions_from_observation",
@@ -265,9 +265,13 @@ class CrippledAntEnv(AntEnv):
     | 3   | hip_4, ankle_4   | 0, 1    | 12, 13 (rightback_leg_geom, fourth_ankle_geom) | + | - |
 
     Training draws the leg from :data:`TRAIN_LEGS` ``(0, 1, 2)``; :data:`TEST_LEG` ``3`` is held
-    out. The model arrays are changed in place and would persist; the env keeps copies of the
-    pristine ``geom_size``, ``geom_pos``, ``geom_sameframe``, ``geom_rgba`` and ``actuator_gear``
-    and restores them on every reset before crippling again.
+    out. Each leg's crippling is a set of named model parameters (``actuator_gear:hip_1``,
+    ``geom_size:left_leg_geom[0]``, ``geom_pos:left_ankle_geom[2]``, ...) written through
+    :class:`~smcd_rl.integrations.task_family.ModelParameters`, the parameter layer of
+    :class:`~smcd_rl.integrations.task_family.TaskFamily`. The model arrays are changed in place and
+    would persist; the env restores their pristine values (``geom_size``, ``geom_pos``,
+    ``geom_sameframe``, ``geom_rgba``, ``actuator_gear``, bit for bit) on every reset before
+    crippling again.
 
     After stepping the physics the env calls ``mj_forward`` (as Learning to Adapt's rllab
     ``forward_dynamics`` did): without it ``data.xpos``, ``xmat`` and ``subtree_com`` belong to an
@@ -369,7 +373,9 @@ class CrippledAntEnv(AntEnv):
         self._reset_options: dict[str, Any] = {}
         self.legs = leg_indices(self.model)
         self._torso = self.model.body("torso").id
-        self._pristine = {name: getattr(self.model, name).copy() for name in _MODEL_FIELDS}
+        # Each leg's crippling is a set of model parameters; ModelParameters restores their defaults.
+        self._leg_parameters = [self._crippling(leg) for leg in self.legs]
+        self._parameters = ModelParameters(self.model, [name for leg in self._leg_parameters for name in leg])
 
         self.observation_space = Box(low=-np.inf, high=np.inf, shape=(OBS_DIM,), dtype=np.float64)
         self.observation_structure = {name: s.stop - s.start for name, s in OBS_SLICES.items()}
@@ -424,20 +430,25 @@ class CrippledAntEnv(AntEnv):
         mujoco.mj_forward(self.model, self.data)  # contacts of the new geometry
         return self._get_obs()
 
+    def _crippling(self, leg: Leg) -> dict[str, float]:
+        """The model parameters (:class:`~smcd_rl.integrations.task_family.ModelParameters` names) of a crippled ``leg``."""
+        model = self.model
+        thigh, shin = (model.geom(g).name for g in leg.geoms)
+        values = {f"actuator_gear:{joint}": 0.0 for joint in (leg.hip_joint, leg.ankle_joint)}
+        for geom in (thigh, shin):
+            values.update({f"geom_size:{geom}[{k}]": float(model.geom(geom).size[k]) / 2 for k in (0, 1)})
+        # Setting geom_pos also clears the shin's geom_sameframe: the compiler marked its frame as its
+        # body's inertial frame, and kinematics would then ignore geom_pos.
+        values.update({f"geom_pos:{shin}[{k}]": float(model.geom(thigh).pos[k]) for k in range(3)})
+        for geom in (thigh, shin):
+            values.update({f"geom_rgba:{geom}[{k}]": _CRIPPLED_RGBA[k] for k in range(3)})
+        return values
+
     def _cripple(self, leg: int | None) -> None:
-        for name, pristine in self._pristine.items():
-            getattr(self.model, name)[:] = pristine
+        self._parameters.restore()
         self._crippled_leg = leg
-        if leg is None:
-            return
-        thigh, shin = self.legs[leg].geoms
-        self.model.actuator_gear[list(self.legs[leg].actuators)] = 0.0
-        self.model.geom_size[[thigh, shin], 0:2] /= 2
-        self.model.geom_pos[shin] = self.model.geom_pos[thigh]
-        # The compiler marked the shin's frame as its body's inertial frame, and kinematics then
-        # ignores geom_pos; without this the moved shin would stay where it was.
-        self.model.geom_sameframe[shin] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
-        self.model.geom_rgba[[thigh, shin], 0:3] = _CRIPPLED_RGBA
+        if leg is not None:
+            self._parameters.set(self._leg_parameters[leg])
 
     def do_simulation(self, ctrl: NDArray[np.floating], n_frames: int) -> None:
         super().do_simulation(ctrl, n_frames)

@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: What ``import smcd_rl`` must not import: torch and what builds on it (loaded on first use of a
 #: name that needs them), and the optional extras (imported only where they are used).
-HEAVY = ("torch", "tensordict", "torchrl", "ray", "stable_baselines3", "mujoco", "matplotlib")
+HEAVY = ("torch", "tensordict", "torchrl", "ray", "stable_baselines3", "mujoco", "matplotlib", "gymnasium_robotics")
 
 
 def _fresh(code: str) -> dict:

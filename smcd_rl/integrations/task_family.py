@@ -1,0 +1,630 @@
+"""Task families on any MuJoCo env: model parameters and action transforms drawn per episode.
+
+:class:`TaskFamily` wraps a gymnasium MuJoCo env (gymnasium's HalfCheetah, Hopper, Walker2d, Ant,
+gymnasium-robotics' Fetch and Franka envs, or your own ``MujocoEnv``) and turns it into a family
+of tasks: at every reset it restores the model's defaults, resets the env, draws each named model
+parameter and action transform from its distribution with the env's ``np_random`` (so
+``reset(seed=...)`` fixes the whole episode, task included), writes the parameters into the
+model and reports the draw in ``info["task"]``.
+
+Parameters are named ``"<field>:<element>"`` with an optional component ``[k]``:
+
+| Name                          | Model array (row of the element)     | Component without ``[k]`` |
+|-------------------------------|--------------------------------------|---------------------------|
+| ``body_mass:<body>``          | ``body_mass``; ``body_inertia`` is scaled by the same factor | - |
+| ``geom_friction:<geom>``      | ``geom_friction`` (slide, spin, roll) | 0 (sliding)              |
+| ``geom_size:<geom>``          | ``geom_size``                        | 0                         |
+| ``geom_pos:<geom>``           | ``geom_pos`` (in the body's frame)   | 0 (x)                     |
+| ``geom_rgba:<geom>``          | ``geom_rgba``                        | 0 (red)                   |
+| ``site_pos:<site>``           | ``site_pos`` (in the body's frame)   | 0 (x)                     |
+| ``actuator_gear:<actuator>``  | ``actuator_gear``                    | 0                         |
+| ``joint_damping:<joint>``     | ``dof_damping`` of every dof of the joint | -                    |
+| ``gravity``                   | ``opt.gravity``                      | 2 (vertical)              |
+
+An actuator without a name is found by the name of the joint (or tendon) it drives, and a geom
+without a name by its body's name when it is the body's only geom. MuJoCo uses
+the larger of two touching geoms' friction coefficients, so a family that lowers an object's
+friction must lower its support's too. Growing a geom also grows its collision bounds
+(``geom_rbound``, ``geom_aabb``) conservatively; moving one clears its ``geom_sameframe`` flag
+(MuJoCo ignores ``geom_pos`` of a geom that the compiler marked as sitting at its body's frame).
+Derived constants that MuJoCo computes when compiling (``body_subtreemass``, ``dof_invweight0``)
+keep their default values.
+
+The action transform maps the commanded action ``a`` to ``a'[dims] = gain * R(axis, rotation)
+@ a[dims] + bias`` (the other entries pass unchanged), clipped to the action space. The reward
+of the inner env is computed on ``a'``.
+
+Example:
+    >>> import gymnasium
+    >>> from smcd_rl.integrations.task_family import ActionTransform, TaskFamily, Uniform
+    >>> env = TaskFamily(
+    ...     gymnasium.make("HalfCheetah-v5"),
+    ...     params={"body_mass:torso": Uniform(5.0, 10.0), "joint_damping:bthigh": Uniform(3.0, 9.0)},
+    ...     action=ActionTransform(gain=Uniform(0.5, 1.0)),
+    ... )
+    >>> obs, info = env.reset(seed=0)
+    >>> sorted(info["task"])
+    ['action:gain', 'body_mass:torso', 'joint_damping:bthigh']
+    >>> 5.0 <= info["task"]["body_mass:torso"] <= 10.0
+    True
+    >>> obs, info = env.reset(options={"task": {"body_mass:torso": 7.0}})
+    >>> info["task"]["body_mass:torso"], float(env.unwrapped.model.body("torso").mass[0])
+    (7.0, 7.0)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, SupportsFloat, runtime_checkable
+
+import gymnasium
+import mujoco
+import numpy as np
+from gymnasium import spaces
+from numpy.typing import NDArray
+
+__all__ = [
+    "ActionTransform",
+    "Choice",
+    "Distribution",
+    "Fixed",
+    "LogUniform",
+    "ModelParameters",
+    "TaskFamily",
+    "Uniform",
+]
+
+ACTION_NAMES = ("action:rotation", "action:gain", "action:bias")
+
+
+@runtime_checkable
+class Distribution(Protocol):
+    """Anything that draws one float from a numpy ``Generator`` (the classes below, or your own)."""
+
+    def sample(self, rng: np.random.Generator) -> float: ...
+
+
+def _finite(value: Any, what: str) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{what} must be finite, got {value!r}")
+    return number
+
+
+@dataclass(frozen=True)
+class Uniform:
+    """Uniform on ``[low, high]``.
+
+    Example:
+        >>> import numpy as np
+        >>> 2.0 <= Uniform(2.0, 4.5).sample(np.random.default_rng(0)) <= 4.5
+        True
+    """
+
+    low: float
+    high: float
+
+    def __post_init__(self) -> None:
+        if not _finite(self.low, "low") <= _finite(self.high, "high"):
+            raise ValueError(f"Uniform needs low <= high, got ({self.low}, {self.high})")
+
+    def sample(self, rng: np.random.Generator) -> float:
+        """One draw."""
+        return float(rng.uniform(self.low, self.high))
+
+
+@dataclass(frozen=True)
+class LogUniform:
+    """Log-uniform on ``[low, high]``, ``0 < low <= high``: as likely to halve as to double.
+
+    Example:
+        >>> import numpy as np
+        >>> 0.5 <= LogUniform(0.5, 2.0).sample(np.random.default_rng(0)) <= 2.0
+        True
+    """
+
+    low: float
+    high: float
+
+    def __post_init__(self) -> None:
+        if not 0.0 < _finite(self.low, "low") <= _finite(self.high, "high"):
+            raise ValueError(f"LogUniform needs 0 < low <= high, got ({self.low}, {self.high})")
+
+    def sample(self, rng: np.random.Generator) -> float:
+        """One draw."""
+        return float(np.exp(rng.uniform(np.log(self.low), np.log(self.high))))
+
+
+@dataclass(frozen=True)
+class Choice:
+    """One of ``values``, uniformly.
+
+    Example:
+        >>> import numpy as np
+        >>> Choice((0.0, 1.0)).sample(np.random.default_rng(0)) in (0.0, 1.0)
+        True
+    """
+
+    values: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if not self.values:
+            raise ValueError("Choice needs at least one value")
+        object.__setattr__(self, "values", tuple(_finite(v, "a Choice value") for v in self.values))
+
+    def sample(self, rng: np.random.Generator) -> float:
+        """One draw."""
+        return self.values[int(rng.integers(len(self.values)))]
+
+
+@dataclass(frozen=True)
+class Fixed:
+    """Always ``value``; draws no random number.
+
+    Example:
+        >>> import numpy as np
+        >>> Fixed(0.0).sample(np.random.default_rng(0))
+        0.0
+    """
+
+    value: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "value", _finite(self.value, "Fixed value"))
+
+    def sample(self, rng: np.random.Generator) -> float:
+        """The value."""
+        return self.value
+
+
+# field -> (object type, model array, component used without [k]; None: the whole row)
+_FIELDS: dict[str, tuple[mujoco.mjtObj | None, str, int | None]] = {
+    "body_mass": (mujoco.mjtObj.mjOBJ_BODY, "body_mass", None),
+    "geom_friction": (mujoco.mjtObj.mjOBJ_GEOM, "geom_friction", 0),
+    "geom_size": (mujoco.mjtObj.mjOBJ_GEOM, "geom_size", 0),
+    "geom_pos": (mujoco.mjtObj.mjOBJ_GEOM, "geom_pos", 0),
+    "geom_rgba": (mujoco.mjtObj.mjOBJ_GEOM, "geom_rgba", 0),
+    "site_pos": (mujoco.mjtObj.mjOBJ_SITE, "site_pos", 0),
+    "actuator_gear": (mujoco.mjtObj.mjOBJ_ACTUATOR, "actuator_gear", 0),
+    "joint_damping": (mujoco.mjtObj.mjOBJ_JOINT, "dof_damping", None),
+    "gravity": (None, "opt.gravity", 2),
+}
+# Arrays written besides the named ones (restored with them).
+_DERIVED = {
+    "body_mass": ("body_inertia",),
+    "geom_size": ("geom_rbound", "geom_aabb"),
+    "geom_pos": ("geom_sameframe",),
+}
+_OBJECT_WORD = {
+    mujoco.mjtObj.mjOBJ_BODY: "body",
+    mujoco.mjtObj.mjOBJ_GEOM: "geom",
+    mujoco.mjtObj.mjOBJ_SITE: "site",
+    mujoco.mjtObj.mjOBJ_ACTUATOR: "actuator",
+    mujoco.mjtObj.mjOBJ_JOINT: "joint",
+}
+_NDOF = {0: 6, 1: 3, 2: 1, 3: 1}  # joint type (free, ball, slide, hinge) -> dofs
+
+
+def _array(model: mujoco.MjModel, path: str) -> NDArray[Any]:
+    owner: Any = model
+    for part in path.split("."):
+        owner = getattr(owner, part)
+    return owner
+
+
+def _names(model: mujoco.MjModel, objtype: mujoco.mjtObj, count: int) -> list[str]:
+    return [name for i in range(count) if (name := mujoco.mj_id2name(model, objtype, i))]
+
+
+@dataclass(frozen=True)
+class _Entry:
+    field: str
+    array: str
+    rows: tuple[int, ...]
+    column: int | None
+
+
+class ModelParameters:
+    """Named parameters of a compiled MuJoCo model: read, write, and restore the defaults.
+
+    The names are those of the module card (``"body_mass:object0"``, ``"geom_friction:table0"``,
+    ``"geom_size:object0[1]"``, ``"gravity"``, ...). The defaults are the values the model has
+    when this object is built; :meth:`restore` writes them back bit for bit, derived arrays included.
+
+    Args:
+        model: The compiled model (``env.unwrapped.model``); it is changed in place.
+        names: Parameter names.
+
+    Raises:
+        ValueError: On an unknown field, element name or component; the message names the valid ones.
+
+    Example:
+        >>> import gymnasium
+        >>> env = gymnasium.make("Hopper-v5")
+        >>> params = ModelParameters(env.unwrapped.model, ["body_mass:torso", "gravity"])
+        >>> params.defaults["gravity"]
+        -9.81
+        >>> params.set({"gravity": -5.0})
+        >>> float(env.unwrapped.model.opt.gravity[2])
+        -5.0
+        >>> params.restore()
+        >>> params.values() == params.defaults
+        True
+    """
+
+    def __init__(self, model: mujoco.MjModel, names: Iterable[str]) -> None:
+        self.model = model
+        self._entries = {name: self._resolve(name) for name in names}
+        arrays = {e.array for e in self._entries.values()}
+        arrays |= {extra for e in self._entries.values() for extra in _DERIVED.get(e.field, ())}
+        self._saved = {path: _array(model, path).copy() for path in sorted(arrays)}
+        self._defaults = self.values()
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The parameter names, in the order given."""
+        return tuple(self._entries)
+
+    @property
+    def defaults(self) -> dict[str, float]:
+        """The model's values when this object was built."""
+        return dict(self._defaults)
+
+    def values(self) -> dict[str, float]:
+        """The model's current values."""
+        return {name: self._get(entry) for name, entry in self._entries.items()}
+
+    def set(self, values: Mapping[str, SupportsFloat]) -> None:
+        """Write ``values`` into the model (names not given keep their current values).
+
+        Raises:
+            ValueError: On a name that is not one of :attr:`names` or a non-finite value; nothing is written.
+        """
+        unknown = sorted(set(values) - set(self._entries))
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {unknown}; valid: {list(self._entries)}")
+        checked = {name: _finite(value, name) for name, value in values.items()}
+        for name, value in checked.items():
+            entry = self._entries[name]
+            array = _array(self.model, entry.array)
+            rows = list(entry.rows)
+            if entry.column is None:
+                array[rows] = value
+            else:
+                array[rows, entry.column] = value
+            if entry.field == "geom_pos":
+                self.model.geom_sameframe[rows] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
+        self._sync_derived({self._entries[name].field for name in checked})
+
+    def restore(self) -> None:
+        """Write the default values back (every array this object writes, bit for bit)."""
+        for path, saved in self._saved.items():
+            _array(self.model, path)[:] = saved
+
+    def _sync_derived(self, fields: Collection[str]) -> None:
+        model, saved = self.model, self._saved
+        if "body_mass" in fields:
+            rows = sorted({r for e in self._entries.values() if e.field == "body_mass" for r in e.rows})
+            default = saved["body_mass"][rows]
+            scale = np.divide(model.body_mass[rows], default, out=np.ones_like(default), where=default > 0)
+            model.body_inertia[rows] = saved["body_inertia"][rows] * scale[:, None]
+        if "geom_size" in fields:
+            rows = sorted({r for e in self._entries.values() if e.field == "geom_size" for r in e.rows})
+            default = saved["geom_size"][rows]
+            ratio = np.divide(model.geom_size[rows], default, out=np.ones_like(default), where=default > 0)
+            grow = np.maximum(ratio.max(axis=1), 1.0)
+            model.geom_rbound[rows] = saved["geom_rbound"][rows] * grow
+            model.geom_aabb[rows, 3:] = saved["geom_aabb"][rows, 3:] * grow[:, None]
+
+    def _get(self, entry: _Entry) -> float:
+        array = _array(self.model, entry.array)
+        row = entry.rows[0]
+        return float(array[row] if entry.column is None else array[row, entry.column])
+
+    def _resolve(self, name: str) -> _Entry:
+        if not isinstance(name, str):
+            raise ValueError(f"parameter names are strings, got {name!r}")
+        base, column = name, None
+        if name.endswith("]") and "[" in name:
+            base, _, index = name[:-1].rpartition("[")
+            if not index.isdigit():
+                raise ValueError(f"parameter {name!r}: the component in [...] must be an integer")
+            column = int(index)
+        field, _, element = base.partition(":")
+        if field not in _FIELDS:
+            raise ValueError(f"parameter {name!r}: unknown field {field!r}; valid: {list(_FIELDS)}")
+        objtype, path, default_column = _FIELDS[field]
+        array = _array(self.model, path)
+        if objtype is None:
+            if element:
+                raise ValueError(f"parameter {name!r}: {field!r} names no element (write {field!r} or {field}[k])")
+            component = column if column is not None else (default_column or 0)
+            if not 0 <= component < array.shape[0]:
+                raise ValueError(f"parameter {name!r}: component must be in 0..{array.shape[0] - 1}")
+            return _Entry(field, path, (component,), None)
+        rows = self._rows(name, field, objtype, element)
+        width = array.shape[1] if array.ndim == 2 else 0
+        if column is None:
+            column = default_column if width else None
+        if width == 0 and column is not None:
+            raise ValueError(f"parameter {name!r}: {field!r} is a scalar and takes no component [k]")
+        if column is not None and not 0 <= column < width:
+            raise ValueError(f"parameter {name!r}: component must be in 0..{width - 1}")
+        return _Entry(field, path, rows, column)
+
+    def _rows(self, name: str, field: str, objtype: mujoco.mjtObj, element: str) -> tuple[int, ...]:
+        model = self.model
+        word = _OBJECT_WORD[objtype]
+        index = mujoco.mj_name2id(model, objtype, element) if element else -1
+        if objtype == mujoco.mjtObj.mjOBJ_ACTUATOR:
+            valid = self._actuator_names()
+            if index < 0 and element in valid:
+                index = valid[element]
+            valid_names = list(valid)
+        elif objtype == mujoco.mjtObj.mjOBJ_GEOM:
+            valid = self._geom_names()
+            if index < 0 and element in valid:
+                index = valid[element]
+            valid_names = list(valid)
+        else:
+            count = {"body": model.nbody, "geom": model.ngeom, "site": model.nsite, "joint": model.njnt}[word]
+            valid_names = _names(model, objtype, count)
+        if index < 0:
+            raise ValueError(f"parameter {name!r}: the model has no {word} named {element!r}; valid: {valid_names}")
+        if field == "joint_damping":
+            start = int(model.jnt_dofadr[index])
+            return tuple(range(start, start + _NDOF[int(model.jnt_type[index])]))
+        return (int(index),)
+
+    def _geom_names(self) -> dict[str, int]:
+        """Geom names, with an unnamed geom named by its body when it is the body's only geom."""
+        model = self.model
+        names = {name: g for g in range(model.ngeom) if (name := mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g))}
+        for body in range(model.nbody):
+            body_name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body)
+            geom = int(model.body_geomadr[body])
+            single = model.body_geomnum[body] == 1 and not mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, geom)
+            if body_name and single and body_name not in names:
+                names[body_name] = geom
+        return names
+
+    def _actuator_names(self) -> dict[str, int]:
+        """Actuator names, with unnamed actuators named by the joint or tendon they drive (if unique)."""
+        model = self.model
+        names: dict[str, int] = {}
+        by_target: dict[str, list[int]] = {}
+        for a in range(model.nu):
+            own = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a)
+            if own:
+                names[own] = a
+                continue
+            trntype, target = int(model.actuator_trntype[a]), int(model.actuator_trnid[a, 0])
+            objtype = {
+                int(mujoco.mjtTrn.mjTRN_JOINT): mujoco.mjtObj.mjOBJ_JOINT,
+                int(mujoco.mjtTrn.mjTRN_TENDON): mujoco.mjtObj.mjOBJ_TENDON,
+            }.get(trntype)
+            target_name = mujoco.mj_id2name(model, objtype, target) if objtype is not None else None
+            if target_name:
+                by_target.setdefault(target_name, []).append(a)
+        for target_name, actuators in by_target.items():
+            if len(actuators) == 1 and target_name not in names:
+                names[target_name] = actuators[0]
+        return names
+
+
+@dataclass(frozen=True)
+class ActionTransform:
+    """An unknown map of the commanded action, drawn per episode: ``a'[dims] = gain * R a[dims] + bias``.
+
+    Attributes:
+        rotation: Angle (rad) of the rotation ``R`` about ``axis``; needs exactly three ``dims``
+            (e.g. Fetch's commanded displacement, ``dims=(0, 1, 2)``). `None`: no rotation.
+        gain: Factor on the (rotated) entries; `None`: 1.
+        bias: Added to each transformed entry; `None`: 0.
+        dims: Action entries transformed; `None`: all (three for a rotation).
+        axis: Rotation axis in the frame of ``a[dims]``; normalised.
+
+    Example:
+        >>> t = ActionTransform(rotation=Fixed(np.pi / 2), dims=(0, 1, 2))
+        >>> np.round(t.apply(np.array([1.0, 0.0, 0.0, 0.5]), {"action:rotation": np.pi / 2}), 6).tolist()
+        [0.0, 1.0, 0.0, 0.5]
+    """
+
+    rotation: Distribution | None = None
+    gain: Distribution | None = None
+    bias: Distribution | None = None
+    dims: tuple[int, ...] | None = None
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+    def __post_init__(self) -> None:
+        for what in ("rotation", "gain", "bias"):
+            dist = getattr(self, what)
+            if dist is not None and not isinstance(dist, Distribution):
+                raise TypeError(f"ActionTransform.{what} must have a sample(rng) method, got {dist!r}")
+        axis = np.asarray(self.axis, dtype=np.float64)
+        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or not np.linalg.norm(axis) > 0:
+            raise ValueError(f"axis must be a non-zero 3-vector, got {self.axis!r}")
+        if self.dims is not None:
+            object.__setattr__(self, "dims", tuple(int(d) for d in self.dims))
+        if self.rotation is not None and self.dims is not None and len(self.dims) != 3:
+            raise ValueError(f"a rotation acts on exactly three action entries; dims={self.dims}")
+
+    def distributions(self) -> dict[str, Distribution]:
+        """The drawn quantities, by name (``"action:rotation"``, ``"action:gain"``, ``"action:bias"``)."""
+        pairs = zip(ACTION_NAMES, (self.rotation, self.gain, self.bias), strict=True)
+        return {name: dist for name, dist in pairs if dist is not None}
+
+    def apply(self, action: NDArray[Any], draw: Mapping[str, float]) -> NDArray[np.float64]:
+        """The transformed action (not clipped) for the drawn values ``draw`` (missing names: identity)."""
+        out = np.array(action, dtype=np.float64)
+        dims = list(self.dims) if self.dims is not None else list(range(out.shape[-1]))
+        if self.rotation is not None and len(dims) != 3:
+            raise ValueError(f"a rotation acts on exactly three action entries; the action has {len(dims)}")
+        part = out[..., dims]
+        if "action:rotation" in draw:
+            part = part @ _rotation(self.axis, draw["action:rotation"]).T
+        part = draw.get("action:gain", 1.0) * part + draw.get("action:bias", 0.0)
+        out[..., dims] = part
+        return out
+
+
+def _rotation(axis: Sequence[float], angle: float) -> NDArray[np.float64]:
+    """Rotation matrix about ``axis`` by ``angle`` (Rodrigues)."""
+    k = np.asarray(axis, dtype=np.float64)
+    k = k / np.linalg.norm(k)
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * cross @ cross
+
+
+class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordConstructorArgs):
+    """A family of tasks on a MuJoCo env: named model parameters and an action transform drawn per episode.
+
+    ``reset`` restores the model's defaults, resets the wrapped env, then draws every parameter
+    (in the order of ``params``) and the action transform from the env's ``np_random``, writes
+    them into the model, runs ``mj_forward`` and returns the env's observation (``_get_obs()``) and,
+    for gymnasium's ``MujocoEnv``, reset info (``_get_reset_info()``) of the new model.
+    The draw is in ``info["task"]`` of ``reset`` and ``step`` (Python floats, JSON-ready) and in
+    :attr:`task`. ``close`` restores the defaults too.
+
+    ``reset(options={"task": {...}})`` fixes the named quantities for that episode (the others are
+    drawn as usual, from the same random numbers as without the option).
+
+    Args:
+        env: A MuJoCo env (``env.unwrapped`` has ``model`` and ``data``), possibly wrapped by
+            wrappers that leave its observations unchanged (``gymnasium.make``'s are fine).
+        params: Distribution of each model parameter, by name (see the module card).
+        action: Action transform; the action space must be a ``Box``.
+
+    Raises:
+        TypeError: If the env is not a MuJoCo env, a distribution has no ``sample`` method, or an
+            action transform is given for a non-Box action space.
+        ValueError: On an unknown parameter name or element (the message names the valid ones), or
+            if a wrapper between this one and the MuJoCo env changes the observation.
+
+    Example:
+        >>> import gymnasium
+        >>> env = TaskFamily(gymnasium.make("Ant-v5"), params={"actuator_gear:hip_1": Choice((0.0, 150.0))})
+        >>> obs, info = env.reset(seed=0, options={"task": {"actuator_gear:hip_1": 0.0}})
+        >>> info["task"], float(env.unwrapped.model.actuator_gear[2, 0])  # hip_1 drives the unnamed actuator 2
+        ({'actuator_gear:hip_1': 0.0}, 0.0)
+        >>> env.close()  # restores the default gear
+        >>> float(env.unwrapped.model.actuator_gear[2, 0])
+        150.0
+    """
+
+    def __init__(
+        self,
+        env: gymnasium.Env[Any, Any],
+        params: Mapping[str, Distribution] | None = None,
+        action: ActionTransform | None = None,
+    ) -> None:
+        gymnasium.utils.RecordConstructorArgs.__init__(self, params=params, action=action)
+        gymnasium.Wrapper.__init__(self, env)
+        base: Any = env.unwrapped
+        if not isinstance(getattr(base, "model", None), mujoco.MjModel) or not hasattr(base, "data"):
+            raise TypeError(f"TaskFamily needs a MuJoCo env (unwrapped env with model and data), got {base!r}")
+        self._check_wrappers(env)
+        params = dict(params or {})
+        for name, dist in params.items():
+            if not isinstance(dist, Distribution):
+                raise TypeError(f"the distribution of {name!r} must have a sample(rng) method, got {dist!r}")
+        self.parameters = ModelParameters(base.model, params)
+        if action is not None:
+            if not isinstance(env.action_space, spaces.Box):
+                raise TypeError(f"an action transform needs a Box action space, got {env.action_space}")
+            size = env.action_space.shape[-1]
+            dims = action.dims if action.dims is not None else tuple(range(size))
+            if any(not 0 <= d < size for d in dims):
+                raise ValueError(f"action dims {dims} out of range for an action of size {size}")
+            if action.rotation is not None and len(dims) != 3:
+                raise ValueError(f"a rotation acts on exactly three action entries; dims={dims}")
+        self.action_transform = action
+        self._distributions: dict[str, Distribution] = {**params, **(action.distributions() if action else {})}
+        self._task: dict[str, float] = {}
+
+    @staticmethod
+    def _check_wrappers(env: gymnasium.Env[Any, Any]) -> None:
+        layer = env
+        while isinstance(layer, gymnasium.Wrapper):
+            if (
+                isinstance(layer, gymnasium.ObservationWrapper)
+                or layer.observation_space != layer.env.observation_space
+            ):
+                raise ValueError(
+                    f"TaskFamily recomputes the MuJoCo env's observation after changing the model; wrap the env "
+                    f"before observation wrappers such as {type(layer).__name__}"
+                )
+            layer = layer.env
+
+    @property
+    def task_names(self) -> tuple[str, ...]:
+        """Names of the drawn quantities: the parameters, then ``"action:rotation"``, ``"action:gain"``, ``"action:bias"``."""
+        return tuple(self._distributions)
+
+    @property
+    def task(self) -> dict[str, float]:
+        """The current episode's draw (empty before the first reset)."""
+        return dict(self._task)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        """Restore the defaults, reset the env, draw and apply a task.
+
+        Args:
+            seed: Seed of the env's ``np_random`` (the draw comes from it).
+            options: Passed to the env, except ``"task"``: a mapping of task names to values to
+                use instead of draws in this episode.
+
+        Raises:
+            ValueError: On an unknown task name or a non-finite value; the env is left as it was.
+        """
+        options = dict(options or {})
+        fixed = self._check_fixed(options.pop("task", None))
+        self.parameters.restore()
+        obs, info = self.env.reset(seed=seed, options=options or None)
+        rng = self.env.unwrapped.np_random
+        draw = {name: float(dist.sample(rng)) for name, dist in self._distributions.items()}
+        draw.update(fixed)
+        self._task = draw
+        if self.parameters.names:
+            base: Any = self.env.unwrapped
+            self.parameters.set({name: draw[name] for name in self.parameters.names})
+            mujoco.mj_forward(base.model, base.data)
+            obs = base._get_obs()
+            if hasattr(base, "_get_reset_info"):  # gymnasium's MujocoEnv: reset info of the new model
+                info = {**info, **base._get_reset_info()}
+        return obs, {**info, "task": dict(draw)}
+
+    def _check_fixed(self, fixed: Any) -> dict[str, float]:
+        if fixed is None:
+            return {}
+        if not isinstance(fixed, Mapping):
+            raise ValueError(f"options['task'] must be a mapping of task names to values, got {fixed!r}")
+        unknown = sorted(set(fixed) - set(self._distributions))
+        if unknown:
+            raise ValueError(f"unknown task name(s) {unknown} in options['task']; valid: {list(self._distributions)}")
+        return {name: _finite(value, f"options['task'][{name!r}]") for name, value in fixed.items()}
+
+    def transform_action(self, action: Any) -> Any:
+        """The action the env receives for a commanded ``action`` in this episode (clipped to the space)."""
+        if self.action_transform is None:
+            return action
+        space = self.env.action_space
+        assert isinstance(space, spaces.Box)
+        moved = self.action_transform.apply(np.asarray(action), self._task)
+        return np.clip(moved, space.low, space.high).astype(space.dtype)
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        """Step the env with :meth:`transform_action` of ``action``; the reward as a float, ``info["task"]`` the draw."""
+        obs, reward, terminated, truncated, info = self.env.step(self.transform_action(action))
+        # A Python float: Fetch returns numpy float32 rewards, which stable-baselines3's checker refuses.
+        return obs, float(reward), terminated, truncated, {**info, "task": dict(self._task)}
+
+    def close(self) -> None:
+        """Restore the model's defaults, then close the env."""
+        self.parameters.restore()
+        super().close()
