@@ -9,18 +9,26 @@ planner on that objective at every step and returns the first action of the plan
 Who adapts the model: the agent only *reads* it. Feed real transitions to ``model.observe`` (or
 wrap the env in :class:`smcd_rl.integrations.gymnasium.AdaptationWrapper`, which also calls
 ``model.reset()`` on every env reset); the agent plans with whatever the model has adapted to.
+
+Goal-conditioned envs (Fetch and other ``Dict``-observation envs with ``compute_reward``):
+:meth:`MPCAgent.from_goal_env` plans with the env's own batched reward
+(:class:`smcd_rl.integrations.gymnasium.GoalReward`); :meth:`MPCAgent.act` then takes the env's
+``Dict`` observation, rolls the model from its ``observation`` entry and holds its
+``desired_goal`` fixed over the plan.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Literal
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
 
+import gymnasium
 import numpy as np
 import torch
 from torch import Tensor
 
 from smcd_rl.agents.planners import Objective, Planner
+from smcd_rl.integrations.gymnasium import GoalReward
 from smcd_rl.model import AdaptiveDynamicsModel
 
 __all__ = ["MPCAgent", "RewardFn", "TerminationFn", "Ensemble", "model_reward_objective"]
@@ -164,10 +172,17 @@ class MPCAgent:
     be reset with ``batch_shape=()`` (one adaptation state shared by all rows) or
     ``batch_shape=(B,)`` (one per sub-env).
 
+    Goal-conditioned envs: with a :class:`~smcd_rl.integrations.gymnasium.GoalReward` as
+    ``reward_fn`` (what :meth:`from_goal_env` builds), :meth:`act` and :meth:`plan` take the
+    env's ``Dict`` observation (single or batched; other entries, such as the wrapper's
+    context, are ignored): the model rolls forward from its ``observation`` entry and every
+    candidate is scored by the env's ``compute_reward`` towards its ``desired_goal``.
+
     Args:
         model: the adaptive dynamics model to plan with.
         planner: a :class:`~smcd_rl.agents.planners.Planner` whose action size is the model's.
-        reward_fn: batched reward ``reward_fn(obs, action, next_obs) -> [*batch, P]``.
+        reward_fn: batched reward ``reward_fn(obs, action, next_obs) -> [*batch, P]``, or a
+            :class:`~smcd_rl.integrations.gymnasium.GoalReward` (goal-conditioned).
         termination_fn: batched termination ``termination_fn(next_obs) -> bool [*batch, P]``.
         ensemble: ``"mmse"`` (default) evaluates every candidate with the adapted MMSE mask;
             ``"particles"`` gives candidate ``p`` the mask particle ``p % N`` (trajectory
@@ -177,7 +192,8 @@ class MPCAgent:
     Raises:
         TypeError: ``model`` is not an :class:`smcd_rl.AdaptiveDynamicsModel`.
         ValueError: the planner's action size differs from the model's, ``ensemble`` is unknown,
-            or ``"particles"`` is asked of a strategy without particles.
+            ``"particles"`` is asked of a strategy without particles, or a ``GoalReward``'s
+            observation size is not the model's.
 
     Example:
         >>> import torch, smcd_rl
@@ -197,7 +213,7 @@ class MPCAgent:
         self,
         model: AdaptiveDynamicsModel,
         planner: Planner,
-        reward_fn: RewardFn,
+        reward_fn: RewardFn | GoalReward,
         termination_fn: TerminationFn | None = None,
         *,
         ensemble: Ensemble = "mmse",
@@ -219,6 +235,12 @@ class MPCAgent:
                 f"ensemble='particles' needs a strategy with mask particles (smcd_rl.SMCD), but the model uses "
                 f"{type(model.adaptation).__name__}; use ensemble='mmse'"
             )
+        self.goal_reward = reward_fn if isinstance(reward_fn, GoalReward) else None
+        if self.goal_reward is not None and self.goal_reward.observation_dim != obs_dim:
+            raise ValueError(
+                f"the env's {self.goal_reward.observation_key!r} has {self.goal_reward.observation_dim} values but "
+                f"the model predicts observations of size {obs_dim}"
+            )
         self.model = model
         self.planner = planner
         self.reward_fn = reward_fn
@@ -235,17 +257,100 @@ class MPCAgent:
         self.observation_dim = obs_dim
         self.action_dim = action_dim
 
+    @classmethod
+    def from_goal_env(
+        cls,
+        model: AdaptiveDynamicsModel,
+        planner: Planner,
+        env: gymnasium.Env[Any, Any],
+        *,
+        achieved_goal_fn: Callable[[Tensor], Tensor] | slice | None = None,
+        termination_fn: TerminationFn | None = None,
+        ensemble: Ensemble = "mmse",
+        device: torch.device | str | None = None,
+    ) -> MPCAgent:
+        """An agent that plans with a goal-conditioned env's own batched ``compute_reward``.
+
+        The reward of a planned step is ``env.compute_reward(achieved_goal_fn(next_obs),
+        desired_goal, {})`` (:class:`~smcd_rl.integrations.gymnasium.GoalReward`), with the
+        ``desired_goal`` of the observation passed to :meth:`act` held fixed over the plan.
+
+        Args:
+            model: the dynamics model of the env's ``observation`` entry.
+            planner: the planner.
+            env: a single goal-conditioned env (``Dict`` observations with ``observation`` and
+                ``desired_goal``, and ``compute_reward``); wrappers allowed.
+            achieved_goal_fn: ``observation [..., O] -> achieved_goal [..., G]`` in torch, or a
+                ``slice`` of columns; derived for gymnasium-robotics Fetch envs when ``None``.
+            termination_fn: as in the constructor.
+            ensemble: as in the constructor.
+            device: as in the constructor.
+
+        Raises:
+            ValueError: the env is not goal-conditioned (which part is missing is named), or
+                ``achieved_goal_fn`` is needed and missing.
+
+        Example:
+            >>> import gymnasium, numpy as np, torch, smcd_rl
+            >>> from smcd_rl.agents.mpc import MPCAgent
+            >>> from smcd_rl.agents.planners import CEM
+            >>> class Point(gymnasium.Env):  # a goal env reduced to its spaces and reward
+            ...     box = gymnasium.spaces.Box(-1.0, 1.0, (2,))
+            ...     observation_space = gymnasium.spaces.Dict(observation=box, achieved_goal=box, desired_goal=box)
+            ...     action_space = box
+            ...     def compute_reward(self, achieved_goal, desired_goal, info):
+            ...         return -np.linalg.norm(achieved_goal - desired_goal, axis=-1)
+            >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(2 + 2, 2, hidden=(16,)))
+            >>> model.fitted = True  # a random stand-in for a trained network
+            >>> model.reset()
+            >>> planner = CEM(action_low=[-1.0, -1.0], action_high=[1.0, 1.0], horizon=3, num_candidates=20, num_elites=4)
+            >>> agent = MPCAgent.from_goal_env(model, planner, Point(), achieved_goal_fn=slice(0, 2))
+            >>> obs = {"observation": np.zeros(2), "achieved_goal": np.zeros(2), "desired_goal": np.ones(2)}
+            >>> agent.act(obs).shape
+            (2,)
+        """
+        reward = GoalReward(env, achieved_goal_fn=achieved_goal_fn)
+        return cls(model, planner, reward, termination_fn, ensemble=ensemble, device=device)
+
     def reset(self) -> None:
         """Forget the planner's warm start (call at the start of an episode); the model is untouched."""
         self.planner.reset()
 
-    def plan(self, observation: np.ndarray | Tensor) -> Tensor:
+    def plan(self, observation: np.ndarray | Tensor | Mapping[str, Any]) -> Tensor:
         """The whole optimised plan ``[*batch, H, A]`` from ``observation [*batch, obs]``.
+
+        A goal-conditioned agent takes the env's ``Dict`` observation instead (entries
+        ``[*batch, ...]``).
 
         Raises:
             ValueError: the observation size is not the model's, or its batch does not match the
-                batch shape the model was reset with.
+                batch shape the model was reset with; a ``Dict`` observation for an agent without
+                a ``GoalReward``, or the other way round.
         """
+        reward_fn: RewardFn
+        if self.goal_reward is not None:
+            goal = self.goal_reward
+            if not isinstance(observation, Mapping):
+                raise ValueError(
+                    "this agent plans towards a goal (its reward_fn is a GoalReward): pass the env's Dict "
+                    f"observation with entries {goal.observation_key!r} and {goal.desired_goal_key!r}, "
+                    f"got a {type(observation).__name__}"
+                )
+            missing = [k for k in (goal.observation_key, goal.desired_goal_key) if k not in observation]
+            if missing:
+                raise ValueError(f"the Dict observation has no {missing}; it has {list(observation)}")
+            desired = observation[goal.desired_goal_key]
+            observation = observation[goal.observation_key]
+            desired = torch.as_tensor(np.asarray(desired) if not isinstance(desired, Tensor) else desired)
+            reward_fn = goal.towards(desired.to(device=self.device, dtype=next(self.model.net.parameters()).dtype))
+        else:
+            if isinstance(observation, Mapping):
+                raise ValueError(
+                    f"got a Dict observation with entries {list(observation)}; for a goal-conditioned env build the "
+                    "agent with MPCAgent.from_goal_env(model, planner, env), else pass the observation array"
+                )
+            assert not isinstance(self.reward_fn, GoalReward)
+            reward_fn = self.reward_fn
         obs = torch.as_tensor(np.asarray(observation) if not isinstance(observation, Tensor) else observation)
         obs = obs.to(device=self.device, dtype=next(self.model.net.parameters()).dtype)
         if obs.dim() == 0 or obs.shape[-1] != self.observation_dim:
@@ -260,17 +365,23 @@ class MPCAgent:
                 f"observation batch {list(batch)} does not match the model's batch_shape {list(model_batch)}; "
                 f"pass one observation per adaptation state, or reset the model with batch_shape={list(batch)}"
             )
-        objective = model_reward_objective(self.model, obs, self.reward_fn, self.termination_fn, ensemble=self.ensemble)
+        if self.goal_reward is not None and tuple(desired.shape[:-1]) != batch:
+            raise ValueError(
+                f"desired_goal {list(desired.shape)} and observation {list(obs.shape)} have different batch dims"
+            )
+        objective = model_reward_objective(self.model, obs, reward_fn, self.termination_fn, ensemble=self.ensemble)
         return self.planner.plan(objective, batch_shape=batch)
 
-    def act(self, observation: np.ndarray | Tensor) -> np.ndarray:
+    def act(self, observation: np.ndarray | Tensor | Mapping[str, Any]) -> np.ndarray:
         """The first action of the plan: ``[A]`` for one observation, ``[B, A]`` for ``[B, obs]``."""
         return self.plan(observation)[..., 0, :].detach().cpu().numpy()
 
     def __repr__(self) -> str:
         return (
             f"MPCAgent(planner={type(self.planner).__name__}(horizon={self.planner.horizon}), "
-            f"adaptation={type(self.model.adaptation).__name__}, ensemble={self.ensemble!r})"
+            f"adaptation={type(self.model.adaptation).__name__}, ensemble={self.ensemble!r}"
+            + ("" if self.goal_reward is None else f", reward={self.goal_reward!r}")
+            + ")"
         )
 
 

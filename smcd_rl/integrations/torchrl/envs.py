@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -14,6 +15,7 @@ from torchrl.data import Bounded, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 from torchrl.envs.model_based import ModelBasedEnvBase
 
+from smcd_rl.integrations.gymnasium import GoalReward
 from smcd_rl.integrations.torchrl.modules import (
     RewardFn,
     TerminationFn,
@@ -44,11 +46,19 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
     ``net.in_features - net.out_features`` actions); bounds and dtype from the arguments or,
     with :meth:`from_gym` / :meth:`from_env`, from an env, which must match the model.
 
+    Goal-conditioned envs (:meth:`from_goal_env`, or a
+    :class:`~smcd_rl.integrations.gymnasium.GoalReward` as ``reward_fn``): the observation spec
+    holds ``observation``, ``achieved_goal`` and ``desired_goal``, the keys torchrl's ``GymEnv``
+    gives a Fetch env. A step predicts ``observation``, writes its ``achieved_goal`` and carries
+    ``desired_goal`` over unchanged (a constant of the plan); the reward is the env's own
+    ``compute_reward``.
+
     Args:
         model: the dynamics model, with keys ``observation``, ``action`` and
             ``("next", "observation")`` (the observation key may be renamed; the action key may not,
             torchrl's planners write ``"action"``). It must be reset before stepping.
-        reward_fn: pure batched reward, ``(obs [..., O], action [..., A], next_obs [..., O]) -> [...]``.
+        reward_fn: pure batched reward, ``(obs [..., O], action [..., A], next_obs [..., O]) -> [...]``,
+            or a :class:`~smcd_rl.integrations.gymnasium.GoalReward` (goal-conditioned).
         action_low: lower action bound, a scalar or ``A`` values.
         action_high: upper action bound, a scalar or ``A`` values.
         observation_low: lower observation bound (default unbounded); informative only, the
@@ -85,7 +95,7 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
     def __init__(
         self,
         model: AdaptiveDynamicsModel,
-        reward_fn: RewardFn,
+        reward_fn: RewardFn | GoalReward,
         *,
         action_low: _Bound,
         action_high: _Bound,
@@ -127,7 +137,23 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
             obs_spec = Bounded(
                 low=obs_low, high=obs_high, shape=(obs_dim,), device=self.device, dtype=observation_dtype
             )
-        self.observation_spec = Composite({obs_key: obs_spec}, device=self.device)
+        specs: dict[str, TensorSpec] = {obs_key: obs_spec}
+        self.goal = reward_fn if isinstance(reward_fn, GoalReward) else None
+        if self.goal is not None:
+            if self.goal.observation_dim != obs_dim:
+                raise ValueError(
+                    f"the goal env's {self.goal.observation_key!r} has {self.goal.observation_dim} values but the "
+                    f"model predicts {obs_dim} observations"
+                )
+            goal_box = self.goal.goal_space
+            goal_dtype = torch.from_numpy(np.zeros(0, dtype=goal_box.dtype)).dtype
+            goal_low = torch.as_tensor(goal_box.low, dtype=goal_dtype)
+            goal_high = torch.as_tensor(goal_box.high, dtype=goal_dtype)
+            specs[self.goal.desired_goal_key] = _box_spec(goal_low, goal_high, goal_dtype, self.device)
+            # Unbounded: the achieved goal of a predicted observation may leave the goal's box.
+            specs["achieved_goal"] = Unbounded(shape=goal_low.shape, device=self.device, dtype=goal_dtype)
+            self._initial_goal = torch.zeros(self.goal.goal_dim, dtype=goal_dtype).clamp(goal_low, goal_high)
+        self.observation_spec = Composite(specs, device=self.device)
         self.reward_spec = Unbounded(shape=(1,), device=self.device)
 
         if initial_observation is None:
@@ -144,7 +170,10 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         probe_obs = torch.zeros(2, obs_dim, dtype=observation_dtype, device=self.device)
         probe_action = ((low + high) / 2).to(self.device).expand(2, action_dim)
         with torch.no_grad():
-            _checked_reward(reward_fn(probe_obs, probe_action, probe_obs), probe_obs)
+            if isinstance(reward_fn, GoalReward):
+                _checked_reward(reward_fn(probe_obs, self._initial_goal.to(self.device)), probe_obs)
+            else:
+                _checked_reward(reward_fn(probe_obs, probe_action, probe_obs), probe_obs)
             if termination_fn is not None:
                 _checked_termination(termination_fn(probe_obs), probe_obs)
 
@@ -178,12 +207,90 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         _check_model(model)
         obs_space = getattr(env, "single_observation_space", env.observation_space)
         action_space = getattr(env, "single_action_space", env.action_space)
+        if isinstance(obs_space, gymnasium.spaces.Dict):
+            raise ValueError(
+                f"the env's observations are a Dict with entries {list(obs_space.keys())}; for a goal-conditioned "
+                "env use AdaptiveWorldModelEnv.from_goal_env(model, env), which plans with its compute_reward"
+            )
         obs_dim, action_dim = model.observation_dim, model.action_dim
         obs_box = _check_box(obs_space, obs_dim, "observation", model)
         action_box = _check_box(action_space, action_dim, "action", model)
         return cls(
             model,
             reward_fn,
+            action_low=torch.as_tensor(action_box.low, dtype=torch.float32),
+            action_high=torch.as_tensor(action_box.high, dtype=torch.float32),
+            observation_low=torch.as_tensor(obs_box.low, dtype=torch.float64),
+            observation_high=torch.as_tensor(obs_box.high, dtype=torch.float64),
+            termination_fn=termination_fn,
+            observation_dtype=torch.from_numpy(np.zeros(0, dtype=obs_box.dtype)).dtype,
+            initial_observation=initial_observation,
+            device=device,
+        )
+
+    @classmethod
+    def from_goal_env(
+        cls,
+        model: AdaptiveDynamicsModel,
+        env: gymnasium.Env[Any, Any],
+        *,
+        achieved_goal_fn: Callable[[Tensor], Tensor] | slice | None = None,
+        termination_fn: TerminationFn | None = None,
+        initial_observation: Tensor | None = None,
+        device: torch.device | str = "cpu",
+    ) -> AdaptiveWorldModelEnv:
+        """The world model of a goal-conditioned gymnasium env, rewarded by the env's own ``compute_reward``.
+
+        Bounds and dtypes come from the env's action space and its ``Dict`` entries
+        ``observation`` and ``desired_goal``; the reward of a step is
+        ``compute_reward(achieved_goal_fn(next_obs), desired_goal, {})``
+        (:class:`~smcd_rl.integrations.gymnasium.GoalReward`). A tensordict from torchrl's
+        ``GymEnv`` on the same env (keys ``observation``, ``achieved_goal``, ``desired_goal``)
+        plans as it is.
+
+        Args:
+            model: the dynamics model of the env's ``observation`` entry.
+            env: a single goal-conditioned gymnasium env (Fetch, or any env with ``Dict``
+                observations and a batched ``compute_reward``).
+            achieved_goal_fn: ``observation [..., O] -> achieved_goal [..., G]`` in torch, or a
+                ``slice`` of columns; derived for gymnasium-robotics Fetch envs when ``None``.
+            termination_fn: as in the constructor.
+            initial_observation: as in the constructor.
+            device: as in the constructor.
+
+        Raises:
+            ValueError: the env is not goal-conditioned (what is missing is named), a space does
+                not fit the model, or ``achieved_goal_fn`` is needed and missing.
+
+        Example:
+            >>> import gymnasium, numpy as np, torch, smcd_rl
+            >>> from smcd_rl.integrations.torchrl import AdaptiveWorldModelEnv
+            >>> class Point(gymnasium.Env):  # a goal env reduced to its spaces and reward
+            ...     box = gymnasium.spaces.Box(-1.0, 1.0, (2,))
+            ...     observation_space = gymnasium.spaces.Dict(observation=box, achieved_goal=box, desired_goal=box)
+            ...     action_space = box
+            ...     def compute_reward(self, achieved_goal, desired_goal, info):
+            ...         return -np.linalg.norm(achieved_goal - desired_goal, axis=-1)
+            >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(2 + 2, 2, hidden=(16,)))
+            >>> model.fitted = True  # a random stand-in for a trained network
+            >>> model.reset()
+            >>> world = AdaptiveWorldModelEnv.from_goal_env(model, Point(), achieved_goal_fn=slice(0, 2))
+            >>> sorted(world.observation_spec.keys())
+            ['achieved_goal', 'desired_goal', 'observation']
+            >>> td = world.reset()
+            >>> td["desired_goal"] = torch.tensor([0.5, 0.5])
+            >>> world.rollout(3, auto_reset=False, tensordict=td)["next", "desired_goal"][-1]
+            tensor([0.5000, 0.5000])
+        """
+        _check_model(model)
+        if isinstance(env, gymnasium.vector.VectorEnv):
+            raise TypeError("from_goal_env takes a single gymnasium env; pass one sub-env (gymnasium.make(id))")
+        goal = GoalReward(env, achieved_goal_fn=achieved_goal_fn, observation_key=_observation_key(model))
+        obs_box = _check_box(goal.observation_space, model.observation_dim, "observation", model)
+        action_box = _check_box(env.action_space, model.action_dim, "action", model)
+        return cls(
+            model,
+            goal,
             action_low=torch.as_tensor(action_box.low, dtype=torch.float32),
             action_high=torch.as_tensor(action_box.high, dtype=torch.float32),
             observation_low=torch.as_tensor(obs_box.low, dtype=torch.float64),
@@ -253,14 +360,37 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         if obs is None:
             obs = self._initial_observation.expand(*batch_size, -1).clone()
         done = torch.zeros(*batch_size, 1, dtype=torch.bool, device=self.device)
-        return TensorDict(
-            {self.observation_key: obs.to(self._initial_observation.dtype), "done": done, "terminated": done.clone()},
+        obs = obs.to(self._initial_observation.dtype)
+        out = TensorDict(
+            {self.observation_key: obs, "done": done, "terminated": done.clone()},
             batch_size=batch_size,
             device=self.device,
         )
+        if self.goal is not None:
+            key = self.goal.desired_goal_key
+            desired = tensordict.get(key, None) if tensordict is not None else None
+            if desired is None:
+                desired = self._initial_goal.to(self.device).expand(*batch_size, -1).clone()
+            out.set(key, desired.to(self._initial_goal.dtype))
+            out.set("achieved_goal", self.goal.achieved_goal(obs).to(self._initial_goal.dtype))
+        return out
 
     def _set_seed(self, seed: int | None) -> None:
         """Nothing to seed: steps are deterministic given the model's adaptation state."""
+
+
+def _box_spec(low: Tensor, high: Tensor, dtype: torch.dtype, device: torch.device | None) -> TensorSpec:
+    """``Unbounded`` when every bound is infinite, else ``Bounded``."""
+    if bool(torch.isinf(low).all() & torch.isinf(high).all()):
+        return Unbounded(shape=low.shape, device=device, dtype=dtype)
+    return Bounded(low=low, high=high, shape=low.shape, device=device, dtype=dtype)
+
+
+def _observation_key(model: AdaptiveDynamicsModel) -> str:
+    key = model.in_keys[0]
+    if not isinstance(key, str):
+        raise ValueError(f"a goal-conditioned model reads a top-level Dict entry, but its observation key is {key!r}")
+    return key
 
 
 def _check_model(model: object) -> None:

@@ -11,6 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from smcd_rl.integrations.gymnasium import GoalReward
 from smcd_rl.model import AdaptiveDynamicsModel
 
 __all__ = ["RewardFn", "TerminationFn", "RewardToGo"]
@@ -26,17 +27,21 @@ class _WorldModel(TensorDictModuleBase):
     """(observation, action) -> (observation, reward[, terminated, done]) through the adapted model.
 
     ``ModelBasedEnvBase._step`` keeps only the observation, reward and done keys of what this
-    module writes, so the next observation overwrites the observation key itself.
+    module writes, so the next observation overwrites the observation key itself. With a
+    :class:`GoalReward` the reward is the env's ``compute_reward`` towards the tensordict's
+    desired goal, which is carried over unchanged, and the achieved goal of the predicted
+    observation is written to ``achieved_goal_key``.
     """
 
     def __init__(
         self,
         model: AdaptiveDynamicsModel,
-        reward_fn: RewardFn,
+        reward_fn: RewardFn | GoalReward,
         termination_fn: TerminationFn | None,
         *,
         observation_key: str,
         observation_dtype: torch.dtype,
+        achieved_goal_key: str = "achieved_goal",
     ) -> None:
         super().__init__()
         self.model = model
@@ -44,8 +49,12 @@ class _WorldModel(TensorDictModuleBase):
         self.termination_fn = termination_fn
         self.observation_key = observation_key
         self.observation_dtype = observation_dtype
-        self.in_keys = [observation_key, "action"]
-        self.out_keys = [observation_key, "reward"] + (["terminated", "done"] if termination_fn else [])
+        self.goal = reward_fn if isinstance(reward_fn, GoalReward) else None
+        self.achieved_goal_key = achieved_goal_key
+        goal_in = [] if self.goal is None else [self.goal.desired_goal_key]
+        goal_out = [] if self.goal is None else [achieved_goal_key, self.goal.desired_goal_key]
+        self.in_keys = [observation_key, "action", *goal_in]
+        self.out_keys = [observation_key, *goal_out, "reward"] + (["terminated", "done"] if termination_fn else [])
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         key = self.observation_key
@@ -56,7 +65,13 @@ class _WorldModel(TensorDictModuleBase):
         with torch.no_grad():
             query = TensorDict({key: obs, "action": action}, batch_size=td.batch_size, device=td.device)
             next_obs = self.model(query).get(("next", key)).to(self.observation_dtype)
-            reward = _checked_reward(self.reward_fn(obs, action, next_obs), obs)
+            if self.goal is not None:
+                desired = td.get(self.goal.desired_goal_key)
+                reward = _checked_reward(self.goal(next_obs, desired), obs)
+                td.set(self.achieved_goal_key, self.goal.achieved_goal(next_obs).to(desired.dtype))
+            else:
+                assert not isinstance(self.reward_fn, GoalReward)
+                reward = _checked_reward(self.reward_fn(obs, action, next_obs), obs)
             td.set(key, next_obs)
             td.set("reward", reward.to(torch.float32).unsqueeze(-1))
             if self.termination_fn is not None:
