@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# Install mbrl-lib 0.2.0 into this checkout's .venv (made by bootstrap.sh), beside the pinned stack.
+# mbrl 0.2.0 pins gymnasium 0.26.3 and hydra-core 1.0.3 (which fails to import on Python 3.11), so it goes
+# in without its dependencies, with the few it needs at import, at the versions in constraints.txt.
+# Re-running is cheap: pip runs again only when constraints.txt changed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+pip=(.venv/bin/python -m pip install --quiet --disable-pip-version-check --constraint constraints.txt)
+stamp=.venv/.installed-mbrl-lib
+if [ ! -f "$stamp" ] || [ constraints.txt -nt "$stamp" ]; then
+    # All in one --no-deps call: hydra-core and omegaconf need only these and packaging / PyYAML,
+    # which the stack has; pip then reports no conflict with mbrl's own (unusable) pins.
+    "${pip[@]}" --no-deps mbrl==0.2.0 hydra-core==1.3.2 omegaconf==2.3.0 antlr4-python3-runtime==4.9.3 termcolor==3.3.0
+    .venv/bin/python -c "import mbrl.models, mbrl.planning, mbrl.util.common"
+    touch "$stamp"
+fi
