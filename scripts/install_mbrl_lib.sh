@@ -11,6 +11,18 @@ if [ ! -f "$stamp" ] || [ constraints.txt -nt "$stamp" ]; then
     # All in one --no-deps call: hydra-core and omegaconf need only these and packaging / PyYAML,
     # which the stack has; pip then reports no conflict with mbrl's own (unusable) pins.
     "${pip[@]}" --no-deps mbrl==0.2.0 hydra-core==1.3.2 omegaconf==2.3.0 antlr4-python3-runtime==4.9.3 termcolor==3.3.0
+    # The mbrl 0.2.0 wheel also installs its own test suite as a top-level `tests` package, which
+    # shadows any project's `tests` (ours imports tests.core...): remove the files its RECORD lists.
+    .venv/bin/python - <<'PY'
+import importlib.metadata, pathlib
+dist = importlib.metadata.distribution("mbrl")
+stray = [pathlib.Path(dist.locate_file(f)) for f in dist.files or [] if f.parts[0] == "tests"]
+for path in stray:
+    path.unlink(missing_ok=True)
+for folder in sorted({p.parent for p in stray}, key=lambda p: len(p.parts), reverse=True):
+    if folder.is_dir() and not any(folder.iterdir()):  # only what is empty now: mbrl's own folders
+        folder.rmdir()
+PY
     .venv/bin/python -c "import mbrl.models, mbrl.planning, mbrl.util.common"
     touch "$stamp"
 fi

@@ -232,3 +232,16 @@ def test_pets_loop_runs_and_adapts_every_step() -> None:
     assert len(returns) == len(episodes) >= 1
     assert sum(length for _, _, length in episodes) == 30 and episodes[-1][0] == 30
     assert model.summary()["log_evidence"].item() != 0.0
+
+
+def test_no_installed_package_shadows_the_projects_tests() -> None:
+    """mbrl 0.2.0's wheel ships a top-level ``tests`` package; scripts/install_mbrl_lib.sh removes it.
+
+    Left in place, ``tests.core...`` imports resolve into site-packages and test collection fails.
+    """
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.find_spec("tests")
+    root = Path(__file__).resolve().parents[1]
+    assert spec is not None and [Path(p).resolve() for p in spec.submodule_search_locations] == [root]
