@@ -79,6 +79,12 @@ COMMANDS: dict[str, Command] = {
         "smcd_rl.experiments.ant",
         "crippled-leg Ant: planners x adaptations, healthy and crippled (paper appendix C, Fig. 15)",
     ),
+    "fetch": Command(
+        "smcd_rl.experiments.configs.fetch",
+        "FetchConfig",
+        "smcd_rl.experiments.fetch",
+        "Fetch task families (rotated reach, heavy push): MPC with CEM/MPPI on a learnt model, N/G/S/S(paper)",
+    ),
     "scoreboard": Command(
         "smcd_rl.experiments.configs.scoreboard",
         "ScoreboardConfig",

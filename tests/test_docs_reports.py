@@ -30,6 +30,7 @@ REPORTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "telescoping/measured/report.md": ("telescoping", ("feedback",)),
     "interpret/report.md": ("interpret", ()),
     "ant/report.md": ("ant", ()),
+    "fetch/report.md": ("fetch", ()),
     "sweep/training/report.md": ("sweep", ()),
     "sweep/smcd/report.md": ("sweep", ("study",)),
     "sweep/drone/report.md": ("sweep", ("study",)),
