@@ -74,6 +74,7 @@ from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.scoreboard import scoreboard_entry
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.tuning import tune
+from smcd_rl.experiments.video import video_name
 
 __all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "ADAPTATIONS", "run", "table"]
 
@@ -102,6 +103,7 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
         tunings: dict[str, Any] = {}
         plots: dict[str, Any] = {}
         tables: dict[str, str] = {}
+        videos: list[str] = []  # --video: the GIFs the cells wrote
         for family in config.families:
             # --- data from many draws of the family ------------------------------------------------
             data_key = {"family": family, **{k: getattr(config, k) for k in DATA_SETTINGS}}
@@ -143,7 +145,11 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
             tuning_data = tuning_episodes(family, config, seed=config.seed + TUNING_SEED).to(ex.device)
             tuning = tune(ex, model, tuning_data, config, name=family, paper_noise_std=paper_noise.tolist())
             tunings[family] = tuning
-            content = {"model": model_digest(model), "tuned": asdict(tuning.tuned), "paper": asdict(tuning.paper)}
+            content: dict[str, Any] = {
+                "model": model_digest(model),
+                "tuned": asdict(tuning.tuned),
+                "paper": asdict(tuning.paper),
+            }
 
             # --- MPC episodes of every (planner, adaptation) cell on the same test draws ----------
             cells = {
@@ -159,11 +165,16 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                     episode_seeds=episode_seeds,
                     device=ex.device,
                     progress=progress,
+                    video=min(config.video, config.episodes),
+                    video_path=functools.partial(_video_path, ex.out, f"{family}-{planner}-{variant}"),
                 )
                 for planner in config.planners
                 for variant in config.adaptations
             }
+            # The videos are written by the cells, so their count keys the cells (only when recorded).
+            content |= {"video": config.video} if config.video else {}
             done = ex.evaluate(cells, lambda name, result: result, content=content)
+            videos += [v for result in done.values() for v in result.get("videos", []) if Path(v).is_file()]
             reference = ex.evaluate(
                 {f"{family}/random": functools.partial(random_cell, family, config, episode_seeds=episode_seeds)},
                 lambda name, result: result,
@@ -243,8 +254,14 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                 ],
             },
             plots={"fetch.png": lambda path: _plot(rows, config, path), **plots},
+            files=[str(Path(v).relative_to(ex.out)) for v in videos],
         )
     return ex.result
+
+
+def _video_path(out: Path, cell: str, k: int) -> Path:
+    """``out/videos/<family>-<planner>-<adaptation>-<k>.gif``."""
+    return out / video_name(cell, k)
 
 
 def _costs(config: FetchConfig) -> dict[str, float]:

@@ -14,8 +14,10 @@ gymnasium-robotics and mujoco are optional dependencies: the families are made t
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium
@@ -28,6 +30,7 @@ import smcd_rl
 from smcd_rl.agents.mpc import MPCAgent
 from smcd_rl.agents.planners import CEM, MPPI, Planner
 from smcd_rl.experiments.configs.fetch import FAMILIES
+from smcd_rl.experiments.video import write_gif
 from smcd_rl.integrations.gymnasium import collect_transitions
 
 if TYPE_CHECKING:
@@ -44,11 +47,19 @@ __all__ = [
 ]
 
 
-def make_env(family: str, config: FetchConfig, max_steps: int) -> gymnasium.Env[Any, Any]:
-    """The family's env with the dense reward (``-distance``, which the planners rank by), truncated at ``max_steps``."""
+def make_env(
+    family: str, config: FetchConfig, max_steps: int, *, render_mode: str | None = None
+) -> gymnasium.Env[Any, Any]:
+    """The family's env with the dense reward (``-distance``, which the planners rank by), truncated at ``max_steps``.
+
+    With ``render_mode="rgb_array"`` and no display, MuJoCo renders through EGL (headless), unless
+    ``MUJOCO_GL`` already names a backend; rendering changes nothing of the physics.
+    """
     import smcd_rl.integrations.robotics  # noqa: F401  (registers the families; needs gymnasium-robotics)
 
-    kwargs: dict[str, Any] = {"reward_type": "dense", "max_episode_steps": max_steps}
+    if render_mode is not None and not os.environ.get("DISPLAY"):
+        os.environ.setdefault("MUJOCO_GL", "egl")  # glfw, gymnasium's first choice, needs a display
+    kwargs: dict[str, Any] = {"reward_type": "dense", "max_episode_steps": max_steps, "render_mode": render_mode}
     if family == "reach":
         kwargs["rotation"] = (-config.rotation, config.rotation)
     return gymnasium.make(FAMILIES[family], **kwargs)
@@ -199,8 +210,13 @@ def run_cell(
     episode_seeds: Sequence[int],
     device: torch.device,
     progress: bool,
+    video: int = 0,
+    video_path: Callable[[int], Path] | None = None,
 ) -> dict[str, Any]:
     """The MPC episodes of one (family, planner, adaptation) cell: ``{"episodes": [one record per episode]}``.
+
+    With ``video`` > 0 the first ``video`` episodes are rendered and written as GIFs to
+    ``video_path(k)``; their paths are in the result's ``"videos"``.
 
     Each episode resets with its env seed (the draw and the goal, the same in every cell) and
     resets the adapted copy of the model; the planner (seeded once per cell) ranks candidates by the
@@ -209,8 +225,9 @@ def run_cell(
     """
     adapted = model.with_adaptation(strategy)
     assert isinstance(adapted, smcd_rl.AdaptiveDynamicsModel)
-    env = make_env(family, config, config.episode_steps)
+    env = make_env(family, config, config.episode_steps, render_mode="rgb_array" if video else None)
     generator = torch.Generator(device=device).manual_seed(planner_seed)
+    videos: list[str] = []
     agent = MPCAgent.from_goal_env(adapted, _make_planner(planner, config, env, generator, device), env, device=device)
     episodes = []
     bar = tqdm(
@@ -227,9 +244,12 @@ def run_cell(
         agent.reset()
         task = dict(info["task"])
         done, refused = False, 0
+        frames: list[np.ndarray] = [_frame(env)] if k < video else []
         while not done:
             action = agent.act(obs)
             next_obs, _, terminated, truncated, info = env.step(action)
+            if k < video:
+                frames.append(_frame(env))
             try:
                 adapted.observe(_transition(obs, action, next_obs, device))
             except ValueError:  # gradient descent diverged: it keeps its state and goes on
@@ -239,9 +259,17 @@ def run_cell(
         episodes.append(
             {**_record(k, seed, obs, info, task), "refused": refused, "seconds": time.perf_counter() - started}
         )
+        if frames and video_path is not None:
+            videos.append(str(write_gif(frames, video_path(k), fps=env.metadata.get("render_fps", 25))))
     bar.close()
     env.close()
-    return {"episodes": episodes}
+    return {"episodes": episodes, **({"videos": videos} if video else {})}
+
+
+def _frame(env: gymnasium.Env[Any, Any]) -> np.ndarray:
+    frame = env.render()
+    assert isinstance(frame, np.ndarray), "the env was made with render_mode='rgb_array'"
+    return frame
 
 
 def random_cell(family: str, config: FetchConfig, *, episode_seeds: Sequence[int]) -> dict[str, Any]:

@@ -97,13 +97,30 @@ def test_tiny_run_writes_its_files_and_planning_beats_random_actions(tmp_path: P
     assert again["results"] == result["results"]
 
 
+@pytest.mark.slow
+def test_video_writes_gifs_and_changes_no_number(tmp_path: Path) -> None:
+    """``--video 1`` renders each cell's first episode (MuJoCo, headless) without moving any result."""
+    from PIL import Image
+
+    plain = run_tiny(tmp_path / "plain", "--adaptations", "N", "--episodes", "2")
+    filmed = run_tiny(tmp_path / "filmed", "--adaptations", "N", "--episodes", "2", "--video", "1")
+
+    def numbers(result: dict[str, Any]) -> list[dict[str, Any]]:
+        return [{k: v for k, v in row.items() if k != "seconds"} for row in result["results"]]
+
+    assert numbers(filmed) == numbers(plain)
+    gifs = sorted((tmp_path / "filmed" / "videos").glob("*.gif"))
+    assert [g.name for g in gifs] == ["reach-cem-N-0.gif"] and "videos/reach-cem-N-0.gif" in filmed["files"]
+    with Image.open(gifs[0]) as gif:
+        assert gif.n_frames > 1 and gif.size[0] > 0
+
+
 def test_bad_options_are_refused() -> None:
     from smcd_rl.experiments.configs.fetch import FetchConfig
 
     for bad, message in [
         ({"elites": 200}, "--elites"),
         ({"dropout": 1.0}, "--dropout"),
-        ({"video": 1}, "--video"),
         ({"families": ()}, "--families"),
     ]:
         with pytest.raises(ValueError, match=message):

@@ -103,8 +103,6 @@ class FetchConfig(TuningConfig):
             raise ValueError(f"--elites ({self.elites}) must be <= --candidates ({self.candidates})")
         if self.transitions * self.validation < 1 or self.transitions * (1 - self.validation) < 2:
             raise ValueError(f"{self.transitions} transitions are too few to hold out {self.validation:.0%}")
-        if self.video:
-            raise ValueError("--video is not supported by smcd-rl fetch")
         keep = 1.0 - self.dropout  # SMCD's keep_rate transition flips a bit with up to 2 d max(k, 1 - k)
         for name in ("flip_prob", "calibrate_flips"):
             values = getattr(self, name)
