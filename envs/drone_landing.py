@@ -29,7 +29,7 @@ from gymnasium import spaces
 from numpy.typing import ArrayLike
 from torch import Tensor
 
-from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, Canvas, check_render_mode
+from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, Canvas, check_render_mode, render_state
 
 __all__ = [
     "DT",
@@ -510,15 +510,7 @@ class DroneLandingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             >>> env.render().shape
             (480, 480, 3)
         """
-        if self.render_mode is None:
-            gymnasium.logger.warn(
-                "You are calling render method without specifying any render mode; "
-                'pass render_mode="rgb_array" at initialization.'
-            )
-            return None
-        if self._position is None:
-            raise RuntimeError("call reset() before render().")
-        return drone_frame(self._position, self._target)
+        return render_state(self.render_mode, self._position, lambda position: drone_frame(position, self._target))
 
     def _observation(self) -> np.ndarray:
         assert self._position is not None

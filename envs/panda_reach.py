@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike
 from tensordict import TensorDict
 from torch import Tensor
 
-from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, Canvas, check_render_mode
+from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, Canvas, check_render_mode, render_state
 
 __all__ = [
     "ACCELERATION_LIMITS",
@@ -659,15 +659,9 @@ class PandaReachEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             >>> env.render().shape
             (480, 480, 3)
         """
-        if self.render_mode is None:
-            gymnasium.logger.warn(
-                "You are calling render method without specifying any render mode; "
-                'pass render_mode="rgb_array" at initialization.'
-            )
-            return None
-        if self._q is None:
-            raise RuntimeError("call reset() before render()")
-        return panda_frame(self._q.numpy(), self._tool, self._goal, measured=self._fresh)
+        return render_state(
+            self.render_mode, self._q, lambda q: panda_frame(q.numpy(), self._tool, self._goal, measured=self._fresh)
+        )
 
     def _ee_true(self) -> np.ndarray:
         assert self._q is not None

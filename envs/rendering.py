@@ -18,12 +18,17 @@ Example:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import TypeVar
 
+import gymnasium
 import numpy as np
 from numpy.typing import ArrayLike
 
+State = TypeVar("State")
+
 __all__ = [
+    "render_state",
     "BACKGROUND",
     "Canvas",
     "Color",
@@ -166,3 +171,26 @@ class Canvas:
         c1, r1 = min(int(round(p[1, 0])), width_px), min(int(round(p[1, 1])), height)
         if c0 < c1 and r0 < r1:
             self.image[r0:r1, c0:c1] = color
+
+
+def render_state(
+    render_mode: str | None, state: State | None, draw: Callable[[State], np.ndarray]
+) -> np.ndarray | None:
+    """What an env's ``render()`` returns: ``draw(state)`` in ``"rgb_array"`` mode.
+
+    Without a render mode it warns and returns None, as gymnasium's own envs do; before the first
+    ``reset()`` (``state`` is None) it raises.
+
+    Example:
+        >>> render_state("rgb_array", 3, lambda n: np.zeros((n, n, 3), np.uint8)).shape
+        (3, 3, 3)
+    """
+    if render_mode is None:
+        gymnasium.logger.warn(
+            "You are calling render method without specifying any render mode; "
+            'pass render_mode="rgb_array" at initialization.'
+        )
+        return None
+    if state is None:
+        raise RuntimeError("call reset() before render().")
+    return draw(state)

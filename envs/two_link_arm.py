@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike
 from tensordict import TensorDict
 from torch import Tensor
 
-from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, Canvas, check_render_mode
+from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, Canvas, check_render_mode, render_state
 
 __all__ = [
     "DEFAULT_DT",
@@ -561,15 +561,7 @@ class TwoLinkArmEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             >>> env.render().shape
             (480, 480, 3)
         """
-        if self.render_mode is None:
-            gymnasium.logger.warn(
-                "You are calling render method without specifying any render mode; "
-                'pass render_mode="rgb_array" at initialization.'
-            )
-            return None
-        if self._q is None:
-            raise RuntimeError("call reset() before render().")
-        return two_link_frame(self._q, self._link_lengths)
+        return render_state(self.render_mode, self._q, lambda q: two_link_frame(q, self._link_lengths))
 
     def _observe(self) -> tuple[np.ndarray, dict[str, Any]]:
         assert self._q is not None

@@ -25,7 +25,7 @@ from gymnasium import spaces
 from numpy.typing import ArrayLike
 from torch import Tensor
 
-from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, check_render_mode
+from smcd_rl.envs.rendering import FRAME_SIZE, RENDER_MODES, check_render_mode, render_state
 from smcd_rl.envs.two_link_arm import (
     _check_link_length_prior,
     _check_non_negative,
@@ -494,17 +494,12 @@ class TwoLinkTelescopingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             >>> env.render().shape
             (480, 480, 3)
         """
-        if self.render_mode is None:
-            gymnasium.logger.warn(
-                "You are calling render method without specifying any render mode; "
-                'pass render_mode="rgb_array" at initialization.'
-            )
-            return None
-        if self._state is None:
-            raise RuntimeError("call reset() before render().")
-        state = self._state
-        return telescoping_frame(
-            state["q"].numpy(), float(state["l1"]), self._k, self._target().numpy(), float(state["radius"])
+        return render_state(
+            self.render_mode,
+            self._state,
+            lambda state: telescoping_frame(
+                state["q"].numpy(), float(state["l1"]), self._k, self._target().numpy(), float(state["radius"])
+            ),
         )
 
     def _target(self) -> Tensor:
