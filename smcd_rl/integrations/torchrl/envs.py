@@ -212,21 +212,7 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
                 f"the env's observations are a Dict with entries {list(obs_space.keys())}; for a goal-conditioned "
                 "env use AdaptiveWorldModelEnv.from_goal_env(model, env), which plans with its compute_reward"
             )
-        obs_dim, action_dim = model.observation_dim, model.action_dim
-        obs_box = _check_box(obs_space, obs_dim, "observation", model)
-        action_box = _check_box(action_space, action_dim, "action", model)
-        return cls(
-            model,
-            reward_fn,
-            action_low=torch.as_tensor(action_box.low, dtype=torch.float32),
-            action_high=torch.as_tensor(action_box.high, dtype=torch.float32),
-            observation_low=torch.as_tensor(obs_box.low, dtype=torch.float64),
-            observation_high=torch.as_tensor(obs_box.high, dtype=torch.float64),
-            termination_fn=termination_fn,
-            observation_dtype=torch.from_numpy(np.zeros(0, dtype=obs_box.dtype)).dtype,
-            initial_observation=initial_observation,
-            device=device,
-        )
+        return cls._from_spaces(model, reward_fn, obs_space, action_space, termination_fn, initial_observation, device)
 
     @classmethod
     def from_goal_env(
@@ -286,11 +272,27 @@ class AdaptiveWorldModelEnv(ModelBasedEnvBase):
         if isinstance(env, gymnasium.vector.VectorEnv):
             raise TypeError("from_goal_env takes a single gymnasium env; pass one sub-env (gymnasium.make(id))")
         goal = GoalReward(env, achieved_goal_fn=achieved_goal_fn, observation_key=_observation_key(model))
-        obs_box = _check_box(goal.observation_space, model.observation_dim, "observation", model)
-        action_box = _check_box(env.action_space, model.action_dim, "action", model)
+        return cls._from_spaces(
+            model, goal, goal.observation_space, env.action_space, termination_fn, initial_observation, device
+        )
+
+    @classmethod
+    def _from_spaces(
+        cls,
+        model: AdaptiveDynamicsModel,
+        reward_fn: RewardFn | GoalReward,
+        obs_space: gymnasium.Space,
+        action_space: gymnasium.Space,
+        termination_fn: TerminationFn | None,
+        initial_observation: Tensor | None,
+        device: torch.device | str,
+    ) -> AdaptiveWorldModelEnv:
+        """The env with the bounds and dtype of the observation and action ``Box`` spaces (checked against the model)."""
+        obs_box = _check_box(obs_space, model.observation_dim, "observation", model)
+        action_box = _check_box(action_space, model.action_dim, "action", model)
         return cls(
             model,
-            goal,
+            reward_fn,
             action_low=torch.as_tensor(action_box.low, dtype=torch.float32),
             action_high=torch.as_tensor(action_box.high, dtype=torch.float32),
             observation_low=torch.as_tensor(obs_box.low, dtype=torch.float64),
