@@ -8,11 +8,11 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Protocol
 
 from smcd_rl.experiments.configs import ExperimentConfig, setting
 
-__all__ = ["TuningConfig", "AdaptationConfig", "VARIANTS"]
+__all__ = ["TuningConfig", "AdaptationConfig", "VARIANTS", "LearntDynamicsSettings", "check_learnt_dynamics"]
 
 #: The strategies a method name may end in: none, tuned GD, calibrated SMCD, SMCD at the paper's settings.
 VARIANTS = ("N", "G", "S", "S(paper)")
@@ -55,3 +55,35 @@ class AdaptationConfig(TuningConfig):
     noise_std: float = setting(
         0.05, "likelihood noise std of SMCD at the paper's settings (observation units)", above=0.0
     )
+
+
+class LearntDynamicsSettings(Protocol):
+    """The settings of a command that plans with a learnt dynamics model (``ant``, ``fetch``)."""
+
+    dropout: float
+    validation: float  # the held-out share of the transitions
+    transitions: int
+    candidates: int
+    elites: int
+    flip_prob: float
+    calibrate_flips: tuple[float, ...]
+
+
+def check_learnt_dynamics(config: LearntDynamicsSettings) -> None:
+    """What the declared bounds of a learnt-dynamics MPC command cannot express; ValueError naming the option."""
+    for name, value in (("dropout", config.dropout), ("validation", config.validation)):
+        if value >= 1.0:
+            raise ValueError(f"--{name} must be < 1, got {value}")
+    if config.elites > config.candidates:
+        raise ValueError(f"--elites ({config.elites}) must be <= --candidates ({config.candidates})")
+    transitions, validation = config.transitions, config.validation
+    if transitions * validation < 1 or transitions * (1 - validation) < 2:
+        raise ValueError(f"{transitions} transitions are too few to hold out {validation:.0%}")
+    keep = 1.0 - config.dropout  # SMCD's keep_rate transition flips a bit with up to 2 d max(k, 1 - k)
+    for name, flips in (("flip-prob", (config.flip_prob,)), ("calibrate-flips", config.calibrate_flips)):
+        for flip in flips:
+            if flip > 1 / (2 * max(keep, 1 - keep)):
+                raise ValueError(
+                    f"--{name} {flip} is too large at dropout {config.dropout}: "
+                    f"use at most {1 / (2 * max(keep, 1 - keep)):.3g}"
+                )

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, TypedDict
 
 from smcd_rl.experiments.configs import setting
-from smcd_rl.experiments.configs.adaptations import VARIANTS, TuningConfig
+from smcd_rl.experiments.configs.adaptations import VARIANTS, TuningConfig, check_learnt_dynamics
 
 __all__ = ["AntConfig", "FULL", "TASKS", "RewardWeights", "PLANNERS", "ADAPTATIONS", "CONDITIONS"]
 
@@ -125,27 +125,12 @@ class AntConfig(TuningConfig):
     def validate(self) -> None:
         """The declared bounds, then what they cannot express: upper bounds and bounds across options."""
         super().validate()
-        for name in ("dropout", "validation"):
-            if getattr(self, name) >= 1.0:
-                raise ValueError(f"--{name} must be < 1, got {getattr(self, name)}")
-        if self.elites > self.candidates:
-            raise ValueError(f"--elites ({self.elites}) must be <= --candidates ({self.candidates})")
+        check_learnt_dynamics(self)
         if self.prediction_steps <= self.prediction_horizon:
             raise ValueError(
                 f"--prediction-steps ({self.prediction_steps}) must be > --prediction-horizon "
                 f"({self.prediction_horizon})"
             )
-        if self.transitions * self.validation < 1 or self.transitions * (1 - self.validation) < 2:
-            raise ValueError(f"{self.transitions} transitions are too few to hold out {self.validation:.0%}")
-        keep = 1.0 - self.dropout  # SMCD's keep_rate transition flips a bit with up to 2 d max(k, 1 - k)
-        for name in ("flip_prob", "calibrate_flips"):
-            values = getattr(self, name)
-            for flip in values if isinstance(values, tuple) else (values,):
-                if flip > 1 / (2 * max(keep, 1 - keep)):
-                    raise ValueError(
-                        f"--{name.replace('_', '-')} {flip} is too large at dropout {self.dropout}: "
-                        f"use at most {1 / (2 * max(keep, 1 - keep)):.3g}"
-                    )
 
 
 #: What ``--full`` changes (options given explicitly still win).
