@@ -14,7 +14,6 @@ used, so that ``smcd-rl --help`` works without it.
 from __future__ import annotations
 
 import functools
-import os
 import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -29,6 +28,7 @@ import smcd_rl
 from smcd_rl.agents.mpc import MPCAgent
 from smcd_rl.agents.planners import CEM, MPPI, Planner, RandomShooting
 from smcd_rl.experiments.configs.ant import TASKS, RewardWeights
+from smcd_rl.experiments.video import headless_mujoco
 from smcd_rl.integrations.gymnasium import AdaptationWrapper, collect_transitions
 
 if TYPE_CHECKING:
@@ -80,8 +80,7 @@ def render_states(task: str, leg: int, states: np.ndarray, *, max_steps: int) ->
     Returns:
         The frames and the env's frame rate (``metadata["render_fps"]``).
     """
-    if not os.environ.get("DISPLAY"):
-        os.environ.setdefault("MUJOCO_GL", "egl")  # glfw, gymnasium's first choice, needs a display
+    headless_mujoco()
     env = make_env(task, None, max_steps, render_mode="rgb_array")
     env.reset(seed=0, options={"crippled_leg": None if leg < 0 else leg})
     mujoco_env = env.unwrapped

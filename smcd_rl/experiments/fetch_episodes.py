@@ -14,7 +14,6 @@ gymnasium-robotics and mujoco are optional dependencies: the families are made t
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -30,7 +29,7 @@ import smcd_rl
 from smcd_rl.agents.mpc import MPCAgent
 from smcd_rl.agents.planners import CEM, MPPI, Planner
 from smcd_rl.experiments.configs.fetch import FAMILIES
-from smcd_rl.experiments.video import write_gif
+from smcd_rl.experiments.video import headless_mujoco, write_gif
 from smcd_rl.integrations.gymnasium import collect_transitions
 
 if TYPE_CHECKING:
@@ -57,8 +56,8 @@ def make_env(
     """
     import smcd_rl.integrations.robotics  # noqa: F401  (registers the families; needs gymnasium-robotics)
 
-    if render_mode is not None and not os.environ.get("DISPLAY"):
-        os.environ.setdefault("MUJOCO_GL", "egl")  # glfw, gymnasium's first choice, needs a display
+    if render_mode is not None:
+        headless_mujoco()
     kwargs: dict[str, Any] = {"reward_type": "dense", "max_episode_steps": max_steps, "render_mode": render_mode}
     if family == "reach":
         kwargs["rotation"] = (-config.rotation, config.rotation)
