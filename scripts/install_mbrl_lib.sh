@@ -8,6 +8,7 @@ cd "$(dirname "$0")/.."
 pip=(.venv/bin/python -m pip install --quiet --disable-pip-version-check --constraint constraints.txt)
 stamp=.venv/.installed-mbrl-lib
 if [ ! -f "$stamp" ] || [ constraints.txt -nt "$stamp" ]; then
+    echo "install_mbrl_lib: installing mbrl-lib 0.2.0 and the few packages it needs at import (no other dependencies)"
     # All in one --no-deps call: hydra-core and omegaconf need only these and packaging / PyYAML,
     # which the stack has; pip then reports no conflict with mbrl's own (unusable) pins.
     "${pip[@]}" --no-deps mbrl==0.2.0 hydra-core==1.3.2 omegaconf==2.3.0 antlr4-python3-runtime==4.9.3 termcolor==3.3.0
@@ -25,4 +26,6 @@ for folder in sorted({p.parent for p in stray}, key=lambda p: len(p.parts), reve
 PY
     .venv/bin/python -c "import mbrl.models, mbrl.planning, mbrl.util.common"
     touch "$stamp"
+else
+    echo "install_mbrl_lib: mbrl-lib is up to date in .venv"
 fi
