@@ -37,7 +37,7 @@ def ray_session(config: SweepConfig) -> Iterator[Any]:
         import ray
     except ImportError as err:
         raise ImportError(
-            'smcd-rl sweep runs its trials on Ray, which is not installed; install it with: pip install "smcd-rl[ray]"'
+            'smcd-rl sweep runs its trials on Ray, which is not installed; in a checkout install it with: pip install -e ".[ray]" (or bash bootstrap.sh, which installs every extra)'
         ) from err
     started = not ray.is_initialized()
     if started:
