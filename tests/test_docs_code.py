@@ -114,7 +114,7 @@ def test_python_block_runs_and_prints_what_the_page_shows(block: Block, output: 
 def _commands(block: Block) -> list[list[str]]:
     """Each ``smcd-rl`` command of a shell block as argv (after ``&&``, a ``.venv/bin/`` prefix or ``$ ``)."""
     found = []
-    for line in block.code.splitlines():
+    for line in block.code.replace("\\\n", " ").splitlines():  # a trailing backslash continues the command
         line = line.split(" #", 1)[0].strip().removeprefix("$ ")
         if line.startswith("#"):
             continue
