@@ -3,9 +3,12 @@
 Each experiment writes into its ``results.json`` the cell of its table that stands for the task
 (e.g. two-link at burn-in T = 10, horizon H = 1): the estimates of its methods for "none", "GD",
 "SMCD (paper)" and "SMCD (calibrated)" and their paired verdicts (:func:`scoreboard_entry`). The
-scoreboard reads those entries from the given run directories and writes one row per task: each
-strategy's mean with its 95 % CI, and the verdicts of both SMCD variants against none and GD (the
-experiment's own comparisons, over the same trials). The plot has a panel per task in its own metric.
+scoreboard reads those entries from the given run directories and writes three tables of one row
+per task, narrow enough for a docs page: its metric and cell, each strategy's mean with its 95 % CI, and the verdicts
+of both SMCD variants against none and GD (the experiment's own comparisons, over the same
+trials); ``results.csv`` holds every number of all three. A task that several runs have is labelled
+with each run's directory. The plot has a panel per task in its own metric, two to a row. The
+entries are kept in ``scoreboard.json``, from which :func:`render` draws the scoreboard again.
 
 Example:
     >>> rows = [{"T": 10, "method": "M+N", "rmse_mean": 0.2, "rmse_low": 0.1, "rmse_high": 0.3, "trials": 9}]
@@ -18,16 +21,17 @@ from __future__ import annotations
 
 import json
 import math
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure, write_json
 from smcd_rl.experiments.configs.scoreboard import ScoreboardConfig
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.stats import Estimate
 
-__all__ = ["ScoreboardConfig", "run", "scoreboard_entry", "HEADLINE", "COLUMNS"]
+__all__ = ["ScoreboardConfig", "run", "render", "read_entries", "scoreboard_entry", "HEADLINE", "COLUMNS"]
 
 #: The scoreboard's strategies, in order.
 COLUMNS = ("none", "GD", "SMCD (paper)", "SMCD (calibrated)")
@@ -40,6 +44,8 @@ VERDICTS = (
     ("SMCD (paper)", "none"),
     ("SMCD (paper)", "GD"),
 )
+#: The verdicts' column headers.
+VERDICT_LABELS = {(m, a): f"{m.split(' ')[1][1:-1]} vs {a}" for m, a in VERDICTS}
 
 
 def scoreboard_entry(
@@ -105,33 +111,126 @@ def _in_cell(row: Mapping[str, Any], cell: Mapping[str, Any]) -> bool:
 
 
 def run(config: ScoreboardConfig, *, progress: bool = True) -> dict[str, Any]:
-    """Read every run's scoreboard entries and write the table, plot and report."""
+    """Read every run's scoreboard entries and write the tables, plot, report and ``scoreboard.json``."""
     config.validate()
     # Every input is read and checked before --out is made or anything in it is touched.
-    rows = [_row(entry) for run_dir in _run_dirs(config) for entry in _entries(run_dir)]
+    entries = [(str(run_dir), entry) for run_dir in _run_dirs(config) for entry in _entries(run_dir)]
+    return _write(config, entries, progress=progress)
+
+
+def render(path: str | Path, *, out: str | Path, progress: bool = True) -> dict[str, Any]:
+    """Write a scoreboard again from the ``scoreboard.json`` an earlier one wrote, without its run directories.
+
+    The tables, plot and report are those :func:`run` writes from the same entries, and the
+    settings are the earlier run's (its run directories), so the report's settings fingerprint is
+    unchanged: how the committed docs page is redrawn after a change of layout.
+
+    Args:
+        path: a ``scoreboard.json``.
+        out: the output directory (not the one holding ``path``: its files would be replaced).
+        progress: print the progress line.
+    """
+    path = Path(path)
+    runs, entries = read_entries(path)
+    note = json.loads(path.read_text()).get("note")
+    config = ScoreboardConfig(runs=tuple(runs), out=str(out))
+    config.validate()
+    if Path(out).resolve() == path.parent.resolve():
+        raise ValueError(f"--out {out} holds {path}, which this would replace; write to another directory")
+    _check_out(config)
+    return _write(config, entries, progress=progress, note=note if isinstance(note, str) else None)
+
+
+#: The ``format`` entry of ``scoreboard.json``.
+JSON_FORMAT = "smcd_rl.scoreboard/1"
+
+
+def read_entries(path: str | Path) -> tuple[list[str], list[tuple[str, dict[str, Any]]]]:
+    """The run directories and the (run directory, entry) pairs a ``scoreboard.json`` holds, checked."""
+    path = Path(path)
+    fix = "rerun smcd-rl scoreboard to rewrite it"
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no scoreboard.json at {path}; give the file a scoreboard run wrote") from None
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: not readable as JSON ({err}); {fix}") from err
+    if not isinstance(data, dict) or data.get("format") != JSON_FORMAT:
+        raise ValueError(
+            f"{path} is not a scoreboard.json (no format {JSON_FORMAT!r}); give the file a scoreboard wrote"
+        )
+    runs, items = data.get("runs"), data.get("entries")
+    if not isinstance(runs, list) or not all(isinstance(r, str) for r in runs) or not runs:
+        raise ValueError(f"{path}: 'runs' is not a list of run directories; {fix}")
+    if not isinstance(items, list) or not items:
+        raise ValueError(f"{path}: 'entries' is not a non-empty list; {fix}")
+    entries = []
+    for i, item in enumerate(items):
+        if not isinstance(item, dict) or not isinstance(item.get("run"), str):
+            raise ValueError(f"{path}: entry {i} has no run directory 'run'; {fix}")
+        _check_entry(item.get("entry"), f"{path}: entry {i}")
+        entries.append((item["run"], item["entry"]))
+    return runs, entries
+
+
+def _write(
+    config: ScoreboardConfig,
+    entries: Sequence[tuple[str, Mapping[str, Any]]],
+    *,
+    progress: bool,
+    note: str | None = None,
+) -> dict[str, Any]:
+    """The scoreboard of ``entries`` (run directory, entry): its tables, plot, report and ``scoreboard.json``.
+
+    ``note``: where the entries came from, kept in ``scoreboard.json`` when they were not read from runs.
+    """
+    rows = _rows(entries)
     with Experiment(config, progress=progress) as ex:
-        table_rows = [
-            [
-                row["task"],
-                row["metric"] + ("" if row["lower_is_better"] else ", higher is better"),
-                row["cell"],
-                *(row[f"{c} text"] for c in COLUMNS),
-                *(row[f"{m} vs {a}"] for m, a in VERDICTS),
-            ]
+        tasks = [
+            [row["task"], row["metric"] + ("" if row["lower_is_better"] else ", higher is better"), row["cell"]]
             for row in rows
         ]
-        header = ["task", "metric", "cell", *COLUMNS, *(f"{m.split(' ')[1][1:-1]} vs {a}" for m, a in VERDICTS)]
+        means = [[row["task"], *(row[f"{c} text"] for c in COLUMNS)] for row in rows]
+        verdicts = [[row["task"], *(row[f"{m} vs {a}"] for m, a in VERDICTS)] for row in rows]
+        write_json(
+            ex.out / "scoreboard.json",
+            {
+                "format": JSON_FORMAT,
+                **({"note": note} if note else {}),
+                "runs": list(config.runs),
+                "entries": [{"run": run_dir, "entry": dict(entry)} for run_dir, entry in entries],
+            },
+        )
         ex.write(
             experiment="scoreboard: every task, none / GD / SMCD (paper settings) / SMCD (calibrated)",
+            # Three narrow tables, not one wide one: each fits the width of a docs page.
             tables={
-                "Mean [95% CI] of each task's headline metric; verdicts are the experiments' paired comparisons "
-                "(difference [95% CI], method minus against)": format_table(table_rows, header)
+                "Each task's headline metric and cell (every number of the tables below: results.csv)": format_table(
+                    tasks, ["task", "metric", "cell"]
+                ),
+                "Mean [95% CI]": format_table(means, ["task", *COLUMNS]),
+                "Paired verdicts, over the same trials (difference [95% CI], method minus against)": format_table(
+                    verdicts, ["task", *(VERDICT_LABELS[v] for v in VERDICTS)]
+                ),
             },
             rows=[{k: v for k, v in row.items() if not k.endswith(" text")} for row in rows],
             payload={"runs": list(config.runs)},
             plots={"scoreboard.png": lambda path: _plot(rows, path)},
+            files=["scoreboard.json"],
         )
     return ex.result
+
+
+def _rows(entries: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict[str, Any]]:
+    """One row per entry; a task that several runs have is labelled with each one's run directory."""
+    counts = Counter(entry["task"] for _, entry in entries)
+    rows = []
+    for run_dir, entry in entries:
+        row = _row(entry)
+        if counts[entry["task"]] > 1:
+            row["task"] = f"{entry['task']} ({run_dir})"
+        rows.append(row)
+    return rows
 
 
 def _run_dirs(config: ScoreboardConfig) -> list[Path]:
@@ -148,8 +247,15 @@ def _run_dirs(config: ScoreboardConfig) -> list[Path]:
                 "pick another, e.g. --out runs/scoreboard"
             )
         seen[path.resolve()] = given
+    _check_out(config)
+    return [Path(given) for given in seen.values()]
+
+
+def _check_out(config: ScoreboardConfig) -> None:
+    """Never replace an experiment's results with the scoreboard's: refuse an ``--out`` that holds them."""
+    out = Path(config.out)
     earlier = out / "results.json"
-    if earlier.is_file():  # never replace an experiment's results with the scoreboard's
+    if earlier.is_file():
         try:
             experiment = json.loads(earlier.read_text()).get("experiment", "")
         except (OSError, ValueError, AttributeError):
@@ -159,7 +265,6 @@ def _run_dirs(config: ScoreboardConfig) -> list[Path]:
                 f"--out {config.out} holds the results of another command ({experiment or 'unreadable'}); "
                 "pick another, e.g. --out runs/scoreboard"
             )
-    return list(seen)
 
 
 #: The keys of a scoreboard entry and their types (what :func:`scoreboard_entry` writes).
@@ -248,8 +353,16 @@ def _verdict(pairs: Mapping[tuple[str, str], Mapping[str, Any]], a: str, b: str)
     return "not compared"
 
 
+#: The strategies' names under the bars.
+_BAR_LABELS = {"none": "none", "GD": "GD", "SMCD (paper)": "SMCD\n(paper)", "SMCD (calibrated)": "SMCD\n(calibrated)"}
+
+
 def _plot(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
-    """One panel per task (its own metric and scale): each strategy's mean with its 95 % CI."""
+    """A panel per task (its own metric and scale), two to a row: each strategy's mean with its 95 % CI.
+
+    Two columns of panels, each about 4 inches wide, so that the picture is readable at the width
+    of a docs page (about 700 pixels) with no zooming.
+    """
     import textwrap
 
     import matplotlib
@@ -257,23 +370,26 @@ def _plot(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(rows), figsize=(2.4 * len(rows) + 1.5, 3.4), squeeze=False)
-    for ax, row in zip(axes[0], rows, strict=True):
+    columns = 1 if len(rows) == 1 else 2
+    lines = math.ceil(len(rows) / columns)
+    fig, axes = plt.subplots(lines, columns, figsize=(4.2 * columns, 2.9 * lines + 0.6), squeeze=False)
+    for ax, row in zip(axes.flat, rows, strict=False):
         for j, column in enumerate(COLUMNS):
             mean = row[column]
             if not math.isfinite(mean):
                 continue  # not run
             error = [[mean - row[f"{column} low"]], [row[f"{column} high"] - mean]]
-            ax.bar(j, mean, 0.8, yerr=error, capsize=2, color=f"C{j}", label=column)
-        ax.set_xticks([])
-        ax.set_title("\n".join(textwrap.wrap(row["task"], 22)), fontsize=8)
+            ax.bar(j, mean, 0.7, yerr=error, capsize=3, color=f"C{j}")
+        ax.set_xticks(range(len(COLUMNS)), [_BAR_LABELS[c] for c in COLUMNS], fontsize=10)
+        ax.set_xlim(-0.6, len(COLUMNS) - 0.4)
+        ax.set_title("\n".join(textwrap.wrap(row["task"], 40)), fontsize=12)
         better = "lower" if row["lower_is_better"] else "higher"
-        ax.set_ylabel(f"{row['metric']}, {better} is better", fontsize=7)
-        ax.tick_params(labelsize=7)
+        ax.set_ylabel("\n".join(textwrap.wrap(f"{row['metric']}, {better} is better", 28)), fontsize=10)
+        ax.tick_params(axis="y", labelsize=10)
         ax.grid(axis="y", alpha=0.3)
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=len(COLUMNS), fontsize=8)
-    fig.suptitle("Scoreboard: mean and 95% CI of each task's headline metric", fontsize=10)
-    fig.tight_layout(rect=(0, 0.08, 1, 0.95))
-    fig.savefig(path, dpi=120)
+    for ax in axes.flat[len(rows) :]:
+        ax.axis("off")
+    fig.suptitle("Scoreboard: mean and 95% CI of each task's headline metric", fontsize=13)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from dataclasses import dataclass
@@ -117,17 +118,67 @@ def test_scoreboard_tables_every_run_with_its_verdicts(tmp_path, capsys) -> None
     fake_run(tmp_path / "b", "task b", better=False, adaptive=("M+G", "M+S(paper)", "M+S"))  # pairs (M+G, M+S)...
     out = tmp_path / "board"
     assert cli.main(["scoreboard", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
-    lines = {line.split("|")[1].strip(): line for line in printed.splitlines() if line.startswith("| task")}
+    means, verdicts = printed_tables(capsys.readouterr().out)
     # a: calibrated SMCD 0.5 below none and 0.3 below GD; b: it ties none and loses to GD. In both,
     # SMCD (paper) is 0.1 below none and 0.1 above GD. b's pairs are stored as (GD, SMCD): read reversed.
-    assert lines["task a"].count("better") == 3 and lines["task a"].rstrip(" |").endswith("worse 0.100 [0.100, 0.100]")
-    cells = [c.strip() for c in lines["task b"].split("|")]
-    assert cells[8].startswith("no significant difference") and cells[9].startswith("worse 0.2")
-    assert cells[10].startswith("better -0.1") and cells[11].startswith("worse 0.1")
-    assert cells[2] == "rmse (m)"  # the metric and its unit
-    for name in ("results.csv", "results.json", "scoreboard.png", "report.md"):
+    assert [v.split(" ")[0] for v in verdicts["task a"]] == ["better", "better", "better", "worse"]
+    assert verdicts["task a"][3] == "worse 0.100 [0.100, 0.100]"
+    b = verdicts["task b"]
+    assert b[0].startswith("no significant difference") and b[1].startswith("worse 0.2")
+    assert b[2].startswith("better -0.1") and b[3].startswith("worse 0.1")
+    assert means["task b"][0] == "rmse (m)" and means["task b"][1] == "T=10"  # the metric and its unit, the cell
+    for name in ("results.csv", "results.json", "scoreboard.png", "scoreboard.json", "report.md"):
         assert (out / name).is_file(), name
+
+
+def printed_tables(printed: str) -> tuple[dict[str, list[str]], dict[str, list[str]]]:
+    """The scoreboard's printed tables, task -> the row's other cells: metric and cell joined to the means, verdicts."""
+    tables: list[dict[str, list[str]]] = []
+    lines = printed.splitlines() + [""]
+    for line, below in itertools.pairwise(lines):
+        if line.startswith("| task ") and below.startswith("|-"):  # a header
+            tables.append({})
+        elif line.startswith("| ") and tables:
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            tables[-1][cells[0]] = cells[1:]
+    tasks, means, verdicts = tables
+    return {task: [*tasks[task], *cells] for task, cells in means.items()}, verdicts
+
+
+def test_two_runs_of_one_experiment_are_labelled_by_their_run_directories(tmp_path, capsys) -> None:
+    """Two runs of the same experiment used to print two rows labelled alike."""
+    fake_run(tmp_path / "seed0", "task a", better=True)
+    fake_run(tmp_path / "seed1", "task a", better=False)
+    fake_run(tmp_path / "other", "task b", better=True)
+    runs = [str(tmp_path / name) for name in ("seed0", "seed1", "other")]
+    assert cli.main(["scoreboard", *runs, "--out", str(tmp_path / "board")]) == 0
+    means, verdicts = printed_tables(capsys.readouterr().out)
+    expected = [f"task a ({runs[0]})", f"task a ({runs[1]})", "task b"]  # a task only one run has keeps its name
+    assert list(means) == list(verdicts) == expected
+    assert verdicts[expected[0]][0].startswith("better") and not verdicts[expected[1]][0].startswith("better")
+
+
+def test_the_scoreboard_is_drawn_again_from_its_scoreboard_json(tmp_path, capsys) -> None:
+    fake_run(tmp_path / "a", "task a", better=True)
+    fake_run(tmp_path / "b", "task b", better=False)
+    first = tmp_path / "board"
+    assert cli.main(["scoreboard", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(first)]) == 0
+    again = scoreboard.render(first / "scoreboard.json", out=tmp_path / "again", progress=False)
+    capsys.readouterr()
+
+    def body(report: str) -> str:  # all but the wall time and the output directory
+        return "\n".join(line for line in report.splitlines() if not line.startswith(("Wall time", '  "out"')))
+
+    assert body((tmp_path / "again" / "report.md").read_text()) == body((first / "report.md").read_text())
+    assert again["runs"] == [str(tmp_path / "a"), str(tmp_path / "b")]
+    assert json.loads((tmp_path / "again" / "scoreboard.json").read_text()) == json.loads(
+        (first / "scoreboard.json").read_text()
+    )
+    with pytest.raises(ValueError, match="holds .*scoreboard.json, which this would replace"):
+        scoreboard.render(first / "scoreboard.json", out=first, progress=False)
+    (tmp_path / "bad.json").write_text(json.dumps({"format": scoreboard.JSON_FORMAT, "runs": ["a"], "entries": [{}]}))
+    with pytest.raises(ValueError, match="bad.json: entry 0 has no run directory 'run'; rerun smcd-rl scoreboard"):
+        scoreboard.render(tmp_path / "bad.json", out=tmp_path / "x", progress=False)
 
 
 def test_scoreboard_names_a_directory_without_results(tmp_path, capsys) -> None:
