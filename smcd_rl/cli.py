@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import importlib
 import sys
 import typing
@@ -176,8 +177,8 @@ def make_config(command: str, given: dict[str, Any]) -> Any:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one ``smcd-rl`` command; returns the exit status.
 
-    Problems the user can fix (bad options, unreadable or unwritable files, a missing extra) print
-    one line on stderr and return 2; Ctrl-C prints one line saying how to resume and returns 130
+    Problems the user can fix (bad options, unreadable or unwritable files, a full disk, a missing
+    extra) print one line on stderr and return 2; Ctrl-C prints one line saying how to resume and returns 130
     (``128 + SIGINT``, what shells report for an interrupted command).
     """
     name = "smcd-rl"
@@ -196,7 +197,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, KeyError, FileNotFoundError, ImportError) as err:
         print(f"{name}: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # a full disk met by a write that is not the project's own (a library's log, ...)
+        if err.errno not in _DISK_FULL:
+            raise
+        where = f" writing {err.filename}" if err.filename else ""
+        print(
+            f"{name}: error: {err.strerror or 'no space left on the disk'}{where}; free some space, or give another "
+            "--out, and run the same command again to resume",
+            file=sys.stderr,
+        )
+        return 2
     return 0
+
+
+#: The errors of a full disk (no space left; disk quota exceeded).
+_DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
 
 
 if __name__ == "__main__":  # pragma: no cover

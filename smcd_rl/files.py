@@ -9,8 +9,9 @@ one clear error naming the file and the fix, instead of a pickle or zip tracebac
 what went wrong                            error
 =========================================  ============================================================
 no such file                               ``FileNotFoundError``
-empty, truncated, corrupt, not a dict,     :class:`UnreadableFileError` (a ``ValueError``)
-keys missing
+empty, truncated, corrupt (a record        :class:`UnreadableFileError` (a ``ValueError``)
+fails its CRC-32), not a dict, keys
+missing
 another kind of smcd_rl file               :class:`CheckpointMismatchError` (a ``ValueError``)
 directory read-only, disk full on write    :class:`FileWriteError` (an ``OSError`` and a ``ValueError``)
 =========================================  ============================================================
@@ -33,8 +34,10 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import io
 import os
 import secrets
+import zipfile
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import IO, Any
@@ -118,6 +121,7 @@ def load_file(
     try:
         if path.stat().st_size == 0:
             raise UnreadableFileError(f"{what} {path} is empty (its write was interrupted?); {fix}", path)
+        _check_records(path, what=what, fix=fix)
         # weights_only=False: the files hold configs, histories and generator states besides tensors,
         # and are the project's own (never load one from a source you do not trust).
         loaded = torch.load(path, map_location="cpu", weights_only=False)
@@ -147,6 +151,26 @@ def load_file(
     if missing:
         raise UnreadableFileError(f"{what} {path} is incomplete: it has no {missing} entries; {fix}", path)
     return dict(loaded)
+
+
+def _check_records(path: Path, *, what: str, fix: str) -> None:
+    """Raise :class:`UnreadableFileError` if a record of the zip archive ``torch.save`` wrote fails its CRC-32.
+
+    ``torch.load`` does not check the checksums ``torch.save`` writes, so a flipped bit in a tensor
+    would load as a wrong number, and one in the pickled dict as a missing entry (``KeyError``
+    later). A file that is not a zip archive is left to ``torch.load`` to judge.
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError):
+        return
+    if bad is not None:
+        raise UnreadableFileError(
+            f"{what} {path} is corrupt: its record {bad!r} does not match its checksum (a flipped bit on "
+            f"the disk?); {fix}",
+            path,
+        )
 
 
 def save_file(obj: Mapping[str, Any], path: str | os.PathLike[str], *, what: str = "file") -> None:
@@ -210,7 +234,8 @@ def write_atomic(path: str | os.PathLike[str], write: Callable[[IO[bytes]], obje
         if isinstance(err, (OSError, RuntimeError)):  # RuntimeError: torch's own writer errors
             cause = _os_error(err)
             code = cause.errno if cause is not None else None
-            raise FileWriteError(f"cannot write {what} {path}: {_write_problem(err, path)}", path, code) from err
+            problem = _write_problem(err, path, lambda: _size_of(write))
+            raise FileWriteError(f"cannot write {what} {path}: {problem}", path, code) from err
         raise
 
 
@@ -223,10 +248,34 @@ def _create_unique(directory: Path, name: str) -> tuple[Path, Any]:
     while True:
         tmp = directory / f".{name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"
         try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+            raw = _TempFile(tmp, "xb")  # O_CREAT | O_EXCL, permissions 0o666 less the umask
         except FileExistsError:  # astronomically unlikely; draw another name
             continue
-        return tmp, os.fdopen(fd, "wb")
+        return tmp, io.BufferedWriter(raw)
+
+
+class _TempFile(io.FileIO):
+    """The raw temporary file :func:`write_atomic` fills (a class of its own so that tests can make its disk full)."""
+
+
+def _size_of(write: Callable[[IO[bytes]], object]) -> int | None:
+    """How many bytes ``write`` writes, measured in memory (after a full disk: the space the file needs)."""
+    sink = io.BytesIO()
+    try:
+        write(sink)
+    except Exception:  # the writer cannot write twice, or needs a real file: the size stays unknown
+        return None
+    return sink.getbuffer().nbytes
+
+
+def _format_bytes(size: int) -> str:
+    """``size`` bytes in words: ``"512 bytes"``, ``"3.4 kB"``, ``"1.2 MB"``, ``"2.0 GB"`` (powers of 1000)."""
+    if size < 1000:
+        return f"{size} bytes"
+    for unit, scale in (("kB", 1e3), ("MB", 1e6), ("GB", 1e9)):
+        if size < 1000 * scale or unit == "GB":
+            return f"{size / scale:.1f} {unit}"
+    raise AssertionError("unreachable")
 
 
 def _os_error(err: BaseException) -> OSError | None:
@@ -241,8 +290,8 @@ def _os_error(err: BaseException) -> OSError | None:
     return None
 
 
-def _write_problem(err: BaseException, path: Path) -> str:
-    """Why writing ``path`` failed, and what to do about it, in words."""
+def _write_problem(err: BaseException, path: Path, size: Callable[[], int | None] = lambda: None) -> str:
+    """Why writing ``path`` failed, and what to do about it, in words (``size``: the file's size, if it can be told)."""
     directory = path.parent
     cause = _os_error(err)
     code = cause.errno if cause is not None else None
@@ -251,7 +300,14 @@ def _write_problem(err: BaseException, path: Path) -> str:
     if code in (errno.EACCES, errno.EPERM, errno.EROFS) or (code is None and not os.access(directory, os.W_OK)):
         return f"the directory {directory} is read-only or not writable; make it writable or write to another directory"
     if code in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
-        return f"no space left on the disk of {directory}; free some space or write to another directory"
+        full = "no space left on the disk of" if code == errno.ENOSPC else "disk quota exceeded for"
+        needed = size()
+        if needed:
+            return (
+                f"{full} {directory}: the file needs {_format_bytes(needed)}; free at least that much space "
+                "or write to another directory"
+            )
+        return f"{full} {directory}; free some space or write to another directory"
     if code in (errno.ENOTDIR, errno.EEXIST) or (code is None and directory.exists() and not directory.is_dir()):
         return f"{directory} (or a folder above it) is a file, not a directory; remove it or write elsewhere"
     reason = cause.strerror if cause is not None and cause.strerror else str(err).strip().splitlines()[0]

@@ -102,3 +102,26 @@ def test_env_constants_repeated_in_the_torch_free_configs_agree_with_the_envs() 
         assert getattr(telescoping, name) == getattr(two_link_telescoping, name), name
     for name in ("DEFAULT_DT", "GOAL_TOLERANCE", "MAX_EPISODE_STEPS", "TOOL_RANGE"):
         assert getattr(panda, name) == getattr(panda_reach, name), name
+
+
+def test_a_full_disk_under_any_write_is_one_error_line(
+    tmp_path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A write that is not the project's own (a library's log) meeting a full disk was a traceback."""
+    import errno
+
+    from smcd_rl.experiments import scoreboard
+
+    def full(config, **kwargs):  # type: ignore[no-untyped-def]
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "ray.log"))
+
+    monkeypatch.setattr(scoreboard, "run", full)
+    assert cli.main(["scoreboard", str(tmp_path), "--out", str(tmp_path / "board")]) == 2
+    err = capsys.readouterr().err
+    assert err == (
+        f"smcd-rl scoreboard: error: No space left on device writing {tmp_path / 'ray.log'}; free some space, "
+        "or give another --out, and run the same command again to resume\n"
+    )
+    monkeypatch.setattr(scoreboard, "run", lambda config, **kwargs: (_ for _ in ()).throw(OSError(errno.EIO, "I/O")))
+    with pytest.raises(OSError, match="I/O"):  # anything else is not the user's to fix: its traceback stays
+        cli.main(["scoreboard", str(tmp_path), "--out", str(tmp_path / "board")])

@@ -89,7 +89,7 @@ import smcd_rl
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.ant_episodes import ACTION_DIM, OBS_DIM, collect, render_states, run_cell, validation_error
 from smcd_rl.experiments.ant_prediction import prediction_errors, random_episodes
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.configs.ant import ADAPTATIONS, CONDITIONS, FULL, PLANNERS, TASKS, AntConfig
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.scoreboard import scoreboard_entry
@@ -464,7 +464,7 @@ def _plot(rows: list[dict[str, Any]], config: AntConfig, path: Path) -> None:
     axes[0][-1].legend(title="planner")
     fig.suptitle(f"Ant MPC ({config.episodes} episodes of up to {config.episode_steps} steps, 95% CI)")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -503,5 +503,5 @@ def _plot_prediction(rows: list[dict[str, Any]], config: AntConfig, path: Path) 
         "steps per condition (95% CI)"
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import hashlib
+import io
 import json
 import os
 import platform
@@ -17,12 +18,15 @@ import torch
 from tqdm.auto import tqdm
 
 from smcd_rl.experiments.configs import config_dict
+from smcd_rl.files import write_atomic
 
 __all__ = [
     "config_dict",
     "machine_info",
     "write_csv",
     "write_json",
+    "write_text",
+    "save_figure",
     "format_table",
     "seed_everything",
     "resolve_device",
@@ -116,16 +120,40 @@ def write_csv(path: str | os.PathLike[str], rows: Sequence[Mapping[str, Any]]) -
     if not rows:
         raise ValueError(f"no rows to write to {path}")
     columns = list(dict.fromkeys(key for row in rows for key in row))
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns, restval="")
-        writer.writeheader()
-        writer.writerows(rows)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns, restval="")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(path, text.getvalue(), what="table")
 
 
 def write_json(path: str | os.PathLike[str], payload: Any) -> None:
-    with open(path, "w") as handle:
-        json.dump(payload, handle, indent=2, default=str)
-        handle.write("\n")
+    """Write ``payload`` as indented JSON (values JSON cannot hold as their ``str``), atomically."""
+    write_text(path, json.dumps(payload, indent=2, default=str) + "\n", what="JSON file")
+
+
+def write_text(path: str | os.PathLike[str], text: str, *, what: str = "file") -> None:
+    """Write ``text`` (UTF-8) atomically through :func:`smcd_rl.files.write_atomic`: a full disk leaves no half file.
+
+    Example:
+        >>> import tempfile
+        >>> path = Path(tempfile.mkdtemp()) / "notes.md"
+        >>> write_text(path, "# notes\\n", what="notes")
+        >>> path.read_text()
+        '# notes\\n'
+    """
+    data = text.encode("utf-8")
+    write_atomic(path, lambda handle: handle.write(data), what=what)
+
+
+def save_figure(fig: Any, path: str | os.PathLike[str], **options: Any) -> None:
+    """Save a matplotlib figure atomically, in the format of ``path``'s suffix (``.png``): ``fig.savefig(..., **options)``.
+
+    A full disk or an unwritable directory is a :class:`~smcd_rl.files.FileWriteError` naming the
+    file (and the space it needs), and no truncated picture is left behind.
+    """
+    suffix = Path(path).suffix.lstrip(".").lower() or "png"
+    write_atomic(path, lambda handle: fig.savefig(handle, format=suffix, **options), what="plot")
 
 
 def format_table(rows: Iterable[Sequence[Any]], header: Sequence[str]) -> str:

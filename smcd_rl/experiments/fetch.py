@@ -67,7 +67,7 @@ import torch
 
 import smcd_rl
 from smcd_rl.digests import model_digest
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.configs.fetch import ADAPTATIONS, FAMILIES, FULL, PLANNERS, FetchConfig
 from smcd_rl.experiments.fetch_episodes import collect, random_cell, run_cell, tuning_episodes, validation_error
 from smcd_rl.experiments.harness import Experiment
@@ -346,5 +346,5 @@ def _plot(rows: list[dict[str, Any]], config: FetchConfig, path: Path) -> None:
             ax.grid(axis="y", alpha=0.3)
     fig.suptitle(f"Fetch MPC, {config.episodes} test draws x {config.episode_steps} steps (95% CI)")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

@@ -19,15 +19,21 @@ code), never by a file name, so no rerun ever picks up a stale result.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import IO, Any, TypeVar
 
 import torch
 from tqdm.auto import tqdm
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - Windows: runs are not locked
+    fcntl = None  # type: ignore[assignment]
 
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.common import (
@@ -38,6 +44,7 @@ from smcd_rl.experiments.common import (
     torch_threads,
     write_csv,
     write_json,
+    write_text,
 )
 from smcd_rl.experiments.configs import OUTPUT_ONLY, ExperimentConfig, config_dict, setting
 from smcd_rl.experiments.result_store import ResultStore
@@ -90,7 +97,13 @@ class Experiment:
             raise ValueError(
                 f"--out {self.out}: cannot create the output directory ({err.strerror}); pick another"
             ) from err
-        self._stack.enter_context(torch_threads(self.config.threads))
+        try:
+            # Two runs in one --out would mix their files, and the first would report the second's.
+            self._stack.callback(_release, _lock(self.out))
+            self._stack.enter_context(torch_threads(self.config.threads))
+        except BaseException:
+            self._stack.close()
+            raise
         self.generator = seed_everything(self.config.seed)
         self._started = time.perf_counter()
         self.stages = StagePlan(self.stages.command, self.stages.costs, quiet=not self.progress)
@@ -258,6 +271,68 @@ class Experiment:
         return result
 
 
+#: The lock file of a run's output directory; it holds the running process's id and command line.
+LOCK = ".lock"
+
+
+def _lock(out: Path) -> IO[str] | None:
+    """Take ``out``'s lock (``flock`` on ``out/.lock``), or refuse: another run is writing into ``out``.
+
+    The operating system releases an ``flock`` when its process ends, however it ends, so a run
+    that crashed never leaves ``out`` locked; its stale ``.lock`` file is simply locked again.
+    Returns the open lock file (``None`` where there is no ``fcntl``, on Windows: no lock).
+    """
+    if fcntl is None:  # pragma: no cover - Windows
+        return None
+    path = out / LOCK
+    while True:
+        try:
+            handle = open(path, "a+")  # not "w": the holder's process id stays readable until we hold the lock
+        except OSError as err:
+            raise ValueError(
+                f"--out {out}: cannot write in the output directory ({err.strerror}); make it writable or pick another"
+            ) from err
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.seek(0)
+            holder = handle.read().strip()
+            handle.close()
+            raise ValueError(
+                f"--out {out} is in use by another run ({f'process {holder}' if holder else 'process unknown'}); "
+                "wait for it to finish, or give this run another --out"
+            ) from None
+        try:  # the run before us may have removed the file after we opened it: lock the one that is there now
+            same = os.path.samestat(os.stat(path), os.fstat(handle.fileno()))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        handle.close()
+    try:  # who holds it, for the message of a run refused
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"{os.getpid()}: {' '.join([Path(sys.argv[0]).name, *sys.argv[1:]])}\n")
+        handle.flush()
+    except OSError as err:  # a full disk: nothing of this run could be saved either
+        _release(handle)
+        raise ValueError(
+            f"--out {out}: cannot write in the output directory ({err.strerror}); free some space or pick another"
+        ) from err
+    return handle
+
+
+def _release(handle: IO[str] | None) -> None:
+    """Remove the lock file while still holding its lock, then let it go (see :func:`_lock`)."""
+    if handle is None:  # pragma: no cover - Windows
+        return
+    try:
+        os.unlink(handle.name)
+    except OSError:
+        pass
+    handle.close()
+
+
 def _files_of_earlier_run(results: Path) -> list[str]:
     """The result files an earlier run in this directory listed in its results.json (none if unreadable)."""
     try:
@@ -304,4 +379,4 @@ def write_report(path: Path, result: Mapping[str, Any], tables: Mapping[str, str
         "```",
         "",
     ]
-    path.write_text("\n".join(lines))
+    write_text(path, "\n".join(lines), what="report")

@@ -25,7 +25,7 @@ from tensordict import TensorDict
 
 import smcd_rl
 from smcd_rl.envs.drone_operators import TrajectoryDataset, load_dataset, simulate_operators, split_dataset
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.interpret_masks import sorted_masks
 from smcd_rl.interpret import confidence_score
 
@@ -281,5 +281,5 @@ def plot(rows: list[dict[str, Any]], labels: tuple[str, ...], config: InterpretC
     axes[0][0].set_ylabel(f"confidence of the true label (k = {config.k})")
     axes[0][-1].legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

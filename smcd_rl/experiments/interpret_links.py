@@ -21,7 +21,7 @@ from tensordict import TensorDict
 import smcd_rl
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, motor_babbling, sample_link_lengths, two_link_fk
 from smcd_rl.experiments.adaptations import StrategySettings
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.interpret_masks import filter_masks, shared_prior
 
 if TYPE_CHECKING:
@@ -166,5 +166,5 @@ def plot(rows: list[dict[str, Any]], config: InterpretConfig, path: Path) -> Non
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

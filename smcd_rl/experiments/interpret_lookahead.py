@@ -40,7 +40,7 @@ from tqdm.auto import tqdm
 
 import smcd_rl
 from smcd_rl.envs.drone_operators import TrajectoryDataset, simulate_operators
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.interpret_drone import SETS
 from smcd_rl.experiments.interpret_masks import padded
 from smcd_rl.experiments.tuning import Tuning, method_variant, strategy_for
@@ -265,5 +265,5 @@ def plot(rows: list[dict[str, Any]], config: InterpretConfig, path: Path) -> Non
         axes[r_i][0].set_ylabel("action RMSE (m/s)")
     axes[0][-1].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

@@ -70,7 +70,7 @@ from torch import Tensor
 import smcd_rl
 from smcd_rl.digests import model_digest
 from smcd_rl.envs.panda_reach import panda_frame, panda_kinematics_data
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.configs.panda import DEFAULT_INTERVALS, FULL, METHODS, PandaConfig
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.panda_reaching import method_kinematics, reach, sample_tasks, tuning_episodes
@@ -348,5 +348,5 @@ def _plot(rows: list[dict[str, Any]], config: PandaConfig, path: Path) -> None:
     ax.legend(fontsize=8, loc="lower left")
     ax.set_title(f"Panda reaching, unknown tool ({config.tasks} tasks x {config.seeds} seeds)")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

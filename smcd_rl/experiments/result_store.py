@@ -6,8 +6,8 @@ digest its result depends on, and the digest of the package's code), so saving o
 piece never rewrites another, even among thousands. A changed setting or input gives another file, so a rerun
 never reads a stale result, and a grown grid reuses every finished piece; a key that names an
 input file holds its :func:`file_digest`, so new data at the same path is never mistaken for the
-old. Files are written and read through :mod:`smcd_rl.files` (atomic writes; a damaged file is
-an error naming it and the fix).
+old. Files are written and read through :mod:`smcd_rl.files` (atomic writes; a damaged file,
+down to one flipped bit, is an error naming it and the fix: delete it and rerun).
 
 Example:
     >>> import tempfile
@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from smcd_rl.digests import code_digest, content_digest, file_digest
-from smcd_rl.files import load_file, save_file
+from smcd_rl.files import UnreadableFileError, load_file, save_file
 
 __all__ = ["ResultStore", "file_digest"]
 
@@ -58,6 +58,11 @@ class ResultStore:
         entry = load_file(path, what=f"{self.what} file", expect_format=_FORMAT, expect_keys=["digest", "value"])
         if entry["digest"] != _digest(key):  # another key with the same 16-digit prefix
             return None
+        if not isinstance(entry["value"], Mapping):
+            raise UnreadableFileError(
+                f"{self.what} file {path} holds a {type(entry['value']).__name__}, not a result; delete it and rerun",
+                path,
+            )
         return dict(entry["value"])
 
     def put(self, kind: str, key: Mapping[str, Any], value: Mapping[str, Any]) -> None:

@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.stats import Estimate, cell_statistics, verdict_table
 
 __all__ = [
@@ -246,7 +246,7 @@ def plot(
         f"Sweep, study {study} (cf. paper Fig. {FIGURES[study]}): mean ± std and min over the other parameters"
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 

@@ -34,7 +34,7 @@ from torch import Tensor
 import smcd_rl
 from smcd_rl.digests import model_digest
 from smcd_rl.envs.two_link_telescoping import circle_target, telescoping_frame
-from smcd_rl.experiments.common import format_table, write_csv
+from smcd_rl.experiments.common import format_table, save_figure, write_csv
 from smcd_rl.experiments.configs.telescoping import DEFAULT_METHODS, FULL, METHODS, TelescopingConfig
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.scoreboard import scoreboard_entry
@@ -294,5 +294,5 @@ def _plot(errors: dict[str, Tensor], config: TelescopingConfig, path: Path) -> N
     ax.grid(alpha=0.3)
     ax.legend(ncol=2, fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

@@ -41,7 +41,7 @@ from smcd_rl.calibration import calibrate
 from smcd_rl.diagnostics import Trace, trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.adaptations import StrategySettings
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.configs.adaptations import VARIANTS
 from smcd_rl.experiments.harness import Experiment
 
@@ -153,7 +153,7 @@ class Tuning:
         axes[0].legend(fontsize=8)
         fig.suptitle(f"{self.name}: strategies on {self.episodes} held-out training-task episodes (diagnosis)")
         fig.tight_layout()
-        fig.savefig(path, dpi=110)
+        save_figure(fig, path, dpi=110)
         plt.close(fig)
 
 

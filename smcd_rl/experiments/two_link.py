@@ -22,7 +22,7 @@ import smcd_rl
 from smcd_rl.baselines import LatentVariableModel, fit_latent
 from smcd_rl.digests import model_digest
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, sample_link_lengths, two_link_fk
-from smcd_rl.experiments.common import format_table
+from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.configs.two_link import DEFAULT_METHODS, FULL, METHODS, TwoLinkConfig
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.scoreboard import scoreboard_entry
@@ -304,5 +304,5 @@ def _plot(rows: list[dict[str, Any]], config: TwoLinkConfig, path: Path) -> None
     axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1.0))  # outside: eight methods would hide lines
     fig.suptitle(f"Two-link look-ahead prediction ({config.trials} held-out arms)")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
