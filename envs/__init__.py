@@ -11,8 +11,6 @@ Example:
 
 from __future__ import annotations
 
-import importlib.util
-
 import gymnasium
 
 #: (id, entry point, max_episode_steps) of every task this package provides.
@@ -24,8 +22,9 @@ TASKS: tuple[tuple[str, str, int], ...] = (
     ("smcd_rl/DroneLanding-v0", "smcd_rl.envs.drone_landing:DroneLandingEnv", 300),
 )
 
-#: (id, entry point, max_episode_steps) of the task families on gymnasium-robotics, registered only
-#: when it is installed (``pip install -e ".[robotics]"``); see :mod:`smcd_rl.integrations.robotics`.
+#: (id, entry point, max_episode_steps) of the task families on gymnasium-robotics; see
+#: :mod:`smcd_rl.integrations.robotics`. Registered always: without gymnasium-robotics, making one
+#: raises a ModuleNotFoundError that names the extra (``pip install -e ".[robotics]"``).
 ROBOTICS_TASKS: tuple[tuple[str, str, int], ...] = (
     ("smcd_rl/FetchReachRotated-v0", "smcd_rl.integrations.robotics:FetchReachRotated", 50),
     ("smcd_rl/FetchPushHeavy-v0", "smcd_rl.integrations.robotics:FetchPushHeavy", 50),
@@ -34,9 +33,12 @@ ROBOTICS_TASKS: tuple[tuple[str, str, int], ...] = (
 
 
 def register_all() -> None:
-    """Register every task id with gymnasium (idempotent); the robotics families only if gymnasium-robotics is installed."""
-    # find_spec locates the package without importing it (nor mujoco).
-    robotics = ROBOTICS_TASKS if importlib.util.find_spec("gymnasium_robotics") is not None else ()
-    for env_id, entry_point, max_steps in (*TASKS, *robotics):
+    """Register every task id with gymnasium (idempotent), importing none of the tasks' modules.
+
+    A task whose extra is not installed (``[mujoco]`` for CrippledAnt, ``[robotics]`` for the
+    Fetch and Franka families) is registered too; ``gymnasium.make`` of it raises a
+    ``ModuleNotFoundError`` that names the extra and the command that installs it.
+    """
+    for env_id, entry_point, max_steps in (*TASKS, *ROBOTICS_TASKS):
         if env_id not in gymnasium.registry:
             gymnasium.register(id=env_id, entry_point=entry_point, max_episode_steps=max_steps)

@@ -25,14 +25,20 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import mujoco
 import numpy as np
 import torch
 from gymnasium import utils
-from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.spaces import Box
 from numpy.typing import NDArray
 from torch import Tensor
+
+from smcd_rl.envs.mujoco_setup import headless_mujoco, missing_extra
+
+try:
+    import mujoco
+    from gymnasium.envs.mujoco.ant_v5 import AntEnv
+except ModuleNotFoundError as error:
+    raise missing_extra(error, "mujoco", "smcd_rl/CrippledAnt-v0 (smcd_rl.envs.crippled_ant)") from error
 
 from smcd_rl.integrations.task_family import ModelParameters
 
@@ -266,7 +272,7 @@ class CrippledAntEnv(AntEnv):
 
     Training draws the leg from :data:`TRAIN_LEGS` ``(0, 1, 2)``; :data:`TEST_LEG` ``3`` is held
     out. Each leg's crippling is a set of named model parameters (``actuator_gear:hip_1``,
-    ``geom_size:left_leg_geom[0]``, ``geom_pos:left_ankle_geom[2]``, ...) written through
+    ``geom_size:left_leg_geom``, ``geom_pos:left_ankle_geom[2]``, ...) written through
     :class:`~smcd_rl.integrations.task_family.ModelParameters`, the parameter layer of
     :class:`~smcd_rl.integrations.task_family.TaskFamily`. The model arrays are changed in place and
     would persist; the env restores their pristine values (``geom_size``, ``geom_pos``,
@@ -332,6 +338,10 @@ class CrippledAntEnv(AntEnv):
     Pickling rebuilds the env from its constructor arguments (Gymnasium's ``EzPickle``, as every
     MuJoCo env does); the simulator state, the current leg and the RNG are not carried over.
 
+    The reward is a Python ``float``. Made with a ``render_mode`` on a machine without a display,
+    the env chooses a headless MuJoCo backend (``MUJOCO_GL=egl``, or ``osmesa``) unless
+    ``MUJOCO_GL`` is set; see :func:`~smcd_rl.envs.mujoco_setup.headless_mujoco`.
+
     ## Version History
     * v0: Initial version: Ant-v5, Learning to Adapt's crippling, 41-dim observation, state-
       consistent ``data`` after each step.
@@ -360,6 +370,8 @@ class CrippledAntEnv(AntEnv):
         if fixed:
             raise TypeError(f"CrippledAntEnv fixes its 41-dim observation; do not pass {fixed}")
         legs = tuple(sorted({_check_leg(leg, "crippled_legs") for leg in crippled_legs or ()}))
+        if kwargs.get("render_mode") is not None:
+            headless_mujoco()  # before the first frame: gymnasium reads MUJOCO_GL when it makes the renderer
         super().__init__(
             exclude_current_positions_from_observation=False,
             include_cfrc_ext_in_observation=False,
@@ -434,14 +446,18 @@ class CrippledAntEnv(AntEnv):
         """The model parameters (:class:`~smcd_rl.integrations.task_family.ModelParameters` names) of a crippled ``leg``."""
         model = self.model
         thigh, shin = (model.geom(g).name for g in leg.geoms)
+
+        def name(field: str, geom: str, k: int) -> str:  # component 0 is the default: its name has no [0]
+            return f"{field}:{geom}" + (f"[{k}]" if k else "")
+
         values = {f"actuator_gear:{joint}": 0.0 for joint in (leg.hip_joint, leg.ankle_joint)}
         for geom in (thigh, shin):
-            values.update({f"geom_size:{geom}[{k}]": float(model.geom(geom).size[k]) / 2 for k in (0, 1)})
+            values.update({name("geom_size", geom, k): float(model.geom(geom).size[k]) / 2 for k in (0, 1)})
         # Setting geom_pos also clears the shin's geom_sameframe: the compiler marked its frame as its
         # body's inertial frame, and kinematics would then ignore geom_pos.
-        values.update({f"geom_pos:{shin}[{k}]": float(model.geom(thigh).pos[k]) for k in range(3)})
+        values.update({name("geom_pos", shin, k): float(model.geom(thigh).pos[k]) for k in range(3)})
         for geom in (thigh, shin):
-            values.update({f"geom_rgba:{geom}[{k}]": _CRIPPLED_RGBA[k] for k in range(3)})
+            values.update({name("geom_rgba", geom, k): _CRIPPLED_RGBA[k] for k in range(3)})
         return values
 
     def _cripple(self, leg: int | None) -> None:
@@ -456,10 +472,13 @@ class CrippledAntEnv(AntEnv):
         mujoco.mj_forward(self.model, self.data)
         mujoco.mj_rnePostConstraint(self.model, self.data)
 
-    def step(self, action: NDArray[np.floating]) -> tuple[NDArray[np.float64], np.float64, bool, bool, dict[str, Any]]:
+    # A Python float reward, as stable-baselines3's checker requires; MujocoEnv's hint says numpy.float64.
+    def step(  # type: ignore[override]
+        self, action: NDArray[np.floating]
+    ) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
         observation, reward, terminated, truncated, info = super().step(action)
         info["crippled_leg"] = self._leg_info()
-        return observation, reward, terminated, truncated, info
+        return observation, float(reward), terminated, truncated, info
 
     def _get_reset_info(self) -> dict[str, Any]:
         return {**super()._get_reset_info(), "crippled_leg": self._leg_info()}

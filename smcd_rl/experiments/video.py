@@ -30,19 +30,10 @@ import gymnasium
 import numpy as np
 from PIL import Image
 
+from smcd_rl.envs.mujoco_setup import headless_mujoco  # re-exported: the experiments' import
 from smcd_rl.files import write_atomic
 
 __all__ = ["RecordGif", "headless_mujoco", "video_name", "write_gif"]
-
-
-def headless_mujoco() -> None:
-    """Let MuJoCo render through EGL when there is no display and ``MUJOCO_GL`` names no backend.
-
-    glfw, gymnasium's first choice, needs a display; gymnasium reads the variable when it makes the
-    renderer, so this must run before the first ``render()``.
-    """
-    if not os.environ.get("DISPLAY"):
-        os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 def video_name(method: str, k: int) -> str:

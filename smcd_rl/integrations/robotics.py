@@ -1,13 +1,18 @@
 """gymnasium-robotics task families, and a compatibility fix for recent mujoco releases.
 
-Task families (registered on ``import smcd_rl`` when gymnasium-robotics is installed,
-``pip install -e ".[robotics]"``), each a :class:`~smcd_rl.integrations.task_family.TaskFamily`:
+Task families (registered on ``import smcd_rl``; making one needs gymnasium-robotics,
+``pip install -e ".[robotics]"``, and says so if it is missing), each a
+:class:`~smcd_rl.integrations.task_family.TaskFamily`:
 
 | Id | Class | What changes per episode |
 |----|-------|--------------------------|
 | ``smcd_rl/FetchReachRotated-v0`` | :class:`FetchReachRotated` | rotation about z and gain of the commanded gripper displacement |
 | ``smcd_rl/FetchPushHeavy-v0`` | :class:`FetchPushHeavy` | the block's mass and friction |
 | ``smcd_rl/FrankaReachTool-v0`` | :class:`FrankaReachTool` | the length of an unknown tool on the Franka Panda (paper section 4.2) |
+
+Their rewards are Python floats, from the family and from the env under it (``env.unwrapped``,
+what stable-baselines3's ``check_env`` needs for a goal env): the Fetch envs here are
+gymnasium-robotics' with only that changed (it returns ``numpy.float32``).
 
 **The compatibility fix.** Since mujoco 3.12 the enum constants compare equal to numpy integers
 only from one side: ``np.int32(3) == mujoco.mjtJoint.mjJNT_HINGE`` is ``True`` but
@@ -34,24 +39,38 @@ Example:
 from __future__ import annotations
 
 import importlib
+import math
 import os
 import tempfile
 import types
-from typing import Any
+from typing import Any, Literal
 
 import gymnasium
-import mujoco
 import numpy as np
 from gymnasium import spaces
-from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
-from gymnasium.envs.registration import load_env_creator
 from numpy.typing import NDArray
+
+from smcd_rl.envs.mujoco_setup import headless_mujoco, missing_extra
+
+try:
+    import mujoco
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+
+    # Imported by name: gymnasium-robotics ships no type information.
+    _fetch_reach: Any = importlib.import_module("gymnasium_robotics.envs.fetch.reach")
+    _fetch_push: Any = importlib.import_module("gymnasium_robotics.envs.fetch.push")
+except ModuleNotFoundError as error:
+    raise missing_extra(
+        error, "robotics", "smcd_rl.integrations.robotics (the Fetch and Franka task families)"
+    ) from error
 
 from smcd_rl.integrations.task_family import ActionTransform, Distribution, Fixed, TaskFamily, Uniform
 
 __all__ = [
     "FRANKA_READY_POSE",
+    "FetchPushEnv",
     "FetchPushHeavy",
+    "FetchReachEnv",
     "FetchReachRotated",
     "FrankaReachEnv",
     "FrankaReachTool",
@@ -104,12 +123,49 @@ def fix_mujoco_joint_types() -> None:
         mujoco_utils.mujoco = _MujocoView(mujoco_utils.mujoco)
 
 
-def _robotics_env(entry_point: str, **kwargs: Any) -> gymnasium.Env[Any, Any]:
-    """A gymnasium-robotics env built from its class (no gymnasium.make wrappers), after the fix."""
+class FetchReachEnv(_fetch_reach.MujocoFetchReachEnv):
+    """gymnasium-robotics' ``FetchReach-v4`` env, with a Python float reward (it returns ``numpy.float32``)."""
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, float(reward), terminated, truncated, info
+
+
+class FetchPushEnv(_fetch_push.MujocoFetchPushEnv):
+    """gymnasium-robotics' ``FetchPush-v4`` env, with a Python float reward (it returns ``numpy.float32``)."""
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, float(reward), terminated, truncated, info
+
+
+def _fetch_env(cls: type[gymnasium.Env[Any, Any]], **kwargs: Any) -> gymnasium.Env[Any, Any]:
+    """A Fetch env built from its class (no gymnasium.make wrappers), after the fix."""
     fix_mujoco_joint_types()
-    creator: Any = load_env_creator(entry_point)
-    env: gymnasium.Env[Any, Any] = creator(**kwargs)
-    return env
+    return cls(**kwargs)
+
+
+def _range(
+    family: str, name: str, value: Any, *, unit: str = "", sign: Literal["positive", "non-negative"] | None = None
+) -> tuple[float, float]:
+    """``value`` as a ``(low, high)`` range of finite numbers, or a ValueError that names the argument."""
+    example = f"{name}=(1.0, 2.0)" if sign else f"{name}=(-0.5, 0.5)"
+    pair = tuple(value) if isinstance(value, (tuple, list)) else None
+    numbers = pair is not None and all(
+        isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) for v in pair
+    )
+    if pair is None or len(pair) != 2 or not numbers:
+        fixed = f"; for a fixed value v pass {name}=(v, v)" if isinstance(value, (int, float)) else ""
+        raise ValueError(f"{family}: {name} must be a (low, high) range{unit}, e.g. {example}; got {value!r}{fixed}")
+    low, high = float(pair[0]), float(pair[1])
+    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+        raise ValueError(f"{family}: {name} must be a (low, high) range{unit} with low <= high, got {value!r}")
+    if (sign == "positive" and not low > 0) or (sign == "non-negative" and not low >= 0):
+        raise ValueError(
+            f"{family}: {name} must be a range{unit} of {sign} values (MuJoCo simulates others wrongly), "
+            f"e.g. {example}; got {value!r}"
+        )
+    return low, high
 
 
 class _RegisteredFamily(TaskFamily):
@@ -164,6 +220,9 @@ class FetchReachRotated(_FetchFamily):
     |---|---|---|---|
     | `rotation` | `tuple[float, float]` | `(-0.5, 0.5)` | range (rad) of the uniform rotation about z |
     | `gain` | `tuple[float, float]` | `(0.5, 1.5)` | range of the uniform gain |
+
+    Each range is a ``(low, high)`` pair with ``low <= high``; ``(v, v)`` fixes the value. A
+    single number is refused (with this hint), so that no scalar is silently read as a range.
     | `**kwargs` | | | passed to FetchReach (`reward_type`, `render_mode`, `width`, `height`, ...) |
 
     ## Version History
@@ -179,7 +238,9 @@ class FetchReachRotated(_FetchFamily):
     def __init__(
         self, *, rotation: tuple[float, float] = (-0.5, 0.5), gain: tuple[float, float] = (0.5, 1.5), **kwargs: Any
     ) -> None:
-        env = _robotics_env("gymnasium_robotics.envs.fetch.reach:MujocoFetchReachEnv", **kwargs)
+        rotation = _range("FetchReachRotated", "rotation", rotation, unit=" of angles (rad)")
+        gain = _range("FetchReachRotated", "gain", gain)
+        env = _fetch_env(FetchReachEnv, **kwargs)
         transform = ActionTransform(rotation=Uniform(*rotation), gain=Uniform(*gain), dims=(0, 1, 2))
         super().__init__(env, action=transform)
 
@@ -220,6 +281,10 @@ class FetchPushHeavy(_FetchFamily):
     |---|---|---|---|
     | `mass` | `tuple[float, float]` | `(1.0, 6.0)` | range (kg) of the uniform block mass (FetchPush: 2) |
     | `friction` | `tuple[float, float]` | `(0.1, 1.0)` | range of the uniform block friction (FetchPush: 1); the table gets the lower end |
+
+    Each range is a ``(low, high)`` pair with ``low <= high``; ``(v, v)`` fixes the value. A single
+    number is refused (with this hint), and so are a mass <= 0 and a negative friction, which MuJoCo
+    would simulate without complaint and wrongly.
     | `**kwargs` | | | passed to FetchPush (`reward_type`, `render_mode`, `width`, `height`, ...) |
 
     ## Version History
@@ -235,7 +300,9 @@ class FetchPushHeavy(_FetchFamily):
     def __init__(
         self, *, mass: tuple[float, float] = (1.0, 6.0), friction: tuple[float, float] = (0.1, 1.0), **kwargs: Any
     ) -> None:
-        env = _robotics_env("gymnasium_robotics.envs.fetch.push:MujocoFetchPushEnv", **kwargs)
+        mass = _range("FetchPushHeavy", "mass", mass, unit=" of masses (kg)", sign="positive")
+        friction = _range("FetchPushHeavy", "friction", friction, unit=" of friction coefficients", sign="non-negative")
+        env = _fetch_env(FetchPushEnv, **kwargs)
         params: dict[str, Distribution] = {
             "body_mass:object0": Uniform(*mass),
             "geom_friction:object0": Uniform(*friction),
@@ -336,6 +403,8 @@ class FrankaReachEnv(MujocoEnv):
     def __init__(self, measure_every: int = 1, **kwargs: Any) -> None:
         if isinstance(measure_every, bool) or not isinstance(measure_every, (int, np.integer)) or measure_every < 1:
             raise ValueError(f"measure_every must be a positive int, got {measure_every!r}")
+        if kwargs.get("render_mode") is not None:
+            headless_mujoco()  # before the first frame
         self.measure_every = int(measure_every)
         observation_space = spaces.Box(-np.inf, np.inf, shape=(20,), dtype=np.float64)
         kwargs.setdefault("default_camera_config", _FRANKA_CAMERA)
@@ -378,7 +447,10 @@ class FrankaReachEnv(MujocoEnv):
         self._steps = 0
         return self._get_obs()
 
-    def step(self, action: NDArray[Any]) -> tuple[NDArray[np.float64], np.float64, bool, bool, dict[str, Any]]:
+    # A Python float reward, as stable-baselines3's checker requires; MujocoEnv's hint says numpy.float64.
+    def step(self, action: NDArray[Any]) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:  # type: ignore[override]
+        if np.shape(action) != self.action_space.shape:
+            raise ValueError(f"the action has shape {np.shape(action)}; this env takes actions of shape (7,)")
         velocity = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0) * _FRANKA_MAX_VELOCITY
         ctrl = self.data.qpos[: self.model.nu].copy()  # fingers: hold where they are
         ctrl[: len(velocity)] = self.data.qpos[self._qpos_ids] + velocity * self.dt
@@ -390,7 +462,7 @@ class FrankaReachEnv(MujocoEnv):
         if self.render_mode == "human":
             self.render()
         info = {"distance": distance, "is_success": distance < 0.05, "measured": self._steps % self.measure_every == 0}
-        return obs, np.float64(-distance), False, False, info
+        return obs, -distance, False, False, info
 
     def _get_reset_info(self) -> dict[str, Any]:
         distance = float(np.linalg.norm(self.end_effector - self.goal))
@@ -420,7 +492,7 @@ class FrankaReachTool(_RegisteredFamily):
     ## Arguments
     | Parameter | Type | Default | Description |
     |---|---|---|---|
-    | `tool` | `tuple[float, float]` | `(-0.5, 0.5)` | range (m) of the uniform tool length ``l`` |
+    | `tool` | `tuple[float, float]` | `(-0.5, 0.5)` | range (m) of the uniform tool length ``l``, ``low <= high``; ``(l, l)`` fixes it |
     | `measure_every` | `int` | `1` | steps between end-effector measurements |
     | `**kwargs` | | | passed to :class:`FrankaReachEnv` (`render_mode`, ...) |
 
@@ -435,6 +507,7 @@ class FrankaReachTool(_RegisteredFamily):
     """
 
     def __init__(self, *, tool: tuple[float, float] = (-0.5, 0.5), measure_every: int = 1, **kwargs: Any) -> None:
+        tool = _range("FrankaReachTool", "tool", tool, unit=" of tool lengths (m)")
         env = FrankaReachEnv(measure_every=measure_every, **kwargs)
         tip = float(env.model.site("end_effector").pos[2])
         super().__init__(env, params={"site_pos:end_effector[2]": Uniform(tip + tool[0], tip + tool[1])})

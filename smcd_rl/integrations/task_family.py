@@ -9,17 +9,25 @@ model and reports the draw in ``info["task"]``.
 
 Parameters are named ``"<field>:<element>"`` with an optional component ``[k]``:
 
-| Name                          | Model array (row of the element)     | Component without ``[k]`` |
-|-------------------------------|--------------------------------------|---------------------------|
-| ``body_mass:<body>``          | ``body_mass``; ``body_inertia`` is scaled by the same factor | - |
-| ``geom_friction:<geom>``      | ``geom_friction`` (slide, spin, roll) | 0 (sliding)              |
-| ``geom_size:<geom>``          | ``geom_size``                        | 0                         |
-| ``geom_pos:<geom>``           | ``geom_pos`` (in the body's frame)   | 0 (x)                     |
-| ``geom_rgba:<geom>``          | ``geom_rgba``                        | 0 (red)                   |
-| ``site_pos:<site>``           | ``site_pos`` (in the body's frame)   | 0 (x)                     |
-| ``actuator_gear:<actuator>``  | ``actuator_gear``                    | 0                         |
-| ``joint_damping:<joint>``     | ``dof_damping`` of every dof of the joint | -                    |
-| ``gravity``                   | ``opt.gravity``                      | 2 (vertical)              |
+| Name                          | Model array (row of the element)     | Component without ``[k]`` | Valid values |
+|-------------------------------|--------------------------------------|---------------------------|--------------|
+| ``body_mass:<body>``          | ``body_mass``; ``body_inertia`` is scaled by the same factor | - | > 0 |
+| ``geom_friction:<geom>``      | ``geom_friction`` (slide, spin, roll) | 0 (sliding)              | >= 0 |
+| ``geom_size:<geom>``          | ``geom_size``                        | 0                         | > 0 |
+| ``geom_pos:<geom>``           | ``geom_pos`` (in the body's frame)   | 0 (x)                     | any |
+| ``geom_rgba:<geom>``          | ``geom_rgba``                        | 0 (red)                   | 0..1 |
+| ``site_pos:<site>``           | ``site_pos`` (in the body's frame)   | 0 (x)                     | any |
+| ``actuator_gear:<actuator>``  | ``actuator_gear``                    | 0                         | >= 0 |
+| ``joint_damping:<joint>``     | ``dof_damping`` of every dof of the joint | -                    | >= 0 |
+| ``gravity``                   | ``opt.gravity``                      | 2 (vertical)              | any |
+
+Each model element has one name: the default component is written without ``[k]``
+(``"gravity"``, ``"geom_friction:ffoot"``; ``"gravity[2]"`` and ``"geom_friction:ffoot[0]"`` are
+refused with the canonical name in the message), and ``k`` is written in plain decimal digits
+(``[1]``, not ``[01]``). Values outside the valid range (a negative mass or friction, a zero size)
+make MuJoCo's simulation blow up or go silently wrong, so they are refused wherever they enter:
+a distribution whose support leaves the range (when the family is built), a value in
+``reset(options={"task": ...})`` (before anything changes) and :meth:`ModelParameters.set`.
 
 An actuator without a name is found by the name of the joint (or tendon) it drives, and a geom
 without a name by its body's name when it is the body's only geom. MuJoCo uses
@@ -32,7 +40,12 @@ keep their default values.
 
 The action transform maps the commanded action ``a`` to ``a'[dims] = gain * R(axis, rotation)
 @ a[dims] + bias`` (the other entries pass unchanged), clipped to the action space. The reward
-of the inner env is computed on ``a'``.
+of the inner env is computed on ``a'``. ``R`` is a rotation about ``axis`` for three ``dims``,
+and a planar rotation (counter-clockwise by the angle) for two.
+
+Copies and pickles of a family simulate what they report: the parameters are written into the
+model of the wrapped env the family holds now, which ``copy.deepcopy`` and ``pickle`` rebuild for
+gymnasium's MuJoCo envs (``EzPickle``); a copy keeps the original's defaults and current task.
 
 Example:
     >>> import gymnasium
@@ -60,10 +73,16 @@ from dataclasses import dataclass
 from typing import Any, Protocol, SupportsFloat, runtime_checkable
 
 import gymnasium
-import mujoco
 import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
+
+from smcd_rl.envs.mujoco_setup import headless_mujoco, missing_extra
+
+try:
+    import mujoco
+except ModuleNotFoundError as error:
+    raise missing_extra(error, "mujoco", "smcd_rl.integrations.task_family (TaskFamily)") from error
 
 __all__ = [
     "ActionTransform",
@@ -87,7 +106,11 @@ class Distribution(Protocol):
 
 
 def _finite(value: Any, what: str) -> float:
+    # float("1") and float(True) succeed; a string or a bool here is a mistake, not a number.
+    not_a_number = isinstance(value, (str, bytes, bool, np.bool_)) or (isinstance(value, np.ndarray) and value.ndim > 0)
     try:
+        if not_a_number:
+            raise TypeError
         number = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{what} must be a number, got {value!r}") from None
@@ -110,12 +133,19 @@ class Uniform:
     high: float
 
     def __post_init__(self) -> None:
-        if not _finite(self.low, "low") <= _finite(self.high, "high"):
+        low, high = _finite(self.low, "Uniform low"), _finite(self.high, "Uniform high")
+        if not low <= high:
             raise ValueError(f"Uniform needs low <= high, got ({self.low}, {self.high})")
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
 
     def sample(self, rng: np.random.Generator) -> float:
         """One draw."""
         return float(rng.uniform(self.low, self.high))
+
+    def support(self) -> tuple[float, float]:
+        """The smallest and largest value a draw can take."""
+        return self.low, self.high
 
 
 @dataclass(frozen=True)
@@ -132,12 +162,19 @@ class LogUniform:
     high: float
 
     def __post_init__(self) -> None:
-        if not 0.0 < _finite(self.low, "low") <= _finite(self.high, "high"):
+        low, high = _finite(self.low, "LogUniform low"), _finite(self.high, "LogUniform high")
+        if not 0.0 < low <= high:
             raise ValueError(f"LogUniform needs 0 < low <= high, got ({self.low}, {self.high})")
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
 
     def sample(self, rng: np.random.Generator) -> float:
         """One draw."""
         return float(np.exp(rng.uniform(np.log(self.low), np.log(self.high))))
+
+    def support(self) -> tuple[float, float]:
+        """The smallest and largest value a draw can take."""
+        return self.low, self.high
 
 
 @dataclass(frozen=True)
@@ -153,13 +190,20 @@ class Choice:
     values: tuple[float, ...]
 
     def __post_init__(self) -> None:
-        if not self.values:
+        if isinstance(self.values, (str, bytes)) or not isinstance(self.values, Iterable):
+            raise ValueError(f"Choice takes a sequence of numbers, e.g. Choice((0.0, 1.0)), got {self.values!r}")
+        values = tuple(_finite(v, "a Choice value") for v in self.values)
+        if not values:
             raise ValueError("Choice needs at least one value")
-        object.__setattr__(self, "values", tuple(_finite(v, "a Choice value") for v in self.values))
+        object.__setattr__(self, "values", values)
 
     def sample(self, rng: np.random.Generator) -> float:
         """One draw."""
         return self.values[int(rng.integers(len(self.values)))]
+
+    def support(self) -> tuple[float, float]:
+        """The smallest and largest value a draw can take."""
+        return min(self.values), max(self.values)
 
 
 @dataclass(frozen=True)
@@ -181,6 +225,10 @@ class Fixed:
         """The value."""
         return self.value
 
+    def support(self) -> tuple[float, float]:
+        """The smallest and largest value a draw can take: the value."""
+        return self.value, self.value
+
 
 # field -> (object type, model array, component used without [k]; None: the whole row)
 _FIELDS: dict[str, tuple[mujoco.mjtObj | None, str, int | None]] = {
@@ -194,6 +242,32 @@ _FIELDS: dict[str, tuple[mujoco.mjtObj | None, str, int | None]] = {
     "joint_damping": (mujoco.mjtObj.mjOBJ_JOINT, "dof_damping", None),
     "gravity": (None, "opt.gravity", 2),
 }
+# field -> (lowest valid value, whether the lowest is itself valid, highest valid value): the physical range.
+_BOUNDS: dict[str, tuple[float, bool, float]] = {
+    "body_mass": (0.0, False, math.inf),  # also keeps the inertia, scaled by the same factor, positive
+    "geom_size": (0.0, False, math.inf),
+    "geom_friction": (0.0, True, math.inf),
+    "joint_damping": (0.0, True, math.inf),
+    "actuator_gear": (0.0, True, math.inf),
+    "geom_rgba": (0.0, True, 1.0),
+}
+
+
+def _bound_text(field: str) -> str:
+    low, closed, high = _BOUNDS[field]
+    if high == math.inf:
+        return f"{'>=' if closed else '>'} {low:g}"
+    return f"in [{low:g}, {high:g}]"
+
+
+def _within(field: str, low: float, high: float) -> bool:
+    """Whether every value in ``[low, high]`` is valid for ``field``."""
+    if field not in _BOUNDS:
+        return True
+    bound_low, closed, bound_high = _BOUNDS[field]
+    return (low >= bound_low if closed else low > bound_low) and high <= bound_high
+
+
 # Arrays written besides the named ones (restored with them).
 _DERIVED = {
     "body_mass": ("body_inertia",),
@@ -241,7 +315,8 @@ class ModelParameters:
         names: Parameter names.
 
     Raises:
-        ValueError: On an unknown field, element name or component; the message names the valid ones.
+        ValueError: On an unknown field, element name or component (the message names the valid
+            ones), or a second name for one model element (the message names the canonical one).
 
     Example:
         >>> import gymnasium
@@ -279,16 +354,70 @@ class ModelParameters:
         """The model's current values."""
         return {name: self._get(entry) for name, entry in self._entries.items()}
 
-    def set(self, values: Mapping[str, SupportsFloat]) -> None:
-        """Write ``values`` into the model (names not given keep their current values).
+    def bind(self, model: mujoco.MjModel) -> ModelParameters:
+        """The same parameters on another compile of the same model (a copy's), with these defaults.
+
+        A copied or unpickled env (gymnasium's ``EzPickle`` rebuilds it) has a model of its own;
+        this moves the parameter layer onto it, so that :meth:`set` writes where the copy simulates.
 
         Raises:
-            ValueError: On a name that is not one of :attr:`names` or a non-finite value; nothing is written.
+            ValueError: If ``model`` does not have the arrays of this object's model (another model).
+        """
+        for path, saved in self._saved.items():
+            if _array(model, path).shape != saved.shape:
+                raise ValueError(f"cannot bind the parameters to another model: {path} has another shape")
+        bound = object.__new__(ModelParameters)
+        bound.__dict__.update(self.__dict__)
+        bound.model = model
+        return bound
+
+    def check(self, values: Mapping[str, Any], what: str = "value") -> dict[str, float]:
+        """``values`` as floats, checked: known names, finite numbers in each parameter's valid range.
+
+        Args:
+            values: Values by parameter name.
+            what: How the message names the values (``"options['task']"``).
+
+        Raises:
+            ValueError: On a name that is not one of :attr:`names`, a value that is not a finite
+                number, or one outside the physical range of its kind (see the module card).
         """
         unknown = sorted(set(values) - set(self._entries))
         if unknown:
             raise ValueError(f"unknown parameter(s) {unknown}; valid: {list(self._entries)}")
-        checked = {name: _finite(value, name) for name, value in values.items()}
+        checked = {name: _finite(value, f"{what} of {name!r}") for name, value in values.items()}
+        for name, value in checked.items():
+            field = self._entries[name].field
+            if not _within(field, value, value):
+                raise ValueError(
+                    f"{what} of {name!r} is {value:g}, but a {field} must be {_bound_text(field)}: "
+                    "MuJoCo's simulation is not valid outside that range"
+                )
+        return checked
+
+    def check_support(self, name: str, dist: Any) -> None:
+        """Raise ValueError if ``dist`` (with a ``support()`` method) can draw an invalid value of ``name``.
+
+        A distribution without ``support()`` is checked draw by draw instead (:meth:`check`).
+        """
+        support = getattr(dist, "support", None)
+        if support is None:
+            return
+        low, high = support()
+        field = self._entries[name].field
+        if not _within(field, low, high):
+            raise ValueError(
+                f"the distribution of {name!r}, {dist!r}, draws values in [{low:g}, {high:g}], but a {field} "
+                f"must be {_bound_text(field)}; choose a distribution within that range"
+            )
+
+    def set(self, values: Mapping[str, SupportsFloat]) -> None:
+        """Write ``values`` into the model (names not given keep their current values).
+
+        Raises:
+            ValueError: As :meth:`check`; nothing is written.
+        """
+        checked = self.check(values)
         for name, value in checked.items():
             entry = self._entries[name]
             array = _array(self.model, entry.array)
@@ -332,9 +461,11 @@ class ModelParameters:
         base, column = name, None
         if name.endswith("]") and "[" in name:
             base, _, index = name[:-1].rpartition("[")
-            if not index.isdigit():
+            if not (index.isascii() and index.isdigit()):
                 raise ValueError(f"parameter {name!r}: the component in [...] must be an integer")
             column = int(index)
+            if str(column) != index:
+                raise ValueError(f"parameter {name!r}: write the component as {base}[{column}] (one name per element)")
         field, _, element = base.partition(":")
         if field not in _FIELDS:
             raise ValueError(f"parameter {name!r}: unknown field {field!r}; valid: {list(_FIELDS)}")
@@ -346,6 +477,7 @@ class ModelParameters:
             component = column if column is not None else (default_column or 0)
             if not 0 <= component < array.shape[0]:
                 raise ValueError(f"parameter {name!r}: component must be in 0..{array.shape[0] - 1}")
+            self._refuse_alias(name, base, column, default_column)
             return _Entry(field, path, (component,), None)
         rows = self._rows(name, field, objtype, element)
         width = array.shape[1] if array.ndim == 2 else 0
@@ -355,7 +487,18 @@ class ModelParameters:
             raise ValueError(f"parameter {name!r}: {field!r} is a scalar and takes no component [k]")
         if column is not None and not 0 <= column < width:
             raise ValueError(f"parameter {name!r}: component must be in 0..{width - 1}")
+        if name.endswith("]"):
+            self._refuse_alias(name, base, column, default_column)
         return _Entry(field, path, rows, column)
+
+    @staticmethod
+    def _refuse_alias(name: str, base: str, column: int | None, default_column: int | None) -> None:
+        """Refuse ``field:element[k]`` for the default component ``k``: ``field:element`` names it."""
+        if column is not None and column == default_column and name != base:
+            raise ValueError(
+                f"parameter {name!r} is the default component; write {base!r} (one name per model element, "
+                "so that a task reports each value once)"
+            )
 
     def _rows(self, name: str, field: str, objtype: mujoco.mjtObj, element: str) -> tuple[int, ...]:
         model = self.model
@@ -422,37 +565,69 @@ class ActionTransform:
     """An unknown map of the commanded action, drawn per episode: ``a'[dims] = gain * R a[dims] + bias``.
 
     Attributes:
-        rotation: Angle (rad) of the rotation ``R`` about ``axis``; needs exactly three ``dims``
-            (e.g. Fetch's commanded displacement, ``dims=(0, 1, 2)``). `None`: no rotation.
+        rotation: Angle (rad) of the rotation ``R``: about ``axis`` when ``dims`` has three
+            entries (e.g. Fetch's commanded displacement, ``dims=(0, 1, 2)``), in the plane (counter-
+            clockwise, from entry 0 towards entry 1) when it has two (a planar arm's command).
+            `None`: no rotation.
         gain: Factor on the (rotated) entries; `None`: 1.
         bias: Added to each transformed entry; `None`: 0.
-        dims: Action entries transformed; `None`: all (three for a rotation).
-        axis: Rotation axis in the frame of ``a[dims]``; normalised.
+        dims: Action entries transformed, distinct non-negative ints; `None`: all (two or three
+            for a rotation).
+        axis: Rotation axis in the frame of ``a[dims]`` for a 3-D rotation, normalised; `None`:
+            z, ``(0, 0, 1)``. A planar rotation takes no axis.
+
+    Raises:
+        TypeError: If ``rotation``, ``gain`` or ``bias`` has no ``sample(rng)`` method.
+        ValueError: On non-integer, negative or repeated ``dims``, a rotation on other than two or
+            three entries, or a bad ``axis``.
 
     Example:
         >>> t = ActionTransform(rotation=Fixed(np.pi / 2), dims=(0, 1, 2))
         >>> np.round(t.apply(np.array([1.0, 0.0, 0.0, 0.5]), {"action:rotation": np.pi / 2}), 6).tolist()
         [0.0, 1.0, 0.0, 0.5]
+        >>> planar = ActionTransform(rotation=Fixed(np.pi / 2), dims=(0, 1))  # a 2-D command, turned 90 degrees
+        >>> np.round(planar.apply(np.array([1.0, 0.0]), {"action:rotation": np.pi / 2}), 6).tolist()
+        [0.0, 1.0]
     """
 
     rotation: Distribution | None = None
     gain: Distribution | None = None
     bias: Distribution | None = None
     dims: tuple[int, ...] | None = None
-    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    axis: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         for what in ("rotation", "gain", "bias"):
             dist = getattr(self, what)
             if dist is not None and not isinstance(dist, Distribution):
                 raise TypeError(f"ActionTransform.{what} must have a sample(rng) method, got {dist!r}")
-        axis = np.asarray(self.axis, dtype=np.float64)
-        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or not np.linalg.norm(axis) > 0:
-            raise ValueError(f"axis must be a non-zero 3-vector, got {self.axis!r}")
+        if self.axis is not None:
+            axis = np.asarray(self.axis, dtype=np.float64) if _numbers(self.axis) else None
+            if axis is None or axis.shape != (3,) or not np.all(np.isfinite(axis)) or not np.linalg.norm(axis) > 0:
+                raise ValueError(f"axis must be a non-zero 3-vector, got {self.axis!r}")
+            object.__setattr__(self, "axis", tuple(float(x) for x in axis))
         if self.dims is not None:
-            object.__setattr__(self, "dims", tuple(int(d) for d in self.dims))
-        if self.rotation is not None and self.dims is not None and len(self.dims) != 3:
-            raise ValueError(f"a rotation acts on exactly three action entries; dims={self.dims}")
+            dims = tuple(self.dims) if isinstance(self.dims, Iterable) else None
+            if dims is None or not all(_is_int(d) and d >= 0 for d in dims):
+                raise ValueError(
+                    f"dims must be action indices (non-negative ints), e.g. dims=(0, 1, 2); got {self.dims!r}"
+                )
+            if len(set(dims)) != len(dims):
+                raise ValueError(f"dims must name each action entry once, got {self.dims!r}")
+            object.__setattr__(self, "dims", tuple(int(d) for d in dims))
+            self.check_size(len(dims))
+
+    def check_size(self, count: int) -> None:
+        """Raise ValueError if the transform cannot act on ``count`` action entries."""
+        if self.rotation is None:
+            return
+        if count not in (2, 3):
+            raise ValueError(
+                f"a rotation acts on two action entries (a planar rotation) or three (a rotation about axis); "
+                f"got {count} (dims={self.dims}): pass dims with two or three entries"
+            )
+        if count == 2 and self.axis is not None:
+            raise ValueError(f"a planar rotation (two dims) takes no axis; got axis={self.axis}")
 
     def distributions(self) -> dict[str, Distribution]:
         """The drawn quantities, by name (``"action:rotation"``, ``"action:gain"``, ``"action:bias"``)."""
@@ -463,14 +638,29 @@ class ActionTransform:
         """The transformed action (not clipped) for the drawn values ``draw`` (missing names: identity)."""
         out = np.array(action, dtype=np.float64)
         dims = list(self.dims) if self.dims is not None else list(range(out.shape[-1]))
-        if self.rotation is not None and len(dims) != 3:
-            raise ValueError(f"a rotation acts on exactly three action entries; the action has {len(dims)}")
+        self.check_size(len(dims))
         part = out[..., dims]
         if "action:rotation" in draw:
-            part = part @ _rotation(self.axis, draw["action:rotation"]).T
+            angle = draw["action:rotation"]
+            matrix = _rotation(self.axis or (0.0, 0.0, 1.0), angle) if len(dims) == 3 else _planar_rotation(angle)
+            part = part @ matrix.T
         part = draw.get("action:gain", 1.0) * part + draw.get("action:bias", 0.0)
         out[..., dims] = part
         return out
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _numbers(values: Any) -> bool:
+    return (
+        isinstance(values, Iterable)
+        and not isinstance(values, (str, bytes))
+        and all(
+            isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) for v in values
+        )
+    )
 
 
 def _rotation(axis: Sequence[float], angle: float) -> NDArray[np.float64]:
@@ -479,6 +669,12 @@ def _rotation(axis: Sequence[float], angle: float) -> NDArray[np.float64]:
     k = k / np.linalg.norm(k)
     cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * cross @ cross
+
+
+def _planar_rotation(angle: float) -> NDArray[np.float64]:
+    """Counter-clockwise rotation of the plane by ``angle``."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s], [s, c]])
 
 
 class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordConstructorArgs):
@@ -494,6 +690,11 @@ class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordCo
     ``reset(options={"task": {...}})`` fixes the named quantities for that episode (the others are
     drawn as usual, from the same random numbers as without the option).
 
+    ``copy.deepcopy`` and ``pickle`` give a family that writes into its own env's model (which
+    gymnasium's MuJoCo envs rebuild on copy), with the original's defaults and current task.
+    Made with a ``render_mode`` and no display, it chooses a headless MuJoCo backend
+    (``MUJOCO_GL=egl``, see :func:`~smcd_rl.envs.mujoco_setup.headless_mujoco`).
+
     Args:
         env: A MuJoCo env (``env.unwrapped`` has ``model`` and ``data``), possibly wrapped by
             wrappers that leave its observations unchanged (``gymnasium.make``'s are fine).
@@ -503,8 +704,10 @@ class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordCo
     Raises:
         TypeError: If the env is not a MuJoCo env, a distribution has no ``sample`` method, or an
             action transform is given for a non-Box action space.
-        ValueError: On an unknown parameter name or element (the message names the valid ones), or
-            if a wrapper between this one and the MuJoCo env changes the observation.
+        ValueError: On an unknown parameter name or element (the message names the valid ones), a
+            second name for one element, a distribution that draws values outside the parameter's
+            physical range (a negative mass, friction, damping, ...), action dims outside the
+            action, or if a wrapper between this one and the MuJoCo env changes the observation.
 
     Example:
         >>> import gymnasium
@@ -533,7 +736,9 @@ class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordCo
         for name, dist in params.items():
             if not isinstance(dist, Distribution):
                 raise TypeError(f"the distribution of {name!r} must have a sample(rng) method, got {dist!r}")
-        self.parameters = ModelParameters(base.model, params)
+        self._parameters = ModelParameters(base.model, params)
+        for name, dist in params.items():
+            self._parameters.check_support(name, dist)
         if action is not None:
             if not isinstance(env.action_space, spaces.Box):
                 raise TypeError(f"an action transform needs a Box action space, got {env.action_space}")
@@ -541,11 +746,27 @@ class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordCo
             dims = action.dims if action.dims is not None else tuple(range(size))
             if any(not 0 <= d < size for d in dims):
                 raise ValueError(f"action dims {dims} out of range for an action of size {size}")
-            if action.rotation is not None and len(dims) != 3:
-                raise ValueError(f"a rotation acts on exactly three action entries; dims={dims}")
+            action.check_size(len(dims))
         self.action_transform = action
         self._distributions: dict[str, Distribution] = {**params, **(action.distributions() if action else {})}
         self._task: dict[str, float] = {}
+        if env.render_mode is not None:
+            headless_mujoco()  # before the first frame: gymnasium reads MUJOCO_GL when it makes the renderer
+
+    @property
+    def parameters(self) -> ModelParameters:
+        """The model parameters, on the model of the env this family wraps now."""
+        model = self.env.unwrapped.model  # type: ignore[attr-defined]
+        if self._parameters.model is not model:  # a copy or unpickled family: its env has its own model
+            self._parameters = self._parameters.bind(model)
+        return self._parameters
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """After ``copy.deepcopy`` or unpickling: write the current task into the (rebuilt) env's model."""
+        self.__dict__.update(state)
+        parameters = self.parameters
+        if parameters.names and self._task:
+            parameters.set({name: self._task[name] for name in parameters.names})
 
     @staticmethod
     def _check_wrappers(env: gymnasium.Env[Any, Any]) -> None:
@@ -580,19 +801,25 @@ class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordCo
                 use instead of draws in this episode.
 
         Raises:
-            ValueError: On an unknown task name or a non-finite value; the env is left as it was.
+            ValueError: On an unknown task name, a value that is not a finite number, or one
+                outside its parameter's physical range; the env is left as it was. Also on a draw
+                outside the range from a distribution of your own without ``support()``.
         """
         options = dict(options or {})
         fixed = self._check_fixed(options.pop("task", None))
-        self.parameters.restore()
+        parameters = self.parameters
+        parameters.restore()
+        self._task = {}  # the defaults, until a checked draw is written
         obs, info = self.env.reset(seed=seed, options=options or None)
         rng = self.env.unwrapped.np_random
         draw = {name: float(dist.sample(rng)) for name, dist in self._distributions.items()}
         draw.update(fixed)
+        if parameters.names:
+            values = parameters.check({name: draw[name] for name in parameters.names}, what="the draw")
         self._task = draw
-        if self.parameters.names:
+        if parameters.names:
             base: Any = self.env.unwrapped
-            self.parameters.set({name: draw[name] for name in self.parameters.names})
+            parameters.set(values)
             mujoco.mj_forward(base.model, base.data)
             obs = base._get_obs()
             if hasattr(base, "_get_reset_info"):  # gymnasium's MujocoEnv: reset info of the new model
@@ -607,19 +834,32 @@ class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordCo
         unknown = sorted(set(fixed) - set(self._distributions))
         if unknown:
             raise ValueError(f"unknown task name(s) {unknown} in options['task']; valid: {list(self._distributions)}")
-        return {name: _finite(value, f"options['task'][{name!r}]") for name, value in fixed.items()}
+        checked = {name: _finite(value, f"options['task'][{name!r}]") for name, value in fixed.items()}
+        parameters = self.parameters
+        parameters.check({name: v for name, v in checked.items() if name in parameters.names}, what="options['task']")
+        return checked
 
     def transform_action(self, action: Any) -> Any:
-        """The action the env receives for a commanded ``action`` in this episode (clipped to the space)."""
+        """The action the env receives for a commanded ``action`` in this episode (clipped to the space).
+
+        Raises:
+            ValueError: If ``action`` does not have the shape of the action space.
+        """
+        space = self.env.action_space
+        if isinstance(space, spaces.Box) and np.shape(action) != space.shape:
+            raise ValueError(f"the action has shape {np.shape(action)}; this env takes actions of shape {space.shape}")
         if self.action_transform is None:
             return action
-        space = self.env.action_space
         assert isinstance(space, spaces.Box)
         moved = self.action_transform.apply(np.asarray(action), self._task)
         return np.clip(moved, space.low, space.high).astype(space.dtype)
 
-    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
-        """Step the env with :meth:`transform_action` of ``action``; the reward as a float, ``info["task"]`` the draw."""
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """Step the env with :meth:`transform_action` of ``action``; the reward as a float, ``info["task"]`` the draw.
+
+        Raises:
+            ValueError: If ``action`` does not have the shape of the action space.
+        """
         obs, reward, terminated, truncated, info = self.env.step(self.transform_action(action))
         # A Python float: Fetch returns numpy float32 rewards, which stable-baselines3's checker refuses.
         return obs, float(reward), terminated, truncated, {**info, "task": dict(self._task)}

@@ -18,7 +18,7 @@ from gymnasium.utils.env_checker import check_env
 from PIL import Image
 
 import smcd_rl  # noqa: F401 - registers the tasks
-from smcd_rl.envs import TASKS
+from smcd_rl.envs import ROBOTICS_TASKS, TASKS
 from smcd_rl.envs.drone_landing import PLATFORMS, START, DroneLandingEnv, drone_frame
 from smcd_rl.envs.panda_reach import READY_POSE, PandaReachEnv, panda_fk, panda_frame, panda_points
 from smcd_rl.envs.rendering import BACKGROUND, Canvas
@@ -28,6 +28,7 @@ from smcd_rl.experiments.video import RecordGif, video_name, write_gif
 
 IDS = sorted({env_id for env_id, _, _ in TASKS} | {i for i in gymnasium.registry if i.startswith("smcd_rl/")})
 MUJOCO = {"smcd_rl/CrippledAnt-v0"}
+ROBOTICS = {env_id for env_id, _, _ in ROBOTICS_TASKS}
 DRAWN = [TwoLinkArmEnv, PandaReachEnv, TwoLinkTelescopingEnv, DroneLandingEnv]
 DRAWN_IDS = [
     "smcd_rl/TwoLinkArm-v0",
@@ -40,6 +41,8 @@ DRAWN_IDS = [
 def _make(env_id: str, **kwargs: object) -> gymnasium.Env:
     if env_id in MUJOCO and importlib.util.find_spec("mujoco") is None:
         pytest.skip("needs the mujoco extra")
+    if env_id in ROBOTICS and importlib.util.find_spec("gymnasium_robotics") is None:
+        pytest.skip("needs the robotics extra")  # registered anyway: making it says what to install
     return gymnasium.make(env_id, **kwargs)
 
 
@@ -160,7 +163,11 @@ def test_drone_frame_marks_the_target_platform() -> None:
 
 
 def test_frames_are_fast() -> None:
-    """The brief's budget is 30 ms a frame; these draw in a few (generous bound for a busy CI machine)."""
+    """The brief's budget is 30 ms a frame; these draw in a few.
+
+    Timed in this process's CPU time, which other processes' load does not inflate (wall time on a
+    shared 2-core machine can be several times longer); the bound still leaves room for a slow CPU.
+    """
     draws = [
         lambda: two_link_frame((0.3, 0.2), (1.0, 0.8), goal=(1.0, 0.5)),
         lambda: telescoping_frame((0.3, 0.2), 1.0, 7, (1.0, 0.5), 1.1),
@@ -169,10 +176,10 @@ def test_frames_are_fast() -> None:
     ]
     for draw in draws:
         draw()  # warm caches
-        started = time.perf_counter()
+        started = time.process_time()
         for _ in range(10):
             draw()
-        assert (time.perf_counter() - started) / 10 < 0.03
+        assert (time.process_time() - started) / 10 < 0.03
 
 
 def test_record_gif_writes_one_gif_per_episode(tmp_path) -> None:

@@ -275,3 +275,26 @@ def test_collect_transitions_with_random_or_callable_policies() -> None:
     np.testing.assert_array_equal(constant["action"].numpy(), np.tile([3.0, -3.0], (5, 1)))  # clipped to the box
     with pytest.raises(TypeError, match="single gymnasium.Env"):
         collect_transitions(gymnasium.make_vec(ARM, num_envs=2), None, 5)  # type: ignore[arg-type]
+
+
+# Every smcd_rl id, those of the optional extras included (skipped where the extra is not installed).
+_EXTRA_MODULE = {"smcd_rl/CrippledAnt-v0": "mujoco", "smcd_rl/FetchReachRotated-v0": "gymnasium_robotics"}
+_EXTRA_MODULE |= {"smcd_rl/FetchPushHeavy-v0": "gymnasium_robotics", "smcd_rl/FrankaReachTool-v0": "gymnasium_robotics"}
+_ALL_IDS = sorted(i for i in gymnasium.registry if i.startswith("smcd_rl/"))
+
+
+@pytest.mark.parametrize("env_id", _ALL_IDS)
+def test_every_registered_id_passes_sb3_check_env_with_python_float_rewards(env_id: str) -> None:
+    if env_id in _EXTRA_MODULE:
+        pytest.importorskip(_EXTRA_MODULE[env_id])
+    env = gymnasium.make(env_id)
+    # A goal env is checked unwrapped: SB3 calls env.compute_reward, which gymnasium's wrappers do not forward.
+    checked = env.unwrapped if hasattr(env.unwrapped, "compute_reward") else env
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sb3_check_env(checked, skip_render_check=True)
+    for layer in (env, env.unwrapped):
+        layer.reset(seed=0)
+        layer.action_space.seed(0)
+        reward = layer.step(layer.action_space.sample())[1]
+        assert type(reward) is float, f"{env_id}: {type(layer).__name__}.step returned a {type(reward).__name__} reward"

@@ -6,7 +6,9 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; must precede the first mujoco import
 
+import copy
 import json
+import pickle
 import subprocess
 import sys
 import warnings
@@ -290,6 +292,65 @@ def test_bad_family_arguments_raise() -> None:
         robotics.FetchPushHeavy(mass=(3.0, 1.0))
     with pytest.raises(ValueError, match="unknown task name"):
         robotics.FetchPushHeavy().reset(options={"task": {"body_mass:object": 1.0}})
+
+
+@pytest.mark.parametrize(
+    ("family", "kwargs", "message"),
+    [
+        ("FetchPushHeavy", {"mass": 3}, r"mass must be a \(low, high\) range .* pass mass=\(v, v\)"),
+        ("FetchPushHeavy", {"mass": (-3, -1)}, "mass must be a range of masses .* positive"),
+        ("FetchPushHeavy", {"mass": (0.0, 1.0)}, "mass must be a range of masses .* positive"),
+        ("FetchPushHeavy", {"friction": (-0.5, 1.0)}, "friction must be a range .* non-negative"),
+        ("FetchPushHeavy", {"mass": ("1", "2")}, r"mass must be a \(low, high\) range"),
+        ("FetchPushHeavy", {"mass": (1.0, 2.0, 3.0)}, r"mass must be a \(low, high\) range"),
+        ("FetchReachRotated", {"gain": 1.0}, r"gain must be a \(low, high\) range"),
+        ("FetchReachRotated", {"rotation": (0.5, -0.5)}, "rotation must be .* low <= high"),
+        ("FrankaReachTool", {"tool": (1, -1)}, "FrankaReachTool: tool must be .* low <= high"),
+        ("FrankaReachTool", {"tool": (0.0, float("nan"))}, "tool must be"),
+    ],
+)
+def test_family_arguments_are_checked_by_name(family: str, kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        getattr(robotics, family)(**kwargs)
+    env_id = f"smcd_rl/{family}-v0"
+    with pytest.raises(ValueError, match=message):
+        gymnasium.make(env_id, **kwargs)
+
+
+def test_fixed_ranges_and_physically_invalid_task_values() -> None:
+    env = robotics.FetchPushHeavy(mass=(3.0, 3.0))
+    assert env.reset(seed=0)[1]["task"]["body_mass:object0"] == 3.0
+    model = env.unwrapped.model
+    before = model.body_mass.copy(), model.geom_friction.copy()
+    for name, value in [("body_mass:object0", -2.0), ("geom_friction:object0", -0.1)]:
+        with pytest.raises(ValueError, match=f"options\\['task'\\] of '{name}' is .* must be"):
+            env.reset(options={"task": {name: value}})
+    np.testing.assert_array_equal(model.body_mass, before[0])
+    np.testing.assert_array_equal(model.geom_friction, before[1])
+
+
+_COPIES = {"deepcopy": copy.deepcopy, "pickle": lambda env: pickle.loads(pickle.dumps(env))}
+_TASKS = {  # a value for each family's model parameter (FetchReachRotated has only an action transform)
+    "smcd_rl/FetchReachRotated-v0": ({"action:rotation": 0.25}, None),
+    "smcd_rl/FetchPushHeavy-v0": ({"body_mass:object0": 5.5}, lambda m: m.body("object0").mass[0]),
+    "smcd_rl/FrankaReachTool-v0": ({"site_pos:end_effector[2]": 0.5}, lambda m: m.site("end_effector").pos[2]),
+}
+
+
+@pytest.mark.parametrize("how", _COPIES)
+@pytest.mark.parametrize("env_id", FAMILIES)
+def test_copies_of_every_family_simulate_the_task_they_report(env_id: str, how: str) -> None:
+    env = gymnasium.make(env_id)
+    env.reset(seed=0)
+    task, read = _TASKS[env_id]
+    before = None if read is None else float(read(env.unwrapped.model))
+    twin = _COPIES[how](env)
+    _, info = twin.reset(seed=1, options={"task": task})
+    assert {name: info["task"][name] for name in task} == task
+    if read is not None:  # the copy simulates what it reports, and the original is unchanged
+        assert float(read(twin.unwrapped.model)) == next(iter(task.values()))
+        assert float(read(env.unwrapped.model)) == before
+    twin.step(twin.action_space.sample())
 
 
 def test_franka_reaching_is_feasible_with_the_true_tool() -> None:
