@@ -59,6 +59,7 @@ Example:
 from __future__ import annotations
 
 import os
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -304,7 +305,7 @@ def load_dataset(path: str | os.PathLike[str]) -> TrajectoryDataset:
     Raises:
         FileNotFoundError: no file at ``path``.
         KeyError: a required key (state, action, trajectory, operator) is missing.
-        ValueError: the file is not an npz, or its arrays break the format (see
+        ValueError: the file is not an npz, is corrupt, or its arrays break the format (see
             :class:`TrajectoryDataset`).
     """
     path = Path(path)
@@ -328,14 +329,19 @@ def load_dataset(path: str | os.PathLike[str]) -> TrajectoryDataset:
                 f"dataset {path} has unknown key(s) {sorted(unknown)}; labels go under step/NAME or traj/NAME"
             )
 
+        try:  # the zip's members are read (and their CRC-32 checked) only here
+            arrays = {k: archive[k] for k in keys}
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
+            raise ValueError(f"{path} is corrupt ({err}); write it again with save_dataset") from err
+
         def group(prefix: str) -> dict[str, np.ndarray]:
-            return {k.split("/", 1)[1]: archive[k] for k in keys if k.startswith(prefix + "/")}
+            return {k.split("/", 1)[1]: arrays[k] for k in keys if k.startswith(prefix + "/")}
 
         return TrajectoryDataset(
-            state=archive["state"],
-            action=archive["action"],
-            trajectory=archive["trajectory"],
-            operator=archive["operator"],
+            state=arrays["state"],
+            action=arrays["action"],
+            trajectory=arrays["trajectory"],
+            operator=arrays["operator"],
             step_labels=group("step"),
             trajectory_labels=group("traj"),
             label_names={k: tuple(v.tolist()) for k, v in group("names").items()},

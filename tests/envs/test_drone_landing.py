@@ -400,3 +400,15 @@ def test_missing_and_unreadable_dataset_files_raise(tmp_path) -> None:
     (tmp_path / "text.npz").write_text("not a zip")
     with pytest.raises(ValueError, match="npz"):
         load_dataset(tmp_path / "text.npz")
+
+
+def test_a_flipped_bit_in_a_dataset_names_the_file_and_the_fix(tmp_path) -> None:
+    path = tmp_path / "flights.npz"
+    state = np.arange(35.0).reshape(5, 7) + 0.5
+    np.savez(path, **_arrays(state=state))  # stored uncompressed: the array's bytes sit in the file as written
+    raw = bytearray(path.read_bytes())
+    at = bytes(raw).index(state.tobytes()) + 8
+    raw[at] ^= 0x01  # a bit flip inside the state array: the zip's CRC-32 no longer matches
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=r"flights\.npz is corrupt .*save_dataset"):
+        load_dataset(path)
