@@ -151,8 +151,10 @@ class ParticleFilter:
         """Multiply the weights by the likelihoods, accumulate the evidence, resample if the ESS is low.
 
         Args:
-            log_likelihood: ``[*batch, N]`` log p(z | particle). NaN or ``+inf`` entries, or a
-                batch element whose entries are all ``-inf``, raise ValueError and change nothing.
+            log_likelihood: ``[*batch, N]`` log p(z | particle), checked in the weights' dtype
+                (float32 by default): NaN or ``+inf`` entries, a batch element whose entries are all
+                ``-inf`` (or below that dtype's range, as a float64 -1e40 is in float32), or a log
+                evidence that would overflow raise ValueError and change nothing.
         """
         self._commit(*self._reweighted(*self._checked_log_likelihood(log_likelihood)))
 
@@ -267,7 +269,12 @@ class ParticleFilter:
         return rows
 
     def _checked_log_likelihood(self, log_likelihood: Tensor) -> tuple[Tensor, bool]:
-        """``log_likelihood`` in the weights' dtype after checking it, and whether all of it is finite."""
+        """``log_likelihood`` in the weights' dtype after checking it, and whether all of it is finite.
+
+        Checked after the cast: a float64 log-likelihood of -1e40 (a float64 model, an outlier
+        target) is finite, but -inf in float32 weights, and checked before the cast it reached
+        the reweighting as finite and turned every weight into ``-inf - (-inf) = NaN``.
+        """
         log_weights = self._state()[1]
         if not isinstance(log_likelihood, Tensor):
             raise TypeError(f"log_likelihood must be a Tensor, got {type(log_likelihood).__name__}")
@@ -276,6 +283,7 @@ class ParticleFilter:
                 f"log_likelihood must have shape [*batch, N] = {list(log_weights.shape)}, "
                 f"got {list(log_likelihood.shape)}"
             )
+        log_likelihood = log_likelihood.to(log_weights.dtype)  # overflows to -inf here, if it does
         finite = bool(torch.isfinite(log_likelihood).all())
         if not finite:  # one pass above; the checks below name the problem
             if torch.isnan(log_likelihood).any():
@@ -284,10 +292,11 @@ class ParticleFilter:
                 raise ValueError("log_likelihood contains +inf; check the likelihood's noise scale (it must be > 0)")
             if (log_likelihood == -math.inf).all(dim=-1).any():
                 raise ValueError(
-                    "every particle of a batch element has zero likelihood (all -inf): "
-                    "the observation is impossible under the model; increase the likelihood's noise scale"
+                    "every particle of a batch element has zero likelihood (all -inf, or below the "
+                    f"{log_weights.dtype} range): the observation is impossible under the model; drop the "
+                    "outlier, or increase the likelihood's noise scale"
                 )
-        return log_likelihood.to(log_weights.dtype), finite
+        return log_likelihood, finite
 
     def _reweighted(self, log_likelihood: Tensor, finite: bool) -> tuple[Tensor, Tensor, Tensor]:
         """The log-weights, log evidence and ESS after ``log_likelihood``, computed without changing the filter.
@@ -306,7 +315,9 @@ class ParticleFilter:
                 for one that does not is skipped.
 
         Raises:
-            ValueError: in a batch element, every particle of nonzero weight has zero likelihood.
+            ValueError: in a batch element, every particle of nonzero weight has zero likelihood, or
+                the log evidence would overflow the filter's dtype: a filter state never holds NaN
+                weights or an infinite evidence or ESS.
         """
         log_weights, log_evidence = self._state()[1:]
         joint = log_weights.to(torch.float64).add_(log_likelihood)  # a fresh float64 copy, then in place
@@ -324,11 +335,18 @@ class ParticleFilter:
         # ESS = (sum w)^2 / sum w^2 of the unnormalised relative weights: no second logsumexp.
         ess = total.squeeze(-1).square_().div_(relative.mul_(relative).sum(dim=-1))
         dtype = log_weights.dtype
-        return (
-            shifted.sub_(log_total).to(dtype),
-            peak.add_(log_total).squeeze(-1).add_(log_evidence).to(log_evidence.dtype),
-            ess.clamp_(1.0, float(self._num_particles)).to(dtype),
-        )
+        new_log_weights = shifted.sub_(log_total).to(dtype)
+        new_log_evidence = peak.add_(log_total).squeeze(-1).add_(log_evidence).to(log_evidence.dtype)
+        new_ess = ess.clamp_(1.0, float(self._num_particles)).to(dtype)
+        # With the likelihood checked in the weights' dtype, weights and ESS are finite here (weights
+        # of -inf are zero weights); the evidence sums every step's and can still overflow.
+        if not bool(torch.isfinite(new_log_evidence).all()):
+            raise ValueError(
+                f"the log evidence would overflow {log_evidence.dtype}: the observations are far outside "
+                "what the model predicts; drop the outlier, increase the likelihood's noise scale, or reset "
+                "the filter"
+            )
+        return new_log_weights, new_log_evidence, new_ess
 
     def _commit(self, log_weights: Tensor, log_evidence: Tensor, ess: Tensor) -> None:
         """Take the result of :meth:`_reweighted`, then resample where the ESS is low."""

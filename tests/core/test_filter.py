@@ -311,3 +311,43 @@ def test_restore_rows_puts_back_only_the_chosen_batch_elements() -> None:
         for row, source in ((0, saved), (1, fresh), (2, saved)):
             assert torch.equal(filt.state_dict()[key][row], source[key][row]), (key, row)
     assert torch.equal(filt.state_dict()["generator"], fresh["generator"])  # the generator is not restored
+
+
+def test_a_log_likelihood_that_overflows_the_weights_dtype_is_refused_and_changes_nothing() -> None:
+    """float64 log-likelihoods of -1e40 are finite, but -inf in the float32 weights: the finiteness
+    check ran before the cast, so -inf - (-inf) left the weights, ESS and log evidence NaN."""
+    filt = smcd_rl.SMCDFilter(10, num_particles=20, generator=_gen())
+    filt.reset(batch_shape=(2,))
+    filt.update(lambda m: torch.zeros(2, 20))
+    state = filt.state_dict()
+    overflow = torch.full((2, 20), -1e40, dtype=torch.float64)
+    overflow[0] = 0.0  # one batch element is fine: the update is still refused as a whole
+    with pytest.raises(ValueError, match="impossible"):
+        filt.reweight(overflow)
+    with pytest.raises(ValueError, match="impossible"):
+        filt.update(lambda m: overflow)
+    after = filt.state_dict()
+    for key in ("particles", "log_weights", "log_evidence", "last_ess", "generator"):
+        assert torch.equal(state[key], after[key]), key
+    # Particles whose likelihood overflows alone just get weight 0, as they would in float32.
+    some = torch.zeros(2, 20, dtype=torch.float64)
+    some[:, 1:] = -1e40
+    filt.reweight(some)
+    assert torch.isfinite(filt.log_evidence).all() and torch.isfinite(filt.last_ess).all()
+    assert not torch.isnan(filt.log_weights).any() and torch.isfinite(filt.mean_mask).all()
+
+
+def test_a_log_evidence_that_would_overflow_is_refused_and_changes_nothing() -> None:
+    """Each likelihood fits float32, but their sum over steps does not: the evidence would be -inf."""
+    filt = smcd_rl.SMCDFilter(10, num_particles=20, generator=_gen())
+    filt.reset()
+    filt.reweight(torch.full((20,), -3e38))
+    state = filt.state_dict()
+    with pytest.raises(ValueError, match="log evidence.*reset"):
+        filt.reweight(torch.full((20,), -3e38))
+    with pytest.raises(ValueError, match="log evidence.*reset"):
+        filt.update(lambda m: torch.full((20,), -3e38))
+    after = filt.state_dict()
+    for key in ("particles", "log_weights", "log_evidence", "last_ess", "generator"):
+        assert torch.equal(state[key], after[key]), key
+    assert torch.isfinite(filt.log_evidence).all()
