@@ -375,6 +375,9 @@ class GradientDescent(Adaptation):
     After each observation, ``steps`` SGD steps on the mean squared error (normalised units)
     over the last ``window`` transitions update a private copy of the weights, one copy per
     batch element. :meth:`reset` restores the trained weights; the network itself never changes.
+    An observation after which the weights, or their predictions for the window's inputs, are
+    inf or NaN (an outlier target, a learning rate far too large) is refused with a ValueError
+    and leaves the weights and the window as they were.
 
     Args:
         lr: learning rate.
@@ -399,9 +402,14 @@ class GradientDescent(Adaptation):
         self._inputs: Tensor | None = None
         self._targets: Tensor | None = None
         self._count: Tensor | None = None  # transitions seen, per batch element
+        self._output_scale = torch.tensor(1.0)
 
     def config(self) -> dict[str, Any]:
         return {"lr": self.lr, "steps": self.steps, "window": self.window}
+
+    def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
+        super().bind(net, output_scale, calibration=calibration)
+        self._output_scale = output_scale.detach()  # to check predictions in the target's units
 
     def reset(self, batch_shape: tuple[int, ...]) -> None:
         self._batch_shape = batch_shape
@@ -435,14 +443,29 @@ class GradientDescent(Adaptation):
             for _ in range(self.steps):
                 grads = gradient(self._params, self._inputs, self._targets, filled)
                 self._params = {k: p - self.lr * grads[k] for k, p in self._params.items()}
-        if not all(bool(torch.isfinite(p).all()) for p in self._params.values()):
+        if not self._predicts_finite(self._inputs, filled):
             # Put everything back, so that one outlier does not leave NaN weights for good.
             self._params, self._count = before[0], before[1]
             self._inputs[rows, slot], self._targets[rows, slot] = before[2], before[3]
             raise ValueError(
-                "gradient descent diverged on this observation (its weights became inf or NaN); the adaptation "
-                f"state is unchanged. Drop the outlier, or lower the learning rate (lr={self.lr})"
+                "gradient descent diverged on this observation (its weights, or its predictions for the "
+                "observed inputs, became inf or NaN); the adaptation state is unchanged. Drop the outlier, "
+                f"or lower the learning rate (lr={self.lr})"
             )
+
+    def _predicts_finite(self, inputs: Tensor, filled: Tensor) -> bool:
+        """Whether the weights are finite and predict finite values, in the target's units, for the window.
+
+        Finite weights are not enough: one step on a 1e18 target (or with a huge ``lr``) leaves
+        weights of 1e20 that predict inf. Checked on the observed inputs, where the loss pulled the
+        weights, and after the model's de-normalisation (``* output_scale``), where a float32 value
+        of 1e37 becomes inf.
+        """
+        if not all(bool(torch.isfinite(p).all()) for p in self._params.values()):
+            return False
+        prediction = vmap(lambda p, x: functional_call(self.net, p, (x,)))(self._params, inputs)
+        observed = prediction[filled.to(torch.bool)]  # the empty slots after a reset hold no input
+        return bool(torch.isfinite(observed * self._output_scale).all())
 
     def state_dict(self) -> dict[str, Any]:
         assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"

@@ -61,7 +61,7 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
 
     Returns:
         The :class:`Trace`. A strategy that refuses an observation (an impossible one under every
-        particle, or gradient descent whose weights would turn non-finite) stops the trace there:
+        particle, or gradient descent whose weights or predictions would turn non-finite) stops the trace there:
         ``rmse`` is ``inf`` and the lists end at the refused step.
     """
     model = _checked_model(model)
