@@ -35,12 +35,13 @@ if TYPE_CHECKING:
         CheckpointMismatchError,
         UnfittedModelWarning,
         load,
+        save,
     )
     from smcd_rl.training import fit, fit_dynamics, fit_reptile
 
 _register_envs()
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "MaskedMLP",
@@ -60,6 +61,7 @@ __all__ = [
     "fit",
     "fit_dynamics",
     "fit_reptile",
+    "save",
     "load",
     "calibrate",
     "Calibration",
@@ -73,7 +75,8 @@ _SOURCES: dict[str, str] = {
     **dict.fromkeys(["ParticleFilter", "SMCDFilter"], "filter"),
     "MaskedMLP": "masked_mlp",
     **dict.fromkeys(
-        ["AdaptiveDynamicsModel", "AdaptiveModel", "CheckpointMismatchError", "UnfittedModelWarning", "load"], "model"
+        ["AdaptiveDynamicsModel", "AdaptiveModel", "CheckpointMismatchError", "UnfittedModelWarning", "load", "save"],
+        "model",
     ),
     **dict.fromkeys(["fit", "fit_dynamics", "fit_reptile"], "training"),
 }

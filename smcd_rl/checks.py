@@ -72,9 +72,26 @@ def check_shape(value: Any, name: str) -> tuple[int, ...]:
 
 
 def check_real_tensor(value: Any, name: str) -> Tensor:
-    """``value`` if it is a torch Tensor of a real dtype (float, int or bool); complex and non-tensors are refused."""
+    """``value`` if it is a torch Tensor of a real dtype (float, int or bool) that holds values.
+
+    Complex, quantized and non-tensors are refused, and so are tensors on the meta device, which
+    have a shape but no values (reading one raised torch's ``NotImplementedError`` deep inside).
+
+    Example:
+        >>> import torch
+        >>> from smcd_rl.checks import check_real_tensor
+        >>> check_real_tensor(torch.zeros(2, device="meta"), "observe: 'q'")
+        Traceback (most recent call last):
+        ...
+        TypeError: observe: 'q' is on the meta device, where a tensor has a shape but no values; pass the data itself (e.g. on 'cpu')
+    """
     if not isinstance(value, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}; convert it with torch.as_tensor")
+    if value.device.type == "meta":
+        raise TypeError(
+            f"{name} is on the meta device, where a tensor has a shape but no values; pass the data itself "
+            "(e.g. on 'cpu')"
+        )
     if value.is_complex():
         raise TypeError(f"{name} is complex ({value.dtype}); pass real values (e.g. its .real part)")
     if value.dtype in (torch.quint8, torch.qint8, torch.qint32):

@@ -5,9 +5,10 @@ from __future__ import annotations
 import copy
 import os
 import warnings
-from collections.abc import Sequence
+import zipfile
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDictBase
@@ -21,7 +22,10 @@ from smcd_rl.files import CheckpointMismatchError, UnreadableFileError, load_fil
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.normalization import Normalizer
 
-__all__ = ["AdaptiveModel", "AdaptiveDynamicsModel", "load", "CheckpointMismatchError", "UnfittedModelWarning"]
+if TYPE_CHECKING:
+    from typing_extensions import Self  # typing.Self needs Python 3.11
+
+__all__ = ["AdaptiveModel", "AdaptiveDynamicsModel", "save", "load", "CheckpointMismatchError", "UnfittedModelWarning"]
 
 _FORMAT = "smcd_rl.AdaptiveModel/1"
 #: What a model checkpoint holds besides its format (:meth:`AdaptiveModel.checkpoint`).
@@ -215,11 +219,15 @@ class AdaptiveModel(TensorDictModuleBase):
         any of its transitions is refused, none of them is applied.
 
         Raises:
-            TypeError: ``td`` is not a TensorDict, or a value is not a real tensor (e.g. complex).
+            TypeError: ``td`` is not a TensorDict, or a value is not a real tensor (e.g. complex,
+                or on the meta device, where it has no values).
             KeyError: a key the model needs is missing.
             ValueError: shapes do not match the model or the TensorDict's batch, a value is NaN
-                or infinite in the model's dtype, or the observation is impossible under every
-                particle. The adaptation state is unchanged after any error.
+                or infinite in the model's dtype, the observation is impossible under every
+                particle (:class:`smcd_rl.SMCD`, in any dtype: its likelihood is checked in the
+                filter's), or it would make :class:`smcd_rl.GradientDescent`'s weights or
+                predictions inf or NaN. The adaptation state is unchanged after any error, so
+                the model never holds NaN weights or predicts inf from them.
         """
         check_tensordict(td, "observe")
         batch_shape = self._require_reset()
@@ -372,7 +380,7 @@ class AdaptiveModel(TensorDictModuleBase):
         }
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Save to ``path`` (written atomically); :func:`smcd_rl.load` rebuilds the model.
+        """Save to ``path`` (written atomically), as :func:`smcd_rl.save` does; :func:`smcd_rl.load` rebuilds the model.
 
         Raises:
             smcd_rl.files.FileWriteError: the directory is read-only, the disk is full, ...
@@ -421,10 +429,32 @@ class AdaptiveModel(TensorDictModuleBase):
             ) from err
         self._declared.residual_scale, self._declared.calibration = scale, calibration
 
+    def to(self, *args: Any, **kwargs: Any) -> Self:
+        """Move or cast the model as :meth:`torch.nn.Module.to` does; the meta device is refused.
+
+        Raises:
+            ValueError: the target is the meta device, where tensors have shapes but no values: the
+                move would throw the trained weights away. The model is left as it was.
+        """
+        device = torch._C._nn._parse_to(*args, **kwargs)[0]  # how nn.Module.to reads its arguments
+        if device is not None and device.type == "meta":
+            raise ValueError(
+                "model.to('meta'): the meta device holds tensors with shapes but no values, so the move would "
+                "throw the trained weights away and leave a model that cannot predict; the model is unchanged. "
+                "Move it to a real device ('cpu', 'cuda')"
+            )
+        return super().to(*args, **kwargs)
+
     # ------------------------------------------------------------------ internals
     def _bind(self, adaptation: Adaptation) -> None:
         if not isinstance(adaptation, Adaptation):
             raise TypeError(f"adaptation must be a smcd_rl.Adaptation, got {type(adaptation).__name__}")
+        if next(self.net.parameters()).device.type == "meta":  # constructor, or a net moved there since
+            raise ValueError(
+                "the network is on the meta device, whose tensors have shapes but no values, so it cannot "
+                "predict or adapt; materialise it first (net.to_empty(device='cpu'), then load its trained "
+                "weights) or build it on a real device"
+            )
         adaptation.bind(self.net, self.output_norm.std, calibration=self._declared.calibration)
 
     def _key_config(self) -> dict[str, Any]:
@@ -620,13 +650,77 @@ _CLASSES: dict[str, type[AdaptiveModel]] = {
 
 
 def _read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    return load_file(
-        path,
-        what="smcd_rl model checkpoint",
-        expect_format=_FORMAT,
-        expect_keys=_CHECKPOINT_KEYS,
-        fix="save the model again (model.save), or delete the file and rerun what wrote it",
-    )
+    """The checkpoint dict in ``path``, or an error that says whether the file is a damaged checkpoint or none at all.
+
+    A damaged checkpoint (empty, truncated, records missing) gets the advice to save the model
+    again; a file that was never a checkpoint (a user's ``torch.save(net.state_dict())``, an
+    ``.npz``, a text file) gets what it is and how to load it instead.
+    """
+    try:
+        return load_file(
+            path,
+            what="smcd_rl model checkpoint",
+            expect_format=_FORMAT,
+            expect_keys=_CHECKPOINT_KEYS,
+            fix="save the model again (smcd_rl.save), or delete the file and rerun what wrote it",
+        )
+    except (UnreadableFileError, CheckpointMismatchError) as err:
+        foreign = _foreign_file(Path(path))
+        if foreign is None:  # a checkpoint of ours, damaged: the advice above fits
+            raise
+        message = f"{path} is not an smcd-rl model checkpoint: {foreign}"
+        if isinstance(err, UnreadableFileError):
+            raise UnreadableFileError(message, Path(path)) from err
+        raise CheckpointMismatchError(message) from err
+
+
+#: What :func:`load` reads, for the errors about files it cannot.
+_WHAT_LOAD_READS = "smcd_rl.load reads the files smcd_rl.save(model, path) (or model.save(path)) writes"
+
+
+def _foreign_file(path: Path) -> str | None:
+    """What ``path`` holds and how to load it, if it is not an smcd-rl model checkpoint; ``None`` if it is one, maybe damaged.
+
+    Looked at only after a load failed, so reading the file a second time costs nothing that matters.
+    """
+    try:
+        with path.open("rb") as handle:
+            head = handle.read(4)
+    except OSError:
+        return None
+    if not head:
+        return None  # empty: a write that was interrupted
+    if head[:1] != b"\x80" and head != b"PK\x03\x04":  # neither a zip archive (torch.save) nor a pickle
+        return f"it is not a file torch.save wrote (it starts with {head!r}); {_WHAT_LOAD_READS}"
+    if head == b"PK\x03\x04":
+        try:
+            with zipfile.ZipFile(path) as archive:
+                names = archive.namelist()
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError, OSError):
+            return None  # a truncated archive: a damaged checkpoint
+        if not any(name.endswith("data.pkl") for name in names):
+            return f"it is a zip archive (an .npz?) but not a file torch.save wrote; {_WHAT_LOAD_READS}"
+    try:
+        # weights_only=False as load_file does: it has just unpickled this same file.
+        loaded = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception:  # unreadable: a damaged checkpoint, and load_file's error says so
+        return None
+    if not isinstance(loaded, Mapping):
+        return f"it holds a {type(loaded).__name__}, not a checkpoint dict; {_WHAT_LOAD_READS}"
+    found = loaded.get("format")
+    if found == _FORMAT:
+        return None  # ours, with entries missing
+    if found is not None:
+        return f"it is a file of format {found!r}, not {_FORMAT!r}; {_WHAT_LOAD_READS}"
+    if loaded and all(isinstance(value, Tensor) for value in loaded.values()):
+        return (
+            f"it is a bare state_dict ({len(loaded)} tensors, as torch.save(net.state_dict(), path) writes): "
+            "build the network and call net.load_state_dict(torch.load(path)), or save the whole model with "
+            "smcd_rl.save(model, path) and load it with smcd_rl.load(path)"
+        )
+    keys = sorted(map(str, loaded))
+    shown = ", ".join(repr(k) for k in keys[:5]) + (", ..." if len(keys) > 5 else "")
+    return f"it is a dict without a 'format' entry (keys {shown}); {_WHAT_LOAD_READS}"
 
 
 def _checked_where(where: Any, batch_shape: tuple[int, ...]) -> Tensor:
@@ -674,18 +768,60 @@ def _key(value: Any) -> NestedKey | None:
     return tuple(value) if isinstance(value, list) else value
 
 
-def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) -> AdaptiveModel:
-    """Rebuild a model saved with :meth:`AdaptiveModel.save`.
+def save(model: AdaptiveModel, path: str | os.PathLike[str]) -> None:
+    """Save ``model`` to ``path``: network, normalisation, calibration and strategy settings.
+
+    :func:`load` rebuilds it. The same as ``model.save(path)``; the file is written atomically
+    and is a pickle, as :func:`torch.save` writes it (load only files you trust). The adaptation
+    state (particles, adapted weights) is not saved: a loaded model starts unadapted.
 
     Args:
-        path: the checkpoint file.
-        adaptation: strategy to attach instead of the saved one (a fresh copy of it by default).
+        model: the model (an :class:`AdaptiveModel` or :class:`AdaptiveDynamicsModel`).
+        path: the file to write (replaced if it exists; its directories are created).
+
+    Raises:
+        TypeError: ``model`` is not an :class:`AdaptiveModel` (save a bare network with
+            ``torch.save(net.state_dict(), path)``).
+        smcd_rl.files.FileWriteError: the directory is read-only, the disk is full, ...
 
     Example:
         >>> import tempfile, smcd_rl
         >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
         >>> path = tempfile.mkdtemp() + "/model.pt"
-        >>> model.save(path)
+        >>> smcd_rl.save(model, path)
+        >>> smcd_rl.load(path).net.config == model.net.config
+        True
+    """
+    if not isinstance(model, AdaptiveModel):
+        raise TypeError(
+            f"smcd_rl.save takes an smcd_rl.AdaptiveModel, got {type(model).__name__}; save a bare network with "
+            "torch.save(net.state_dict(), path), or wrap it in an AdaptiveModel"
+        )
+    model.save(path)
+
+
+def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) -> AdaptiveModel:
+    """Rebuild a model saved with :func:`save` (or :meth:`AdaptiveModel.save`).
+
+    Args:
+        path: the checkpoint file.
+        adaptation: strategy to attach instead of the saved one (a fresh copy of it by default).
+
+    Raises:
+        FileNotFoundError: there is no file at ``path``.
+        smcd_rl.UnreadableFileError: the checkpoint is empty, truncated or corrupt (save the model
+            again), or the file is not a dict that :func:`torch.save` wrote.
+        CheckpointMismatchError: the file is a dict but no model checkpoint, e.g. a bare
+            ``state_dict`` (load it with ``net.load_state_dict(torch.load(path))``).
+
+        For a file that is not an smcd-rl model checkpoint at all, the message says what it is and
+        how to load it.
+
+    Example:
+        >>> import tempfile, smcd_rl
+        >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+        >>> path = tempfile.mkdtemp() + "/model.pt"
+        >>> smcd_rl.save(model, path)
         >>> type(smcd_rl.load(path)).__name__
         'AdaptiveModel'
     """

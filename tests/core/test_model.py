@@ -262,3 +262,101 @@ def test_dynamics_model_sizes_and_a_network_too_small_for_observation_plus_actio
     assert (model.observation_dim, model.action_dim) == (3, 2)
     with pytest.raises(ValueError, match="more inputs than outputs"):
         smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(3, 3, hidden=(8,)))
+
+
+def test_tensors_on_the_meta_device_are_refused_by_name_and_change_nothing() -> None:
+    """A meta tensor has a shape but no values: reading it raised torch's NotImplementedError
+    ("Cannot copy out of meta tensor") from inside the model, and model.to("meta") threw the
+    trained weights away."""
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(2, 2, hidden=(8, 8))
+    model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee", adaptation=_smcd(n=16))
+    model.fitted = True
+    model.reset()
+    model.observe(TensorDict({"q": torch.zeros(2), "ee": torch.ones(2)}, []))
+    state = model.adaptation.filter.state_dict()
+    meta = torch.zeros(2, device="meta")
+    calls = {
+        "forward": lambda: model(TensorDict({"q": meta}, [])),
+        "observe": lambda: model.observe(TensorDict({"q": torch.zeros(2), "ee": meta}, [])),
+        "observe a meta TensorDict": lambda: model.observe(
+            TensorDict({"q": torch.zeros(2), "ee": meta}, []).to("meta")
+        ),
+        "predict": lambda: model.predict(meta),
+        "mask": lambda: model(TensorDict({"q": torch.zeros(2)}, []), mask=torch.ones(net.mask_dim, device="meta")),
+        "predict_particles": lambda: model.predict_particles(TensorDict({"q": meta}, [])),
+    }
+    for name, call in calls.items():
+        with pytest.raises(TypeError, match="meta device.*no values") as caught:
+            call()
+        assert "NotImplementedError" not in repr(caught.value), name
+    after = model.adaptation.filter.state_dict()
+    for key in ("particles", "log_weights", "log_evidence", "generator"):
+        assert torch.equal(state[key], after[key]), key
+
+    weights = {k: v.clone() for k, v in model.state_dict().items()}
+    for move in (lambda: model.to("meta"), lambda: model.to(device=torch.device("meta"))):
+        with pytest.raises(ValueError, match="meta device.*no values"):
+            move()
+    assert all(torch.equal(weights[k], v) for k, v in model.state_dict().items())  # weights kept
+    model.to(torch.float64)  # other moves still work
+    assert model.net.linears[0].weight.dtype == torch.float64
+    with pytest.raises(ValueError, match="meta device.*no values"):
+        smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)).to("meta"), in_keys=["q"], out_key="ee")
+
+
+def test_smcd_rl_save_writes_what_smcd_rl_load_reads(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(3 + 1, 3, hidden=(8,)), adaptation=_smcd(n=16))
+    model.fitted = True
+    smcd_rl.save(model, tmp_path / "m.pt")
+    loaded = smcd_rl.load(tmp_path / "m.pt")
+    assert type(loaded) is smcd_rl.AdaptiveDynamicsModel and loaded.adaptation.config() == model.adaptation.config()
+    assert all(
+        torch.equal(a, b) for a, b in zip(model.state_dict().values(), loaded.state_dict().values(), strict=True)
+    )
+    with pytest.raises(TypeError, match=r"smcd_rl.save takes an smcd_rl.AdaptiveModel.*torch.save\(net.state_dict"):
+        smcd_rl.save(model.net, tmp_path / "net.pt")
+    assert not (tmp_path / "net.pt").exists()
+
+
+def _foreign_files(directory) -> dict[str, tuple[object, str]]:
+    """Files a user may pass to smcd_rl.load by mistake: (path, what the error must say about it)."""
+    net = smcd_rl.MaskedMLP(2, 2, hidden=(8,))
+    files = {
+        "state_dict": (net.state_dict(), r"a bare state_dict.*net.load_state_dict\(torch.load\(path\)\).*smcd_rl.save"),
+        "network": (net, r"holds a MaskedMLP.*smcd_rl.save"),
+        "dict": ({"epoch": 3, "loss": 0.1}, r"a dict without a 'format' entry.*smcd_rl.save"),
+        "other format": ({"format": "someone.else/1", "x": 1}, r"a file of format 'someone.else/1'.*smcd_rl.save"),
+    }
+    paths = {}
+    for name, (obj, pattern) in files.items():
+        path = directory / f"{name.replace(' ', '_')}.pt"
+        torch.save(obj, path)
+        paths[name] = (path, pattern)
+    (directory / "notes.txt").write_text("not a torch file at all\n")
+    paths["text"] = (directory / "notes.txt", r"not a file torch.save wrote.*smcd_rl.save")
+    import numpy as np
+
+    np.savez(directory / "arrays.npz", x=np.zeros(3))
+    paths["npz"] = (directory / "arrays.npz", r"not a file torch.save wrote.*smcd_rl.save")
+    return paths
+
+
+def test_loading_a_file_that_is_not_a_model_checkpoint_says_so_and_how_to_load_it(tmp_path) -> None:
+    """A user's own torch.save(net.state_dict()) file used to get the advice for a damaged cache
+    file: "delete it and rerun the command that wrote it"."""
+    for name, (path, pattern) in _foreign_files(tmp_path).items():
+        with pytest.raises(ValueError) as caught:
+            smcd_rl.load(path)
+        message = str(caught.value)
+        assert str(path) in message and "is not an smcd-rl model checkpoint" in message, (name, message)
+        assert "delete" not in message and "corrupt" not in message, (name, message)
+        assert __import__("re").search(pattern, message), (name, message)
+    # A checkpoint of ours that is damaged keeps the advice for a damaged checkpoint.
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+    smcd_rl.save(model, tmp_path / "m.pt")
+    data = (tmp_path / "m.pt").read_bytes()
+    (tmp_path / "m.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(smcd_rl.UnreadableFileError, match="corrupt or truncated.*save the model again"):
+        smcd_rl.load(tmp_path / "m.pt")

@@ -98,6 +98,25 @@ def test_a_refused_transition_in_a_sequence_leaves_the_model_as_it_was() -> None
     assert torch.equal(model.mask, twin.mask)
 
 
+@pytest.mark.parametrize("target", [1e20, 1e25, 1e30])
+def test_a_float64_model_refuses_an_outlier_no_particle_can_explain_and_stays_finite(target: float) -> None:
+    """A float64 model's likelihood of a 1e20 target is finite (-1e41) but overflows the float32
+    weights: the update was accepted and left weights, mask, ESS and evidence NaN until reset."""
+    model = _model().to(torch.float64)
+    model.reset()
+    q, ee = _arm(4)
+    q, ee = q.double(), ee.double()
+    model.observe(TensorDict({"q": q[:2], "ee": ee[:2]}, [2]))
+    before = _state(model)
+    with pytest.raises(ValueError, match="impossible"):
+        model.observe(TensorDict({"q": q[2], "ee": torch.full((2,), target, dtype=torch.float64)}, []))
+    _assert_same_state(before, model)
+    model.observe(TensorDict({"q": q[2:], "ee": ee[2:]}, [2]))  # and it carries on
+    summary = model.summary()
+    assert torch.isfinite(summary["log_evidence"]).all() and torch.isfinite(summary["ess"]).all()
+    assert bool(torch.isfinite(model(TensorDict({"q": q}, [4]))["ee"]).all())
+
+
 # ---------------------------------------------------------------------------- checkpoints and epochs
 def _fit_data() -> TensorDict:
     q = torch.rand(128, 2, generator=torch.Generator().manual_seed(0)) * 2 - 1
@@ -243,7 +262,10 @@ def test_a_damaged_file_names_itself_and_the_fix(tmp_path: Path, kind: str, how:
         read(path)
     message = str(caught.value)
     assert str(path) in message and "\n" not in message, message
-    assert "delete" in message or "save the model again" in message, message
+    if kind == "model" and how == "not a dict":  # a list is no checkpoint of ours, damaged or not
+        assert "is not an smcd-rl model checkpoint: it holds a list" in message and "delete" not in message, message
+    else:
+        assert "delete" in message or "save the model again" in message, message
     assert isinstance(caught.value, smcd_rl.UnreadableFileError | smcd_rl.CheckpointMismatchError)
 
 
@@ -459,6 +481,35 @@ def test_gradient_descent_refuses_an_observation_that_makes_its_weights_non_fini
     assert all(torch.equal(before["params"][k], after["params"][k]) for k in before["params"])
     assert torch.equal(before["inputs"], after["inputs"]) and torch.equal(before["count"], after["count"])
     assert bool(torch.isfinite(model.predict(q)).all())
+
+
+@pytest.mark.parametrize(
+    ("lr", "target"),
+    [(0.01, 1e18), (1e3, None)],  # an outlier target; a learning rate far too large on ordinary input
+    ids=["outlier", "large lr"],
+)
+def test_gradient_descent_never_accepts_an_observation_that_makes_it_predict_inf(lr: float, target: Any) -> None:
+    """One step on a 1e18 target (or two with lr=1e3) kept the weights finite but made them
+    predict inf: the step was accepted, and the model predicted inf until the next observe refused."""
+    model = _model().with_adaptation(smcd_rl.GradientDescent(lr=lr, steps=1, window=4))
+    model.reset(batch_shape=(3,))
+    q, ee = _arm(6)
+    model.observe(TensorDict({"q": q[:3], "ee": ee[:3]}, [3]))
+    outlier = ee[3:] if target is None else torch.full((3, 2), target)
+    for _ in range(5):  # with lr=1e3 the predictions grow by 1e14 and more per step: inf within 5
+        before = model.adaptation.state_dict()
+        try:
+            model.observe(TensorDict({"q": q[3:], "ee": outlier}, [3]))
+        except ValueError as err:
+            assert "diverged on this observation" in str(err) and "unchanged" in str(err), err
+            after = model.adaptation.state_dict()
+            assert all(torch.equal(before["params"][k], after["params"][k]) for k in before["params"])
+            for key in ("inputs", "targets", "count"):
+                assert torch.equal(before[key], after[key]), key
+            assert bool(torch.isfinite(model.predict(q[3:])).all())
+            return
+        assert bool(torch.isfinite(model.predict(q[3:])).all()), "accepted an observation, then predicted inf"
+    raise AssertionError("gradient descent never refused the diverging observations")
 
 
 def test_declaring_a_model_fitted_keeps_the_normalisation_unfitted_and_survives_a_save(tmp_path: Path) -> None:
