@@ -57,7 +57,10 @@ Example:
 from __future__ import annotations
 
 import importlib
+import math
+import os
 from collections.abc import Callable
+from pathlib import Path
 from types import ModuleType
 from typing import Any, Literal
 
@@ -68,6 +71,7 @@ from tensordict import TensorDict
 from torch import Tensor
 
 from smcd_rl.adaptation import SMCD
+from smcd_rl.files import CheckpointMismatchError, load_file, save_file
 from smcd_rl.model import AdaptiveDynamicsModel
 from smcd_rl.training import fit_dynamics
 
@@ -191,14 +195,14 @@ class MbrlLibModel:
         ``None``: ``ModelEnv`` computes termination with its ``termination_fn``.
         """
         del deterministic  # no output noise: the propagation alone decides the masks
-        obs = model_state["obs"]
+        obs, fixed_masks = self._checked_state(model_state)
         action = self._tensor(act)
         if action.shape != (obs.shape[0], self.model.action_dim):
             raise ValueError(
                 f"sample needs actions [{obs.shape[0]}, {self.model.action_dim}], got {list(action.shape)}"
             )
         if self.propagation == "fixed_model":
-            masks: Tensor | None = model_state["masks"]
+            masks: Tensor | None = fixed_masks
         elif self.propagation == "random_model":
             masks = self._draw_masks(obs.shape[0], rng)
         else:
@@ -214,6 +218,41 @@ class MbrlLibModel:
                     )
                 reward = reward.reshape(-1, 1).to(torch.float32)
         return next_obs, reward, None, {**model_state, "obs": next_obs}
+
+    def _checked_state(self, model_state: Any) -> tuple[Tensor, Tensor | None]:
+        """The rows' observations and (``"fixed_model"``) masks, after checking the state is one :meth:`reset` made."""
+        fix = f"pass the state that this adapter's reset (propagation={self.propagation!r}) returned, as ModelEnv does"
+        expected = ["obs", "masks"] if self.propagation == "fixed_model" else ["obs"]
+        if not isinstance(model_state, dict) or any(key not in model_state for key in expected):
+            got = sorted(model_state) if isinstance(model_state, dict) else type(model_state).__name__
+            raise ValueError(
+                f"sample got a model state {got} that is not from this model's reset: it needs the keys {expected}; {fix}"
+            )
+        obs = model_state["obs"]
+        if not isinstance(obs, Tensor) or obs.dim() != 2 or obs.shape[-1] != self.model.observation_dim:
+            shape = list(obs.shape) if isinstance(obs, Tensor) else type(obs).__name__
+            raise ValueError(
+                f"the model state's obs must be a tensor [B, {self.model.observation_dim}], got {shape}: "
+                f"the state is not from this model's reset; {fix}"
+            )
+        if self.propagation != "fixed_model":
+            return obs, None
+        masks = model_state["masks"]
+        mask_dim = self.model.net.mask_dim
+        if not isinstance(masks, Tensor) or masks.shape != (obs.shape[0], mask_dim):
+            shape = list(masks.shape) if isinstance(masks, Tensor) else type(masks).__name__
+            raise ValueError(
+                f"the model state's masks must be a tensor [{obs.shape[0]}, {mask_dim}] (one mask per row of obs), "
+                f"got {shape}: the state is not from this model's reset; {fix}"
+            )
+        binary = (masks == 0) | (masks == 1)
+        if not bool(binary.all()):
+            bad = masks[~binary][0].item()
+            raise ValueError(
+                f"the model state's masks must hold only 0 and 1 (dropout masks drawn from the posterior), got {bad}; "
+                f"{fix}, or masks of 0s and 1s"
+            )
+        return obs, masks
 
     def _draw_masks(self, rows: int, rng: torch.Generator | None) -> Tensor:
         """``rows`` masks drawn from the posterior (particles with the filter's weights), as floats."""
@@ -289,13 +328,75 @@ def make_model_env(
 
     Raises:
         ImportError: mbrl-lib is not installed (the message names the install commands).
+        ValueError: the env's observation or action size is not the model's.
     """
     models = _mbrl("models")
     adapter = MbrlLibModel(model, propagation=propagation, reward_fn=reward_fn)
+    _check_spaces(env, model)
     generator = torch.Generator(device=adapter.device)
     if seed is not None:
         generator.manual_seed(int(seed))
     return models.ModelEnv(env, adapter, termination_for_mbrl(termination_fn), None, generator=generator)
+
+
+def _check_spaces(env: gymnasium.Env[Any, Any], model: AdaptiveDynamicsModel) -> None:
+    """Refuse an env whose flat Box observations or actions are not of the model's sizes."""
+    for what, space, size in (
+        ("observation", env.observation_space, model.observation_dim),
+        ("action", env.action_space, model.action_dim),
+    ):
+        shape = getattr(space, "shape", None)
+        if not isinstance(space, gymnasium.spaces.Box) or shape != (size,):
+            raise ValueError(
+                f"the env's {what} space is {space}, but the model's {what}s have size {size}: mbrl-lib's ModelEnv "
+                f"needs a flat Box of that size; build the model for this env ({what} size "
+                f"{shape[-1] if isinstance(space, gymnasium.spaces.Box) and shape else '?'}), or pass the env it was made for"
+            )
+
+
+def _check_int(name: str, value: Any, low: int, why: str = "") -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name} must be an int >= {low}, got {value!r}{why}")
+
+
+def _check_cem_settings(
+    *,
+    planning_horizon: int,
+    num_iterations: int,
+    population_size: int,
+    elite_ratio: float,
+    alpha: float,
+    num_particles: int,
+    replan_freq: int,
+) -> None:
+    """The CEM agent's settings, checked before mbrl-lib fails deep inside or plans nonsense with them."""
+    _check_int("planning_horizon", planning_horizon, 1)
+    _check_int("num_iterations", num_iterations, 1, " (with 0, mbrl-lib's CEM never samples and returns action 0)")
+    _check_int("population_size", population_size, 1)
+    _check_int("num_particles", num_particles, 1)
+    _check_int("replan_freq", replan_freq, 1)
+    if replan_freq > planning_horizon:
+        raise ValueError(
+            f"replan_freq must be in [1, planning_horizon={planning_horizon}] (a plan has only planning_horizon "
+            f"actions), got {replan_freq}"
+        )
+    for name, value, ok, valid in (
+        ("elite_ratio", elite_ratio, lambda v: 0 < v <= 1, "in (0, 1]"),
+        ("alpha", alpha, lambda v: 0 <= v < 1, "in [0, 1) (with 1 the CEM mean never moves from action 0)"),
+    ):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or not ok(value):
+            raise ValueError(f"{name} must be {valid}, got {value!r}")
+    elites = math.ceil(population_size * elite_ratio)  # as mbrl-lib's CEMOptimizer counts them
+    if num_iterations > 1 and elites < 2:
+        least_population = math.floor(1 / elite_ratio) + 1
+        while math.ceil(least_population * elite_ratio) < 2:  # float rounding of 1 / elite_ratio
+            least_population += 1
+        raise ValueError(
+            f"population_size={population_size} with elite_ratio={elite_ratio} keeps {elites} elite, but CEM with "
+            f"num_iterations={num_iterations} needs at least 2 (the variance of one elite is NaN, and so are the "
+            f"actions): use population_size >= {least_population}, elite_ratio > {1 / population_size:.3g}, "
+            "or num_iterations=1"
+        )
 
 
 def make_cem_agent(
@@ -319,13 +420,14 @@ def make_cem_agent(
 
     Args:
         model_env: an ``mbrl.models.ModelEnv`` (e.g. from :func:`make_model_env`).
-        planning_horizon: steps of each action sequence.
-        num_iterations: CEM iterations per plan.
-        population_size: candidates per iteration.
-        elite_ratio: fraction of candidates kept as elites.
-        alpha: momentum of the CEM mean and variance.
-        num_particles: rows per candidate (masks with ``"fixed_model"`` / ``"random_model"``).
-        replan_freq: plan every ``replan_freq`` steps.
+        planning_horizon: steps of each action sequence, >= 1.
+        num_iterations: CEM iterations per plan, >= 1.
+        population_size: candidates per iteration, >= 1.
+        elite_ratio: fraction of candidates kept as elites, in (0, 1]; with ``num_iterations > 1``
+            the ``ceil(population_size * elite_ratio)`` elites must be at least 2.
+        alpha: momentum of the CEM mean and variance, in [0, 1).
+        num_particles: rows per candidate (masks with ``"fixed_model"`` / ``"random_model"``), >= 1.
+        replan_freq: plan every ``replan_freq`` steps, in [1, planning_horizon].
         clipped_normal: clipped instead of truncated normal samples.
 
     Returns:
@@ -334,7 +436,17 @@ def make_cem_agent(
 
     Raises:
         ImportError: mbrl-lib is not installed.
+        ValueError: a setting is out of its range (the message names it and the range).
     """
+    _check_cem_settings(
+        planning_horizon=planning_horizon,
+        num_iterations=num_iterations,
+        population_size=population_size,
+        elite_ratio=elite_ratio,
+        alpha=alpha,
+        num_particles=num_particles,
+        replan_freq=replan_freq,
+    )
     planning = _mbrl("planning")
     omegaconf = importlib.import_module("omegaconf")
     action_space = model_env.action_space
@@ -401,6 +513,11 @@ def replay_buffer_to_tensordict(buffer: Any) -> TensorDict:
     )
 
 
+#: The ``"format"`` entry of :func:`pets_loop` checkpoints.
+_PETS_FORMAT = "smcd_rl/pets_loop/1"
+_BUFFER_FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated")
+
+
 def pets_loop(
     env: gymnasium.Env[Any, Any],
     model: AdaptiveDynamicsModel,
@@ -422,6 +539,7 @@ def pets_loop(
     num_particles: int = 20,
     seed: int = 0,
     on_episode: Callable[[int, float, int], None] | None = None,
+    checkpoint: str | os.PathLike[str] | None = None,
 ) -> list[float]:
     """PETS (mbrl-lib's ``mbrl.algorithms.pets.train`` loop) with an adaptive model that adapts on every step.
 
@@ -434,51 +552,70 @@ def pets_loop(
        the real transition goes into the buffer and into ``model.observe``. Each episode starts
        with ``model.reset()`` and ``agent.reset()``.
 
+    With ``checkpoint``, the run is saved after the random transitions and after every planned
+    episode (the model, its filter, the buffer, every random generator, the returns), and a later
+    call with the same path and settings resumes after the last saved episode: its result (returns,
+    model, filter) is bit for bit that of an uninterrupted run. An interruption loses at most the
+    episode that was running. A call with other settings raises
+    :class:`smcd_rl.CheckpointMismatchError` naming them; a finished run's checkpoint returns its
+    results at once.
+
     Args:
         env: the real gymnasium env (flat Box spaces of the model's sizes); it is not closed.
         model: the dynamics model, trained in place (an unfitted one is fine: it is fitted first).
         reward_fn: batched torch reward of the planner, ``(obs, action, next_obs) -> [B]``.
         termination_fn: batched torch termination of the planner, ``next_obs -> bool [B]``.
-        num_steps: real steps planned by the agent (after the random ones).
-        initial_steps: random exploration steps first.
-        freq_train_model: fit every this many planned steps (the first before step 0).
-        fit_epochs: epochs of each fit.
-        fit_batch_size: batch size of each fit.
-        lr: Adam learning rate of each fit.
+        num_steps: real steps planned by the agent (after the random ones), >= 1.
+        initial_steps: random exploration steps first, >= 1.
+        freq_train_model: fit every this many planned steps (the first before step 0), >= 1.
+        fit_epochs: epochs of each fit, >= 1.
+        fit_batch_size: batch size of each fit, >= 1.
+        lr: Adam learning rate of each fit, > 0.
         propagation: see :class:`MbrlLibModel`.
-        planning_horizon: CEM horizon.
+        planning_horizon: CEM horizon (the CEM settings' ranges are those of :func:`make_cem_agent`).
         num_iterations: CEM iterations per action.
         population_size: CEM candidates per iteration.
         elite_ratio: CEM elite fraction.
         alpha: CEM momentum.
         num_particles: rows per candidate.
-        seed: seeds torch, numpy's buffer generator, the env, its action space and the planner.
+        seed: seeds torch, numpy's buffer generator, the env, its action space and the planner; >= 0.
         on_episode: called as ``on_episode(env_steps, episode_return, episode_length)`` after
-            each planned episode (also the last, unfinished one, cut at ``num_steps``).
+            each planned episode (also the last, unfinished one, cut at ``num_steps``). A resumed
+            run first calls it for each episode the checkpoint holds, in order, so a log started
+            afresh is complete.
+        checkpoint: file to save the run to and to resume it from (``None``: no checkpoint).
 
     Returns:
         The real return of each planned episode, the last one possibly cut short.
 
     Raises:
-        ValueError: a step count is not a positive int.
+        ValueError: a setting is out of its range, or the env's sizes are not the model's; raised
+            before any step.
+        smcd_rl.CheckpointMismatchError: ``checkpoint`` was written with other settings.
         ImportError: mbrl-lib is not installed.
     """
     for name, value in (
         ("num_steps", num_steps),
         ("initial_steps", initial_steps),
         ("freq_train_model", freq_train_model),
+        ("fit_epochs", fit_epochs),
+        ("fit_batch_size", fit_batch_size),
     ):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be a positive int, got {value!r}")
+        _check_int(name, value, 1)
+    _check_int("seed", seed, 0, " (numpy and gymnasium take only non-negative seeds)")
+    if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not math.isfinite(lr) or lr <= 0:
+        raise ValueError(f"lr must be a finite number > 0, got {lr!r}")
+    _check_cem_settings(
+        planning_horizon=planning_horizon,
+        num_iterations=num_iterations,
+        population_size=population_size,
+        elite_ratio=elite_ratio,
+        alpha=alpha,
+        num_particles=num_particles,
+        replan_freq=1,
+    )
     planning, util_common, util = _mbrl("planning"), _mbrl("util.common"), _mbrl("util")
-    torch.manual_seed(seed)
-    obs_shape, act_shape = env.observation_space.shape, env.action_space.shape
-    assert obs_shape is not None and act_shape is not None
-    buffer = util.ReplayBuffer(initial_steps + num_steps, obs_shape, act_shape, rng=np.random.default_rng(seed))
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
-    util_common.rollout_agent_trajectories(env, initial_steps, planning.RandomAgent(env), {}, replay_buffer=buffer)
-
+    # Both check the env's sizes and the propagation before any step; neither draws a random number.
     model_env = make_model_env(env, model, reward_fn, termination_fn, propagation=propagation, seed=seed)
     agent = make_cem_agent(
         model_env,
@@ -489,6 +626,29 @@ def pets_loop(
         alpha=alpha,
         num_particles=num_particles,
     )
+    settings = {
+        "env": None if env.spec is None else env.spec.id,
+        "num_steps": num_steps,
+        "initial_steps": initial_steps,
+        "freq_train_model": freq_train_model,
+        "fit_epochs": fit_epochs,
+        "fit_batch_size": fit_batch_size,
+        "lr": lr,
+        "propagation": propagation,
+        "planning_horizon": planning_horizon,
+        "num_iterations": num_iterations,
+        "population_size": population_size,
+        "elite_ratio": elite_ratio,
+        "alpha": alpha,
+        "num_particles": num_particles,
+        "seed": seed,
+        "net": model.net.config,
+        "adaptation": {"name": model.adaptation.name, **model.adaptation.config()},
+    }
+    torch.manual_seed(seed)
+    obs_shape, act_shape = env.observation_space.shape, env.action_space.shape
+    assert obs_shape is not None and act_shape is not None
+    buffer = util.ReplayBuffer(initial_steps + num_steps, obs_shape, act_shape, rng=np.random.default_rng(seed))
     param = next(model.net.parameters())
     obs_key, action_key, next_key = model.in_keys[0], model.in_keys[1], model.out_key
 
@@ -499,8 +659,78 @@ def pets_loop(
         o, a, n = (torch.stack(column) for column in zip(*rows, strict=True))
         return TensorDict({obs_key: o, action_key: a, next_key: n}, [len(rows)])
 
-    returns: list[float] = []
+    episodes: list[tuple[int, float, int]] = []  # (env_steps, return, length) of each planned episode
     env_steps, fits = 0, 0
+    path = Path(checkpoint) if checkpoint is not None else None
+
+    def save() -> None:
+        assert path is not None
+        try:
+            adaptation = model.adaptation.state_dict() if model.batch_shape == () else None
+        except RuntimeError:  # never reset yet (before the first fit): nothing adapted to keep
+            adaptation = None
+        n = buffer.num_stored
+        state = {
+            "format": _PETS_FORMAT,
+            "settings": settings,
+            "env_steps": env_steps,
+            "fits": fits,
+            "episodes": episodes,
+            "model": model.checkpoint(),
+            "adaptation": adaptation,
+            "buffer": {name: getattr(buffer, name)[:n].copy() for name in _BUFFER_FIELDS},
+            "buffer_rng": buffer._rng,
+            # At an episode's end the env's next reset draws from its generator alone (mbrl-lib's
+            # RandomAgent, the only user of the action space's generator, is done by then).
+            "env_rng": env.np_random,
+            "planner_rng": model_env._rng.get_state(),  # ModelEnv's generator (mbrl-lib 0.2.0 keeps it as _rng)
+            "torch_rng": torch.get_rng_state(),  # mbrl-lib's CEM samples from torch's global generator
+            "cuda_rng": torch.cuda.get_rng_state(param.device) if param.device.type == "cuda" else None,
+        }
+        save_file(state, path, what="pets_loop checkpoint")
+
+    if path is not None and path.is_file():
+        state = load_file(
+            path,
+            what="pets_loop checkpoint",
+            expect_format=_PETS_FORMAT,
+            expect_keys=("settings", "env_steps", "fits", "episodes", "model", "buffer", "env_rng", "torch_rng"),
+            fix="delete it to start afresh, or pass another checkpoint path",
+        )
+        if state["settings"] != settings:
+            differ = [
+                f"{key}={state['settings'].get(key)!r} (this call: {settings.get(key)!r})"
+                for key in sorted(set(settings) | set(state["settings"]))
+                if state["settings"].get(key) != settings.get(key)
+            ]
+            raise CheckpointMismatchError(
+                f"{path} was written by a run with other settings: {', '.join(differ)}; pass the same settings "
+                "to resume it, or delete it or pass another checkpoint path to start afresh"
+            )
+        env_steps, fits, episodes = int(state["env_steps"]), int(state["fits"]), list(state["episodes"])
+        model.load_checkpoint(state["model"])
+        if state["adaptation"] is not None:
+            model.reset()
+            model.adaptation.load_state_dict(state["adaptation"])
+        n = len(state["buffer"]["obs"])
+        for name in _BUFFER_FIELDS:
+            getattr(buffer, name)[:n] = state["buffer"][name]
+        buffer.num_stored, buffer.cur_idx, buffer._rng = n, n % buffer.capacity, state["buffer_rng"]
+        env.np_random = state["env_rng"]
+        model_env._rng.set_state(state["planner_rng"])
+        torch.set_rng_state(state["torch_rng"])
+        if state.get("cuda_rng") is not None:
+            torch.cuda.set_rng_state(state["cuda_rng"], param.device)
+        if on_episode is not None:
+            for row in episodes:
+                on_episode(*row)
+    else:
+        env.reset(seed=seed)
+        env.action_space.seed(seed)
+        util_common.rollout_agent_trajectories(env, initial_steps, planning.RandomAgent(env), {}, replay_buffer=buffer)
+        if path is not None:
+            save()
+
     while env_steps < num_steps:
         obs, _ = env.reset()
         agent.reset()
@@ -525,7 +755,9 @@ def pets_loop(
             model.observe(transitions(episode[-1:])[0])
             obs, total, done = next_obs, total + float(reward), bool(terminated or truncated)
             env_steps += 1
-        returns.append(total)
+        episodes.append((env_steps, total, len(episode)))
+        if path is not None:
+            save()
         if on_episode is not None:
-            on_episode(env_steps, total, len(episode))
-    return returns
+            on_episode(*episodes[-1])
+    return [total for _, total, _ in episodes]

@@ -245,3 +245,186 @@ def test_no_installed_package_shadows_the_projects_tests() -> None:
     spec = importlib.util.find_spec("tests")
     root = Path(__file__).resolve().parents[1]
     assert spec is not None and [Path(p).resolve() for p in spec.submodule_search_locations] == [root]
+
+
+# ---------------------------------------------------------------- bad input, refused before any work
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ({"planning_horizon": 0}, r"planning_horizon must be an int >= 1, got 0"),
+        ({"num_iterations": 0}, r"num_iterations must be an int >= 1, got 0 \(with 0, mbrl-lib's CEM never samples"),
+        ({"population_size": 0}, r"population_size must be an int >= 1, got 0"),
+        ({"num_particles": 0}, r"num_particles must be an int >= 1, got 0"),
+        ({"replan_freq": 0}, r"replan_freq must be an int >= 1, got 0"),
+        ({"replan_freq": 16}, r"replan_freq must be in \[1, planning_horizon=15\]"),
+        ({"planning_horizon": 2.5}, r"planning_horizon must be an int >= 1, got 2.5"),
+        ({"num_particles": True}, r"num_particles must be an int >= 1, got True"),
+        ({"elite_ratio": 0}, r"elite_ratio must be in \(0, 1\], got 0"),
+        ({"elite_ratio": 2.0}, r"elite_ratio must be in \(0, 1\], got 2.0"),
+        ({"elite_ratio": float("nan")}, r"elite_ratio must be in \(0, 1\], got nan"),
+        ({"alpha": -1.0}, r"alpha must be in \[0, 1\) \(with 1 the CEM mean never moves from action 0\), got -1.0"),
+        ({"alpha": 1.0}, r"alpha must be in \[0, 1\)"),
+        (
+            {"population_size": 10, "elite_ratio": 0.1},
+            r"keeps 1 elite, but CEM with num_iterations=5 needs at least 2 .*population_size >= 11, elite_ratio > 0.1,"
+            r" or num_iterations=1",
+        ),
+    ],
+)
+def test_make_cem_agent_refuses_settings_out_of_range(setting: dict[str, float], message: str) -> None:
+    """Before: mbrl-lib failed deep inside (horizon 0, elite_ratio 2, ...) or planned NaN or action 0."""
+    with pytest.raises(ValueError, match=message):
+        make_cem_agent(object(), **setting)  # refused before the model env is looked at
+
+
+def test_make_cem_agent_accepts_one_elite_with_one_iteration() -> None:
+    from smcd_rl.integrations.mbrl_lib import _check_cem_settings
+
+    _check_cem_settings(
+        planning_horizon=1,
+        num_iterations=1,
+        population_size=1,
+        elite_ratio=1.0,
+        alpha=0.0,
+        num_particles=1,
+        replan_freq=1,
+    )
+
+
+class CountingEnv(gymnasium.Wrapper):
+    """Counts resets and steps; raises KeyboardInterrupt at step ``stop_at`` (an interrupted run)."""
+
+    def __init__(self, env: gymnasium.Env, stop_at: int | None = None) -> None:
+        super().__init__(env)
+        self.resets, self.steps, self.stop_at = 0, 0, stop_at
+
+    def reset(self, **kwargs):  # type: ignore[no-untyped-def]
+        self.resets += 1
+        return self.env.reset(**kwargs)
+
+    def step(self, action):  # type: ignore[no-untyped-def]
+        if self.steps == self.stop_at:
+            raise KeyboardInterrupt
+        self.steps += 1
+        return self.env.step(action)
+
+
+def pets_model() -> smcd_rl.AdaptiveDynamicsModel:
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(4 + 1, 4, hidden=(32,), dropout=0.1)
+    smcd = smcd_rl.SMCD(num_particles=10, noise_std=0.05, flip_prob=0.001, generator=torch.Generator().manual_seed(0))
+    return smcd_rl.AdaptiveDynamicsModel(net, smcd)
+
+
+TINY_PETS = {"num_steps": 30, "initial_steps": 100, "freq_train_model": 10, "fit_epochs": 2, "planning_horizon": 3,
+             "num_iterations": 2, "population_size": 16, "num_particles": 2}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ({"planning_horizon": 0}, r"planning_horizon must be an int >= 1, got 0"),
+        ({"elite_ratio": 2.0}, r"elite_ratio must be in \(0, 1\], got 2.0"),
+        ({"population_size": 0}, r"population_size must be an int >= 1"),
+        ({"num_particles": 0}, r"num_particles must be an int >= 1"),
+        ({"num_iterations": 0}, r"num_iterations must be an int >= 1"),
+        ({"alpha": -1.0}, r"alpha must be in \[0, 1\)"),
+        ({"num_steps": 0}, r"num_steps must be an int >= 1, got 0"),
+        ({"fit_epochs": 0}, r"fit_epochs must be an int >= 1, got 0"),
+        ({"fit_batch_size": 0}, r"fit_batch_size must be an int >= 1, got 0"),
+        ({"lr": 0.0}, r"lr must be a finite number > 0, got 0.0"),
+        ({"seed": -1}, r"seed must be an int >= 0, got -1"),
+    ],
+)
+def test_pets_loop_refuses_bad_settings_before_any_step(setting: dict[str, float], message: str) -> None:
+    """Before: the CEM settings failed only after the random rollouts and the first fit."""
+    env = CountingEnv(gymnasium.make("InvertedPendulum-v5"))
+    with pytest.raises(ValueError, match=message):
+        pets_loop(env, pets_model(), pendulum_reward, pendulum_termination, **{**TINY_PETS, **setting})
+    assert env.resets == env.steps == 0
+
+
+@needs_mbrl
+def test_model_env_refuses_an_env_of_other_sizes_before_any_step() -> None:
+    """Before: a 4-observation model was accepted for Pendulum's 3 observations."""
+    env = CountingEnv(gymnasium.make("Pendulum-v1"))
+    with pytest.raises(ValueError, match=r"observation space is Box.*\(3,\).*observations have size 4.*size 3"):
+        make_model_env(env, pets_model(), pendulum_reward)
+    with pytest.raises(ValueError, match=r"observations have size 4"):
+        pets_loop(env, pets_model(), pendulum_reward, **TINY_PETS)
+    assert env.resets == env.steps == 0
+    wide = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(3 + 2, 3, hidden=(8,)), smcd_rl.SMCD(num_particles=4))
+    with pytest.raises(ValueError, match=r"action space is Box.*actions have size 2.*action size 1"):
+        make_model_env(env, wide, pendulum_reward)
+
+
+def test_sample_refuses_a_state_it_did_not_make() -> None:
+    """Before: a bare ``KeyError: 'masks'``, and masks of any values were used as they were."""
+    model = toy_model()
+    fixed = MbrlLibModel(model, propagation="fixed_model")
+    action = torch.zeros(4, 1)
+    foreign = MbrlLibModel(model, propagation="expectation").reset(np.zeros((4, 3), dtype=np.float32))
+    with pytest.raises(ValueError, match=r"not from this model's reset: it needs the keys \['obs', 'masks'\]"):
+        fixed.sample(action, foreign)
+    with pytest.raises(ValueError, match=r"not from this model's reset"):
+        fixed.sample(action, {"obs": torch.zeros(4, 3), "masks": torch.ones(4, 5)})
+    state = fixed.reset(np.zeros((4, 3), dtype=np.float32), rng=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"masks must hold only 0 and 1 .*got 0.5"):
+        fixed.sample(action, {**state, "masks": torch.full_like(state["masks"], 0.5)})
+    with pytest.raises(ValueError, match=r"obs must be a tensor \[B, 3\], got \[4, 2\]"):
+        MbrlLibModel(model, propagation="expectation").sample(action, {"obs": torch.zeros(4, 2)})
+    fixed.sample(action, state)  # its own state is fine
+
+
+# ---------------------------------------------------------------- resuming a PETS run
+def run_pets(
+    checkpoint: object, stop_at: int | None = None
+) -> tuple[list[float], list[tuple], smcd_rl.AdaptiveDynamicsModel, CountingEnv]:
+    env = CountingEnv(gymnasium.make("InvertedPendulum-v5"), stop_at=stop_at)
+    model, episodes = pets_model(), []
+    returns = pets_loop(
+        env,
+        model,
+        pendulum_reward,
+        pendulum_termination,
+        **TINY_PETS,
+        on_episode=lambda *row: episodes.append(row),
+        checkpoint=checkpoint,  # type: ignore[arg-type]
+    )
+    return returns, episodes, model, env
+
+
+@needs_mbrl
+def test_pets_loop_resumes_an_interrupted_run_bit_for_bit(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Killed mid-episode, then rerun: it resumes after the last finished episode, not from the start.
+
+    Before: ``pets_loop`` had no checkpoint, so an interrupted run started over.
+    """
+    returns, episodes, model, _ = run_pets(None)
+    path = tmp_path / "pets.pt"
+    with pytest.raises(KeyboardInterrupt):
+        run_pets(path, stop_at=100 + 17)  # the 100 random steps, then 17 planned ones
+    resumed, resumed_episodes, resumed_model, env = run_pets(path)
+    assert env.steps < 30 - 5  # neither the random steps nor the finished episodes were run again
+    assert resumed == returns and resumed_episodes == episodes and episodes[-1][0] == 30
+    for key, value in model.state_dict().items():
+        assert torch.equal(value, resumed_model.state_dict()[key]), key
+    for key, value in model.adaptation.state_dict().items():
+        other = resumed_model.adaptation.state_dict()[key]
+        assert value is other is None or torch.equal(value, other), key
+    # A finished run's checkpoint gives its results at once.
+    again, again_episodes, _, env = run_pets(path)
+    assert again == returns and again_episodes == episodes and env.steps == 0
+
+
+@needs_mbrl
+def test_pets_loop_refuses_a_checkpoint_of_other_settings(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "pets.pt"
+    with pytest.raises(KeyboardInterrupt):
+        run_pets(path, stop_at=100)
+    env = CountingEnv(gymnasium.make("InvertedPendulum-v5"))
+    with pytest.raises(
+        smcd_rl.CheckpointMismatchError, match=r"other settings: lr=0.001 \(this call: 0.01\).*another checkpoint path"
+    ):
+        pets_loop(env, pets_model(), pendulum_reward, pendulum_termination, **TINY_PETS, lr=0.01, checkpoint=path)
+    assert env.steps == 0
