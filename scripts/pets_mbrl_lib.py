@@ -7,6 +7,11 @@ transitions first, then step by step: fit every ``freq_train_model`` steps, plan
 the real transition. Writes ``<out>/<run>/results.csv`` (mbrl-lib's logger: env step, episode
 return), ``model.pt`` and ``summary.json``.
 
+Resuming: the run is saved to ``<out>/<run>/checkpoint.pt`` after the random steps and after
+every planned episode (``pets_loop(..., checkpoint=...)``); rerun the same command and it goes on
+after the last saved episode, refusing a checkpoint that other options wrote. The result is bit
+for bit that of an uninterrupted run; an interruption loses at most the episode that was running.
+
 Needs mbrl-lib: ``bash scripts/install_mbrl_lib.sh``. Copy this file and edit it; run
 ``python scripts/pets_mbrl_lib.py --help`` for the settings, ``--tiny`` for a smoke run.
 """
@@ -16,6 +21,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,27 +38,38 @@ from smcd_rl.integrations.mbrl_lib import pets_loop
 
 @dataclass
 class Config:
+    # "valid": the range an option must lie in, "[low, high]" with ( ) for open ends.
     env_id: str = field(default="InvertedPendulum-v5", metadata={"help": "gymnasium id (a key of TASKS below)"})
-    seed: int = field(default=0, metadata={"help": "seeds torch, numpy, the env and the planner"})
-    num_steps: int = field(default=3000, metadata={"help": "real steps planned by the agent"})
-    initial_steps: int = field(default=1000, metadata={"help": "random exploration steps first"})
-    freq_train_model: int = field(default=500, metadata={"help": "fit the model every this many steps"})
-    fit_epochs: int = field(default=20, metadata={"help": "epochs of each fit"})
-    lr: float = field(default=1e-3, metadata={"help": "Adam learning rate"})
-    hidden: int = field(default=128, metadata={"help": "units of each of the two hidden layers"})
-    dropout: float = field(default=0.1, metadata={"help": "dropout probability of training and of the masks"})
-    filter_particles: int = field(default=50, metadata={"help": "SMCD mask particles"})
-    noise_std: float = field(default=0.05, metadata={"help": "SMCD likelihood noise"})
-    flip_prob: float = field(default=0.001, metadata={"help": "SMCD per-bit flip probability per step"})
+    seed: int = field(default=0, metadata={"help": "seeds torch, numpy, the env and the planner", "valid": "[0, inf)"})
+    num_steps: int = field(default=3000, metadata={"help": "real steps planned by the agent", "valid": "[1, inf)"})
+    initial_steps: int = field(default=1000, metadata={"help": "random exploration steps first", "valid": "[1, inf)"})
+    freq_train_model: int = field(
+        default=500, metadata={"help": "fit the model every this many steps", "valid": "[1, inf)"}
+    )
+    fit_epochs: int = field(default=20, metadata={"help": "epochs of each fit", "valid": "[1, inf)"})
+    lr: float = field(default=1e-3, metadata={"help": "Adam learning rate", "valid": "(0, inf)"})
+    hidden: int = field(default=128, metadata={"help": "units of each of the two hidden layers", "valid": "[1, inf)"})
+    dropout: float = field(
+        default=0.1, metadata={"help": "dropout probability of training and of the masks", "valid": "(0, 1)"}
+    )
+    filter_particles: int = field(default=50, metadata={"help": "SMCD mask particles", "valid": "[1, inf)"})
+    noise_std: float = field(default=0.05, metadata={"help": "SMCD likelihood noise", "valid": "(0, inf)"})
+    flip_prob: float = field(
+        default=0.001, metadata={"help": "SMCD per-bit flip probability per step", "valid": "[0, 1]"}
+    )
     propagation: str = field(default="fixed_model", metadata={"help": "fixed_model, random_model or expectation"})
-    planning_horizon: int = field(default=15, metadata={"help": "CEM horizon"})
-    cem_iterations: int = field(default=5, metadata={"help": "CEM iterations per action"})
-    population_size: int = field(default=200, metadata={"help": "CEM candidates per iteration"})
-    elite_ratio: float = field(default=0.1, metadata={"help": "CEM elite fraction"})
-    alpha: float = field(default=0.1, metadata={"help": "CEM momentum"})
-    num_particles: int = field(default=5, metadata={"help": "posterior masks per candidate (TS-infinity rows)"})
-    random_episodes: int = field(default=20, metadata={"help": "episodes of random actions, the baseline"})
-    threads: int = field(default=1, metadata={"help": "torch threads"})
+    planning_horizon: int = field(default=15, metadata={"help": "CEM horizon", "valid": "[1, inf)"})
+    cem_iterations: int = field(default=5, metadata={"help": "CEM iterations per action", "valid": "[1, inf)"})
+    population_size: int = field(default=200, metadata={"help": "CEM candidates per iteration", "valid": "[1, inf)"})
+    elite_ratio: float = field(default=0.1, metadata={"help": "CEM elite fraction", "valid": "(0, 1]"})
+    alpha: float = field(default=0.1, metadata={"help": "CEM momentum", "valid": "[0, 1)"})
+    num_particles: int = field(
+        default=5, metadata={"help": "posterior masks per candidate (TS-infinity rows)", "valid": "[1, inf)"}
+    )
+    random_episodes: int = field(
+        default=20, metadata={"help": "episodes of random actions, the baseline", "valid": "[1, inf)"}
+    )
+    threads: int = field(default=1, metadata={"help": "torch threads", "valid": "[1, inf)"})
     out: str = field(default="runs", metadata={"help": "output directory"})
     tiny: bool = field(default=False, metadata={"help": "a smoke run of seconds (overrides the sizes)"})
 
@@ -74,7 +92,30 @@ def inverted_pendulum_termination(next_obs: Tensor) -> Tensor:
 TASKS = {"InvertedPendulum-v5": (inverted_pendulum_reward, inverted_pendulum_termination)}
 
 
+CHOICES = {"env_id": sorted(TASKS), "propagation": ["fixed_model", "random_model", "expectation"]}
+#: Options a run may be resumed with other values of: where it is, and speed alone.
+RESUMABLE_WITH_OTHER = ("out", "threads")
+
+
+def within(value: float, interval: str) -> bool:
+    """Whether ``value`` lies in ``interval``, written ``"[1, inf)"`` or ``"(0, 1]"``; NaN never does."""
+    low, high = (float(end) for end in interval[1:-1].split(","))
+    above = low < value if interval[0] == "(" else low <= value
+    below = value < high if interval[-1] == ")" else value <= high
+    return above and below
+
+
+def describe(interval: str) -> str:
+    low, high = interval[1:-1].split(", ")
+    return f"{'>' if interval[0] == '(' else '>='} {low}" if high == "inf" else f"in {interval}"
+
+
+def run_dir(config: Config) -> Path:
+    return Path(config.out) / f"pets_{config.env_id.replace('/', '_')}_seed{config.seed}"
+
+
 def parse_args() -> Config:
+    """The options, checked (ranges, and a checkpoint's options when resuming) before any work: usage and exit 2 if not."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     for f in dataclasses.fields(Config):
         flag = "--" + f.name.replace("_", "-")
@@ -82,9 +123,48 @@ def parse_args() -> Config:
             parser.add_argument(flag, action="store_true", help=f.metadata["help"])
         else:
             kind = {"int": int, "float": float, "str": str}[str(f.type)]
-            parser.add_argument(flag, type=kind, default=f.default, help=f"{f.metadata['help']} (default: {f.default})")
+            valid = f"; {describe(f.metadata['valid'])}" if "valid" in f.metadata else ""
+            parser.add_argument(
+                flag, type=kind, default=f.default, choices=CHOICES.get(f.name),
+                help=f"{f.metadata['help']} (default: {f.default}{valid})",
+            )  # fmt: skip
     config = Config(**vars(parser.parse_args()))
-    return dataclasses.replace(config, **TINY) if config.tiny else config
+    config = dataclasses.replace(config, **TINY) if config.tiny else config
+    for f in dataclasses.fields(Config):
+        value = getattr(config, f.name)
+        if "valid" in f.metadata and not within(value, f.metadata["valid"]):
+            parser.error(f"argument --{f.name.replace('_', '-')}: must be {describe(f.metadata['valid'])}, got {value}")
+    elites = math.ceil(config.population_size * config.elite_ratio)
+    if config.cem_iterations > 1 and elites < 2:  # one elite has no variance: CEM's next iteration plans NaN
+        parser.error(
+            f"argument --elite-ratio: --population-size {config.population_size} x --elite-ratio {config.elite_ratio} "
+            f"keeps {elites} elite, but CEM with --cem-iterations {config.cem_iterations} needs at least 2; "
+            "raise either, or pass --cem-iterations 1"
+        )
+    check_resume(parser, config)
+    return config
+
+
+def check_resume(parser: argparse.ArgumentParser, config: Config) -> None:
+    """Refuse to resume a checkpoint that a run with other options wrote."""
+    run = run_dir(config)
+    if not (run / "checkpoint.pt").is_file():
+        return
+    fix = f"use another --out, or delete {run / 'checkpoint.pt'} to start afresh"
+    if not (run / "options.json").is_file():
+        parser.error(f"{run} holds a checkpoint but no options.json saying which options wrote it; {fix}")
+    saved = json.loads((run / "options.json").read_text())
+    now = {k: v for k, v in dataclasses.asdict(config).items() if k not in RESUMABLE_WITH_OTHER}
+    differ = [
+        f"--{k.replace('_', '-')} {saved.get(k)} (now {now.get(k)})"
+        for k in sorted(set(saved) | set(now))
+        if saved.get(k) != now.get(k)
+    ]
+    if differ:
+        parser.error(
+            f"{run} holds a checkpoint of a run with other options: {', '.join(differ)}; rerun with those to "
+            f"resume it, or {fix}"
+        )
 
 
 def random_returns(env: gymnasium.Env, episodes: int, seed: int) -> list[float]:
@@ -105,8 +185,13 @@ def main() -> None:
     import mbrl.constants  # after --help: mbrl-lib takes a second to import
     import mbrl.util
 
-    run = Path(config.out) / f"pets_{config.env_id.replace('/', '_')}_seed{config.seed}"
+    run = run_dir(config)
     run.mkdir(parents=True, exist_ok=True)
+    resuming = (run / "checkpoint.pt").is_file()
+    options = {k: v for k, v in dataclasses.asdict(config).items() if k not in RESUMABLE_WITH_OTHER}
+    (run / "options.json").write_text(json.dumps(options, indent=2) + "\n")
+    if resuming:
+        print(f"resuming {run} from its checkpoint", flush=True)
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     start = time.perf_counter()
@@ -123,7 +208,7 @@ def main() -> None:
     )
     model = smcd_rl.AdaptiveDynamicsModel(net, smcd)
 
-    logger = mbrl.util.Logger(run)
+    logger = mbrl.util.Logger(run)  # rewrites results.csv: a resumed pets_loop logs the saved episodes again
     logger.register_group(mbrl.constants.RESULTS_LOG_NAME, mbrl.constants.EVAL_LOG_FORMAT, color="green")
 
     def log_episode(env_step: int, episode_return: float, length: int) -> None:
@@ -148,6 +233,7 @@ def main() -> None:
         num_particles=config.num_particles,
         seed=config.seed,
         on_episode=log_episode,
+        checkpoint=run / "checkpoint.pt",
     )
     seconds = time.perf_counter() - start
     baseline = random_returns(env, config.random_episodes, config.seed)
@@ -158,8 +244,9 @@ def main() -> None:
         "best_return": max(returns),
         "mean_return": float(np.mean(returns)),
         "random_mean_return": float(np.mean(baseline)),
-        "seconds": round(seconds, 1),
-        "ms_per_step": round(1000 * seconds / config.num_steps, 1),
+        "resumed": resuming,
+        "seconds": round(seconds, 1),  # of this session alone when resumed
+        "ms_per_step": None if resuming else round(1000 * seconds / config.num_steps, 1),
     }
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(
@@ -169,4 +256,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:
+        print("interrupted; run the same command again to resume from the last checkpoint", file=sys.stderr)
+        sys.exit(130)

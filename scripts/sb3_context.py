@@ -10,6 +10,12 @@ episodes are run with the context and without it. Writes ``<out>/<run>/eval.csv`
 evaluation episode), SB3's ``progress.csv`` per agent, ``model.pt`` and ``summary.json`` (mean
 returns with 95% confidence intervals over seeds and over episodes, and the paired difference).
 
+Resuming: the model fit is saved after every epoch (``fit_dynamics(..., checkpoint=...)``) and the
+evaluation rows after every agent, to ``<out>/<run>/fit.pt`` and ``checkpoint.pt``; rerun the
+same command and it goes on with the first unfinished agent, refusing a checkpoint that other
+options wrote. Each agent is seeded on its own, so the result is that of an uninterrupted run;
+an interruption loses at most the agent that was training.
+
 Copy this file and edit it; ``python scripts/sb3_context.py --help`` lists the settings,
 ``--tiny`` makes a smoke run.
 """
@@ -21,6 +27,7 @@ import csv
 import dataclasses
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,23 +40,35 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.logger import configure
 
 import smcd_rl
+from smcd_rl.files import load_file, save_file
 from smcd_rl.integrations.gymnasium import AdaptationWrapper, collect_transitions
 
 
 @dataclass
 class Config:
-    seeds: int = field(default=3, metadata={"help": "agents per arm, seeds 0..seeds-1"})
-    train_steps: int = field(default=6000, metadata={"help": "SAC environment steps per agent"})
-    eval_episodes: int = field(default=10, metadata={"help": "evaluation episodes per agent (the same for both arms)"})
-    context: int = field(default=4, metadata={"help": "size k of the mask projection (k + 1 numbers appended)"})
-    data_steps: int = field(default=20000, metadata={"help": "random transitions the dynamics model is fitted on"})
-    fit_epochs: int = field(default=20, metadata={"help": "epochs of the model fit"})
-    hidden: int = field(default=128, metadata={"help": "units of each of the model's two hidden layers"})
-    dropout: float = field(default=0.5, metadata={"help": "dropout probability of the model"})
-    particles: int = field(default=100, metadata={"help": "SMCD mask particles"})
-    noise_std: float = field(default=0.05, metadata={"help": "SMCD likelihood noise"})
-    policy_hidden: int = field(default=64, metadata={"help": "units of each of SAC's two hidden layers"})
-    threads: int = field(default=1, metadata={"help": "torch threads"})
+    # "valid": the range an option must lie in, "[low, high]" with ( ) for open ends.
+    seeds: int = field(default=3, metadata={"help": "agents per arm, seeds 0..seeds-1", "valid": "[1, inf)"})
+    train_steps: int = field(default=6000, metadata={"help": "SAC environment steps per agent", "valid": "[1, inf)"})
+    eval_episodes: int = field(
+        default=10, metadata={"help": "evaluation episodes per agent (the same for both arms)", "valid": "[1, inf)"}
+    )
+    context: int = field(
+        default=4, metadata={"help": "size k of the mask projection (k + 1 numbers appended)", "valid": "[1, inf)"}
+    )
+    data_steps: int = field(
+        default=20000, metadata={"help": "random transitions the dynamics model is fitted on", "valid": "[1, inf)"}
+    )
+    fit_epochs: int = field(default=20, metadata={"help": "epochs of the model fit", "valid": "[1, inf)"})
+    hidden: int = field(
+        default=128, metadata={"help": "units of each of the model's two hidden layers", "valid": "[1, inf)"}
+    )
+    dropout: float = field(default=0.5, metadata={"help": "dropout probability of the model", "valid": "(0, 1)"})
+    particles: int = field(default=100, metadata={"help": "SMCD mask particles", "valid": "[1, inf)"})
+    noise_std: float = field(default=0.05, metadata={"help": "SMCD likelihood noise", "valid": "(0, inf)"})
+    policy_hidden: int = field(
+        default=64, metadata={"help": "units of each of SAC's two hidden layers", "valid": "[1, inf)"}
+    )
+    threads: int = field(default=1, metadata={"help": "torch threads", "valid": "[1, inf)"})
     out: str = field(default="runs", metadata={"help": "output directory"})
     tiny: bool = field(default=False, metadata={"help": "a smoke run of seconds (overrides the sizes)"})
 
@@ -71,7 +90,30 @@ class RandomPendulum(gymnasium.Wrapper):
         return obs, {**info, "mass": pendulum.m, "length": pendulum.l}
 
 
+CHOICES: dict[str, list[str]] = {}
+#: Options a run may be resumed with other values of: where it is, and speed alone.
+RESUMABLE_WITH_OTHER = ("out", "threads")
+
+
+def within(value: float, interval: str) -> bool:
+    """Whether ``value`` lies in ``interval``, written ``"[1, inf)"`` or ``"(0, 1]"``; NaN never does."""
+    low, high = (float(end) for end in interval[1:-1].split(","))
+    above = low < value if interval[0] == "(" else low <= value
+    below = value < high if interval[-1] == ")" else value <= high
+    return above and below
+
+
+def describe(interval: str) -> str:
+    low, high = interval[1:-1].split(", ")
+    return f"{'>' if interval[0] == '(' else '>='} {low}" if high == "inf" else f"in {interval}"
+
+
+def run_dir(config: Config) -> Path:
+    return Path(config.out) / f"sb3_context_k{config.context}"
+
+
 def parse_args() -> Config:
+    """The options, checked (ranges, and a checkpoint's options when resuming) before any work: usage and exit 2 if not."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     for f in dataclasses.fields(Config):
         flag = "--" + f.name.replace("_", "-")
@@ -79,9 +121,41 @@ def parse_args() -> Config:
             parser.add_argument(flag, action="store_true", help=f.metadata["help"])
         else:
             kind = {"int": int, "float": float, "str": str}[str(f.type)]
-            parser.add_argument(flag, type=kind, default=f.default, help=f"{f.metadata['help']} (default: {f.default})")
+            valid = f"; {describe(f.metadata['valid'])}" if "valid" in f.metadata else ""
+            parser.add_argument(
+                flag, type=kind, default=f.default, choices=CHOICES.get(f.name),
+                help=f"{f.metadata['help']} (default: {f.default}{valid})",
+            )  # fmt: skip
     config = Config(**vars(parser.parse_args()))
-    return dataclasses.replace(config, **TINY) if config.tiny else config
+    config = dataclasses.replace(config, **TINY) if config.tiny else config
+    for f in dataclasses.fields(Config):
+        value = getattr(config, f.name)
+        if "valid" in f.metadata and not within(value, f.metadata["valid"]):
+            parser.error(f"argument --{f.name.replace('_', '-')}: must be {describe(f.metadata['valid'])}, got {value}")
+    check_resume(parser, config)
+    return config
+
+
+def check_resume(parser: argparse.ArgumentParser, config: Config) -> None:
+    """Refuse to resume a checkpoint that a run with other options wrote."""
+    run = run_dir(config)
+    if not ((run / "checkpoint.pt").is_file() or (run / "fit.pt").is_file()):
+        return
+    fix = f"use another --out, or delete {run / 'checkpoint.pt'} and {run / 'fit.pt'} to start afresh"
+    if not (run / "options.json").is_file():
+        parser.error(f"{run} holds a checkpoint but no options.json saying which options wrote it; {fix}")
+    saved = json.loads((run / "options.json").read_text())
+    now = {k: v for k, v in dataclasses.asdict(config).items() if k not in RESUMABLE_WITH_OTHER}
+    differ = [
+        f"--{k.replace('_', '-')} {saved.get(k)} (now {now.get(k)})"
+        for k in sorted(set(saved) | set(now))
+        if saved.get(k) != now.get(k)
+    ]
+    if differ:
+        parser.error(
+            f"{run} holds a checkpoint of a run with other options: {', '.join(differ)}; rerun with those to "
+            f"resume it, or {fix}"
+        )
 
 
 def mean_ci(values: list[float]) -> dict[str, float]:
@@ -94,8 +168,12 @@ def mean_ci(values: list[float]) -> dict[str, float]:
 
 def main() -> None:
     config = parse_args()
-    run = Path(config.out) / f"sb3_context_k{config.context}"
+    run = run_dir(config)
     run.mkdir(parents=True, exist_ok=True)
+    resume = run / "checkpoint.pt"
+    resuming = resume.is_file() or (run / "fit.pt").is_file()
+    options = {k: v for k, v in dataclasses.asdict(config).items() if k not in RESUMABLE_WITH_OTHER}
+    (run / "options.json").write_text(json.dumps(options, indent=2) + "\n")
     torch.set_num_threads(config.threads)
     torch.manual_seed(0)
     start = time.perf_counter()
@@ -104,7 +182,10 @@ def main() -> None:
     data = collect_transitions(RandomPendulum(gymnasium.make("Pendulum-v1")), None, config.data_steps, seed=0)
     net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=(config.hidden, config.hidden), dropout=config.dropout)
     model = smcd_rl.AdaptiveDynamicsModel(net)
-    smcd_rl.fit_dynamics(model, data, epochs=config.fit_epochs, batch_size=256, lr=1e-3, progress=False)
+    # Resumes after the last finished epoch of an interrupted fit (or loads a finished one) from fit.pt.
+    smcd_rl.fit_dynamics(
+        model, data, epochs=config.fit_epochs, batch_size=256, lr=1e-3, progress=False, checkpoint=run / "fit.pt"
+    )
     model.save(run / "model.pt")
 
     def make_env(arm: str, seed: int) -> gymnasium.Env:
@@ -117,9 +198,15 @@ def main() -> None:
         )
         return AdaptationWrapper(env, model.with_adaptation(smcd), context=config.context)
 
-    rows: list[dict[str, Any]] = []
+    rows: list[dict[str, Any]] = []  # one per evaluation episode, saved after each agent
+    if resume.is_file():
+        rows = load_file(resume, what="sb3_context.py run checkpoint", expect_format="sb3_context/1",
+                         fix="delete it to start afresh, or use another --out")["rows"]  # fmt: skip
+        print(f"resuming {run}: {len(rows) // config.eval_episodes} agents finished", flush=True)
     for seed in range(config.seeds):
         for arm in ("context", "plain"):
+            if any(r["arm"] == arm and r["seed"] == seed for r in rows):
+                continue  # finished before an interruption; each agent is seeded on its own
             agent = SAC(
                 "MlpPolicy",
                 make_env(arm, seed),
@@ -140,6 +227,7 @@ def main() -> None:
                     total, done = total + float(reward), terminated or truncated
                 rows.append({"arm": arm, "seed": seed, "episode": episode, "mass": info["mass"],
                              "length": info["length"], "return": total})  # fmt: skip
+            save_file({"format": "sb3_context/1", "rows": rows}, resume, what="run checkpoint")  # atomic
             print(
                 f"seed {seed} {arm}: mean evaluation return {np.mean([r['return'] for r in rows[-config.eval_episodes :]]):.1f}"
             )
@@ -164,7 +252,8 @@ def main() -> None:
         "over_seeds": {arm: mean_ci(per_seed(arm)) for arm in ("context", "plain")},
         "over_episodes": {arm: mean_ci(returns(arm)) for arm in ("context", "plain")},
         "paired_difference": mean_ci(paired),
-        "seconds": round(time.perf_counter() - start, 1),
+        "resumed": resuming,
+        "seconds": round(time.perf_counter() - start, 1),  # of this session alone when resumed
     }
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     for arm in ("context", "plain"):
@@ -179,4 +268,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:
+        print("interrupted; run the same command again to resume from the last checkpoint", file=sys.stderr)
+        sys.exit(130)
