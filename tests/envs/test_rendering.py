@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import importlib.util
 import math
-import time
 import warnings
 
 import gymnasium
@@ -160,26 +159,6 @@ def test_drone_frame_marks_the_target_platform() -> None:
     centres = [float(columns.mean()) for _, columns in orange]
     assert centres == sorted(centres) and len(set(centres)) == len(PLATFORMS)
     assert (drone_frame((3.0, -1.5, 1.5), target=0) != frames[0]).any()
-
-
-def test_frames_are_fast() -> None:
-    """The brief's budget is 30 ms a frame; these draw in a few.
-
-    Timed in this process's CPU time, which other processes' load does not inflate (wall time on a
-    shared 2-core machine can be several times longer); the bound still leaves room for a slow CPU.
-    """
-    draws = [
-        lambda: two_link_frame((0.3, 0.2), (1.0, 0.8), goal=(1.0, 0.5)),
-        lambda: telescoping_frame((0.3, 0.2), 1.0, 7, (1.0, 0.5), 1.1),
-        lambda: panda_frame(READY_POSE, 0.2, goal=(0.5, 0.2, 0.4)),
-        lambda: drone_frame((4.0, 0.5, 2.0), target=1),
-    ]
-    for draw in draws:
-        draw()  # warm caches
-        started = time.process_time()
-        for _ in range(10):
-            draw()
-        assert (time.process_time() - started) / 10 < 0.03
 
 
 def test_record_gif_writes_one_gif_per_episode(tmp_path) -> None:
