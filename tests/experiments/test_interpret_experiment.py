@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -95,9 +96,22 @@ FILES = (
 CHECKPOINTS = ("fig9_ld8-*.ckpt", "fig9_ld16-*.ckpt", "bc-*.ckpt", "reptile-*.ckpt")
 
 
+#: A wall time in the printed text ("0.2 s", "1 min 5 s"): it follows the machine's speed and load, not the results.
+WALL_TIME = re.compile(r"\b\d+(?:\.\d+)? (?:s|min|h)\b")
+
+
 def tables(printed: str) -> list[str]:
-    """The printed tables, without the closing line that names the output directory."""
-    return [line for line in printed.splitlines() if not line.startswith("wrote ")]
+    """The printed tables, wall times masked, without the closing line that names the output directory."""
+    return [WALL_TIME.sub("<time>", line) for line in printed.splitlines() if not line.startswith("wrote ")]
+
+
+def test_tables_mask_wall_times_only() -> None:
+    first = (
+        "Tuning of M on 4 held-out episodes x 5 steps (calibration 12 filter runs, 0.2 s; GD grid 2 runs, 1 min 5 s)"
+    )
+    again = first.replace("0.2 s", "0.1 s").replace("1 min 5 s", "1 min 7 s")
+    assert tables(first) == tables(again) and "4 held-out episodes x 5 steps" in tables(first)[0]
+    assert tables(first) != tables(first.replace("12 filter runs", "13 filter runs"))
 
 
 @pytest.mark.slow
@@ -173,7 +187,7 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
     third = tmp_path / "third"
     assert cli.main(["interpret", "--out", str(third), "--dataset", str(first / "dataset.npz"), *TINY]) == 0
     printed_third = capsys.readouterr().out
-    assert printed_third.split("Figs. 4 / 13")[0] == printed.split("Figs. 4 / 13")[0]
+    assert tables(printed_third.split("Figs. 4 / 13")[0]) == tables(printed.split("Figs. 4 / 13")[0])
     held_out = json.loads((third / "results.json").read_text())["dataset"]
     assert held_out == payload["dataset"]  # the split is the same; the tuning flights come out of "train"
 
