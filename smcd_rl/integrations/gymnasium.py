@@ -696,8 +696,9 @@ def fetch_achieved_goal(env: gymnasium.Env[Any, Any]) -> Callable[[Tensor], Tens
         True
     """
     unwrapped = env.unwrapped
-    module = type(unwrapped).__module__
-    if not module.startswith("gymnasium_robotics.envs.fetch") or not hasattr(unwrapped, "has_object"):
+    # A subclass of a Fetch env (the registered smcd_rl families are) keeps Fetch's observation layout.
+    fetch = any(cls.__module__.startswith("gymnasium_robotics.envs.fetch") for cls in type(unwrapped).__mro__)
+    if not fetch or not hasattr(unwrapped, "has_object"):
         return None
     return _Columns(slice(3, 6) if unwrapped.has_object else slice(0, 3))
 

@@ -402,7 +402,12 @@ def fetch_model(fetch: Any) -> smcd_rl.AdaptiveDynamicsModel:
 
 
 def test_fetch_achieved_goal_is_derived_from_the_observation(fetch: Any) -> None:
-    for env_id, columns in [("FetchReach-v4", slice(0, 3)), ("FetchPush-v4", slice(3, 6))]:
+    for env_id, columns in [
+        ("FetchReach-v4", slice(0, 3)),
+        ("FetchPush-v4", slice(3, 6)),
+        ("smcd_rl/FetchReachRotated-v0", slice(0, 3)),  # the families subclass Fetch's envs
+        ("smcd_rl/FetchPushHeavy-v0", slice(3, 6)),
+    ]:
         env = fetch(env_id)
         obs, _ = env.reset(seed=0)
         obs, *_ = env.step(env.action_space.sample())
