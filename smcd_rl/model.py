@@ -812,10 +812,9 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
         smcd_rl.UnreadableFileError: the checkpoint is empty, truncated or corrupt (save the model
             again), or the file is not a dict that :func:`torch.save` wrote.
         CheckpointMismatchError: the file is a dict but no model checkpoint, e.g. a bare
-            ``state_dict`` (load it with ``net.load_state_dict(torch.load(path))``).
-
-        For a file that is not an smcd-rl model checkpoint at all, the message says what it is and
-        how to load it.
+            ``state_dict`` (load it with ``net.load_state_dict(torch.load(path))``). For a file
+            that is not an smcd-rl model checkpoint at all, the message says what it is and how
+            to load it.
 
     Example:
         >>> import tempfile, smcd_rl

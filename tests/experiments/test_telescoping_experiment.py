@@ -147,7 +147,7 @@ def test_help_and_bad_options(tmp_path, capsys) -> None:
     out = tmp_path / "run"
     assert cli.main(["telescoping", "--model", str(tmp_path / "notes.pt"), "--out", str(out), *TINY]) == 2
     error = capsys.readouterr().err
-    assert str(tmp_path / "notes.pt") in error and "smcd_rl model checkpoint" in error
+    assert str(tmp_path / "notes.pt") in error and "not an smcd-rl model checkpoint" in error
 
 
 @pytest.mark.parametrize(
