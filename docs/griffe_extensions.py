@@ -30,7 +30,9 @@ from typing import Any
 import griffe
 
 _EXAMPLE = re.compile(r"^(?P<indent>[ \t]*)Example:[ \t]*$", re.MULTILINE)
-_ROLE = re.compile(r":(?P<role>class|func|meth|attr|data|mod|exc|obj|const|pep):`(?P<target>[^`]+)`")
+_ROLE = re.compile(
+    r":(?P<role>class|func|meth|attr|data|mod|exc|obj|const|pep):`(?P<target>[^`]+)`"
+)
 
 
 class PackageDir(griffe.Extension):
@@ -46,7 +48,9 @@ class PackageDir(griffe.Extension):
         self.package = package
         self.mapping = dict(mapping)
 
-    def on_package(self, *, pkg: griffe.Module, loader: griffe.GriffeLoader, **kwargs: Any) -> None:
+    def on_package(
+        self, *, pkg: griffe.Module, loader: griffe.GriffeLoader, **kwargs: Any
+    ) -> None:
         if pkg.name != self.package or pkg.parent is not None:
             return
         root = Path(pkg.filepath).parent.parent  # a package, not a namespace package
@@ -63,7 +67,9 @@ class PackageDir(griffe.Extension):
 class DocstringMarkup(griffe.Extension):
     """Read ``Example:`` sections as examples and Sphinx roles as optional cross-references."""
 
-    def on_package(self, *, pkg: griffe.Module, loader: griffe.GriffeLoader, **kwargs: Any) -> None:
+    def on_package(
+        self, *, pkg: griffe.Module, loader: griffe.GriffeLoader, **kwargs: Any
+    ) -> None:
         _rewrite(pkg)
 
 
@@ -86,6 +92,10 @@ def _reference(obj: griffe.Object, match: re.Match[str]) -> str:
     head, _, rest = target.partition(".")
     try:
         identifier = obj.resolve(head) + ("." + rest if rest else "")
-    except Exception:  # not a name in this scope (e.g. torch.save): keep it, the reference is optional
+    except (
+        Exception
+    ):  # not a name in this scope (e.g. torch.save): keep it, the reference is optional
         identifier = target
-    return f'<autoref identifier="{html.escape(identifier)}" optional>`{title}`</autoref>'
+    return (
+        f'<autoref identifier="{html.escape(identifier)}" optional>`{title}`</autoref>'
+    )

@@ -1,4 +1,4 @@
-"""Every code block in the README and the docs runs as shown, or says on its first line that it is a sketch.
+"""Every code block in the README and the docs runs as shown, or is marked as a sketch.
 
 The rule, by the block's language:
 
@@ -6,12 +6,20 @@ The rule, by the block's language:
   a ``text`` block right after it is what it prints, compared exactly, unless the block states a
   tolerance (below).
 * ``bash`` / ``console`` / ``shell`` / ``sh``: each line is an ``smcd-rl ... --help`` command,
-  which runs; any other shell block starts with ``# sketch: <why>``, and its ``smcd-rl`` commands
-  must still parse with the current options.
+  which runs; any other shell block is a sketch, and its ``smcd-rl`` commands must still parse
+  with the current options.
 * ``text``, ``json``, ``yaml``, ``toml`` and unlabelled blocks are data.
 
-A python block that cannot run here (a run of minutes, a user's own data) starts with
-``# sketch: <why>`` too. The experiment reports included into the docs (``report.md``) are the
+A python block that cannot run here (a run of minutes, a user's own data) is a sketch too. A
+sketch is marked by an HTML comment on the line right above its fence, which the rendered page
+does not show::
+
+    <!-- sketch: <why it does not run here> -->
+    ```bash
+    smcd-rl two-link --full
+    ```
+
+ The experiment reports included into the docs (``report.md``) are the
 commands' own output and are checked by their fingerprints instead.
 
 Tolerances. A seeded run repeats bit for bit on one CPU model, but float kernels differ between
@@ -100,12 +108,19 @@ def compare_output(printed: str, shown: str, tolerance: Tolerance | None) -> lis
     return differences
 
 
+#: The sketch marker: the line right above a block's opening fence.
+SKETCH = re.compile(r"^\s*<!--\s*sketch:\s*(?P<why>.*?)\s*-->\s*$")
+#: The widest code line the docs site shows without cutting it (docs/ruff.toml, docs/stylesheets/extra.css).
+PAGE_WIDTH = 88
+
+
 @dataclass(frozen=True)
 class Block:
     page: Path
     line: int  # 1-based line of the opening fence
     lang: str
     code: str
+    sketch_reason: str | None = None  # from the ``<!-- sketch: why -->`` line above the fence
 
     @property
     def id(self) -> str:
@@ -114,8 +129,7 @@ class Block:
 
     @property
     def sketch(self) -> bool:
-        first = next((line for line in self.code.splitlines() if line.strip()), "")
-        return first.strip().lower().startswith("# sketch")
+        return self.sketch_reason is not None
 
     @property
     def tolerance(self) -> Tolerance | None:
@@ -137,7 +151,8 @@ def blocks(page: Path) -> list[Block]:
         while j < len(lines) and not re.match(rf"^{re.escape(indent)}{fence[0]}{{{len(fence)},}}\s*$", lines[j]):
             body.append(lines[j][len(indent) :] if lines[j].startswith(indent) else lines[j].lstrip())
             j += 1
-        found.append(Block(page, i + 1, opening["lang"].lower(), "\n".join(body) + "\n"))
+        marker = SKETCH.match(lines[i - 1]) if i > 0 else None
+        found.append(Block(page, i + 1, opening["lang"].lower(), "\n".join(body) + "\n", marker and marker["why"]))
         i = j + 1
     return found
 
@@ -166,6 +181,17 @@ def test_the_pages_have_code_blocks() -> None:
 def test_every_block_is_runnable_data_or_a_sketch(block: Block) -> None:
     known = {"python", "py", *SHELL, *DATA}
     assert block.lang in known, f"{block.id}: a ```{block.lang} block: use one of {sorted(known - {''})}"
+    first = next((line.strip() for line in block.code.splitlines() if line.strip()), "")
+    assert not first.lower().startswith("# sketch"), (
+        f"{block.id}: readers would see the marker; put '<!-- sketch: why -->' on the line above the fence instead"
+    )
+    assert block.sketch_reason != "", f"{block.id}: say why the block is a sketch: '<!-- sketch: why -->'"
+
+
+@pytest.mark.parametrize("block", [b for b, _, _ in ALL if b.page.is_relative_to(ROOT / "docs")], ids=lambda b: b.id)
+def test_no_code_line_is_wider_than_the_docs_page(block: Block) -> None:
+    wide = [line for line in block.code.splitlines() if len(line) > PAGE_WIDTH]
+    assert not wide, f"{block.id}: {len(wide)} line(s) over {PAGE_WIDTH} columns, cut off on the page: {wide[0]!r}"
 
 
 def _run(block: Block) -> str:
@@ -213,7 +239,7 @@ def test_shell_block_is_help_or_a_sketch_and_its_commands_parse(block: Block, ca
     lines = [line for line in block.code.splitlines() if line.strip()]
     if not block.sketch:
         assert len(commands) == len(lines) and all(c[-1:] == ["--help"] for c in commands), (
-            f"{block.id}: a shell block that is not an `smcd-rl ... --help` list must start with '# sketch: <why>'"
+            f"{block.id}: a shell block that is not an `smcd-rl ... --help` list is a sketch: put '<!-- sketch: why -->' on the line above its fence"
         )
     for argv in commands:
         try:
@@ -224,7 +250,9 @@ def test_shell_block_is_help_or_a_sketch_and_its_commands_parse(block: Block, ca
 
 def test_the_checks_catch_a_stale_option_and_an_unmarked_block(tmp_path, capsys) -> None:
     page = tmp_path / "page.md"
-    page.write_text("```bash\n# sketch: long\nsmcd-rl two-link --no-such-option\n```\n\n```bash\npip install x\n```\n")
+    page.write_text(
+        "<!-- sketch: long -->\n```bash\nsmcd-rl two-link --no-such-option\n```\n\n```bash\npip install x\n```\n"
+    )
     stale, unmarked = blocks(page)
     assert _commands(stale) == [["two-link", "--no-such-option"]] and stale.sketch and not unmarked.sketch
     for block in (stale, unmarked):
