@@ -466,13 +466,13 @@ class ModelParameters:
             column = int(index)
             if str(column) != index:
                 raise ValueError(f"parameter {name!r}: write the component as {base}[{column}] (one name per element)")
-        field, _, element = base.partition(":")
+        field, colon, element = base.partition(":")
         if field not in _FIELDS:
             raise ValueError(f"parameter {name!r}: unknown field {field!r}; valid: {list(_FIELDS)}")
         objtype, path, default_column = _FIELDS[field]
         array = _array(self.model, path)
         if objtype is None:
-            if element:
+            if colon:  # "gravity:" too: an empty element would be a second name for "gravity"
                 raise ValueError(f"parameter {name!r}: {field!r} names no element (write {field!r} or {field}[k])")
             component = column if column is not None else (default_column or 0)
             if not 0 <= component < array.shape[0]:
@@ -607,10 +607,13 @@ class ActionTransform:
                 raise ValueError(f"axis must be a non-zero 3-vector, got {self.axis!r}")
             object.__setattr__(self, "axis", tuple(float(x) for x in axis))
         if self.dims is not None:
-            dims = tuple(self.dims) if isinstance(self.dims, Iterable) else None
+            # An ordered sequence: the order of dims sets the rotation's direction, which a set loses.
+            ordered = isinstance(self.dims, Iterable) and not isinstance(self.dims, (set, frozenset, dict, str))
+            dims = tuple(self.dims) if ordered else None
             if dims is None or not all(_is_int(d) and d >= 0 for d in dims):
                 raise ValueError(
-                    f"dims must be action indices (non-negative ints), e.g. dims=(0, 1, 2); got {self.dims!r}"
+                    "dims must be action indices (non-negative ints) in order, e.g. dims=(0, 1, 2); "
+                    f"got {self.dims!r}"
                 )
             if len(set(dims)) != len(dims):
                 raise ValueError(f"dims must name each action entry once, got {self.dims!r}")
@@ -803,7 +806,8 @@ class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordCo
         Raises:
             ValueError: On an unknown task name, a value that is not a finite number, or one
                 outside its parameter's physical range; the env is left as it was. Also on a draw
-                outside the range from a distribution of your own without ``support()``.
+                that is not finite, or outside the range, from a distribution of your own without
+                ``support()``: the env is then reset with its defaults and reports no task.
         """
         options = dict(options or {})
         fixed = self._check_fixed(options.pop("task", None))
@@ -812,7 +816,7 @@ class TaskFamily(gymnasium.Wrapper[Any, Any, Any, Any], gymnasium.utils.RecordCo
         self._task = {}  # the defaults, until a checked draw is written
         obs, info = self.env.reset(seed=seed, options=options or None)
         rng = self.env.unwrapped.np_random
-        draw = {name: float(dist.sample(rng)) for name, dist in self._distributions.items()}
+        draw = {name: _finite(dist.sample(rng), f"the draw of {name!r}") for name, dist in self._distributions.items()}
         draw.update(fixed)
         if parameters.names:
             values = parameters.check({name: draw[name] for name in parameters.names}, what="the draw")

@@ -290,6 +290,8 @@ def test_a_copy_simulates_the_task_it_reports_and_leaves_the_original_alone(env_
         ("gravity[00]", r"gravity\[0\]"),
         ("geom_friction:ffoot[01]", r"geom_friction:ffoot\[1\]"),
         ("gravity[\u0662]", "integer"),  # a non-ASCII digit two
+        ("gravity:", r"write 'gravity'"),  # an empty element is no second name either
+        ("gravity:[1]", r"gravity\[k\]"),
     ],
 )
 def test_one_name_per_model_element(name: str, canonical: str) -> None:
@@ -362,6 +364,17 @@ def test_a_draw_outside_the_range_from_a_distribution_without_support_is_refused
     assert env.unwrapped.model.body("torso").mass[0] == env.parameters.defaults["body_mass:torso"]
 
 
+def test_a_draw_that_is_not_finite_is_refused_and_no_action_transform_receives_it() -> None:
+    class NotANumber:
+        def sample(self, rng: np.random.Generator) -> float:
+            return float("nan")
+
+    env = TaskFamily(gymnasium.make("HalfCheetah-v5"), action=ActionTransform(gain=NotANumber()))
+    with pytest.raises(ValueError, match="the draw of 'action:gain' must be finite"):
+        env.reset(seed=0)
+    assert env.task == {}
+
+
 @pytest.mark.parametrize(
     "make",
     [
@@ -391,6 +404,7 @@ def test_distribution_fields_are_floats_and_report_their_support() -> None:
         ({"gain": Fixed(1.0), "dims": (True,)}, "non-negative ints"),
         ({"gain": Fixed(1.0), "dims": (-1,)}, "non-negative ints"),
         ({"gain": Fixed(1.0), "dims": (0, 0)}, "each action entry once"),
+        ({"rotation": Fixed(1.0), "dims": {1, 0}}, "non-negative ints"),  # a set has no order
         ({"rotation": Fixed(1.0), "dims": (0, 0, 1)}, "each action entry once"),
         ({"rotation": Fixed(1.0), "dims": (0,)}, "two action entries .* or three"),
         ({"rotation": Fixed(1.0), "dims": (0, 1), "axis": (0.0, 0.0, 1.0)}, "planar rotation .* takes no axis"),
