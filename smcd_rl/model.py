@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import os
+import pickletools
 import warnings
 import zipfile
 from collections.abc import Mapping, Sequence
@@ -114,8 +115,10 @@ class AdaptiveModel(TensorDictModuleBase):
         self.out_key = out_key
         self.target_key = out_key if target_key is None else target_key
         self.base_key = base_key
-        self.input_norm = Normalizer(net.in_features)
-        self.output_norm = Normalizer(net.out_features)
+        # The normalisers take the network's dtype and device, so a float64 network makes a float64 model.
+        like = next((p for p in net.parameters() if p.is_floating_point()), torch.empty(0))
+        self.input_norm = Normalizer(net.in_features).to(device=like.device, dtype=like.dtype)
+        self.output_norm = Normalizer(net.out_features).to(device=like.device, dtype=like.dtype)
         self.adaptation: Adaptation = NoAdaptation() if adaptation is None else adaptation
         self._batch_shape: tuple[int, ...] | None = None
         self._warned_unfitted = False
@@ -692,6 +695,8 @@ def _foreign_file(path: Path) -> str | None:
         return None  # empty: a write that was interrupted
     if head[:1] != b"\x80" and head != b"PK\x03\x04":  # neither a zip archive (torch.save) nor a pickle
         return f"it is not a file torch.save wrote (it starts with {head!r}); {_WHAT_LOAD_READS}"
+    if head[:1] == b"\x80" and _foreign_pickle(path):
+        return f"it is a pickle that torch.save did not write (pickle.dump?); {_WHAT_LOAD_READS}"
     if head == b"PK\x03\x04":
         try:
             with zipfile.ZipFile(path) as archive:
@@ -721,6 +726,26 @@ def _foreign_file(path: Path) -> str | None:
     keys = sorted(map(str, loaded))
     shown = ", ".join(repr(k) for k in keys[:5]) + (", ..." if len(keys) > 5 else "")
     return f"it is a dict without a 'format' entry (keys {shown}); {_WHAT_LOAD_READS}"
+
+
+#: The number torch.save's legacy (non-zip) format pickles first.
+_TORCH_LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
+
+
+def _foreign_pickle(path: Path) -> bool:
+    """Whether ``path`` is a whole pickle that torch.save did not write (read op by op; nothing is run).
+
+    torch.save's legacy format pickles its magic number first; a pickle that breaks off is a damaged
+    file, not a foreign one.
+    """
+    try:
+        with path.open("rb") as handle:
+            for op, arg, _ in pickletools.genops(handle):
+                if op.name.startswith("LONG") and arg == _TORCH_LEGACY_MAGIC:
+                    return False
+    except Exception:  # breaks off or is no pickle: damaged
+        return False
+    return True
 
 
 def _checked_where(where: Any, batch_shape: tuple[int, ...]) -> Tensor:

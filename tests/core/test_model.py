@@ -340,6 +340,10 @@ def _foreign_files(directory) -> dict[str, tuple[object, str]]:
 
     np.savez(directory / "arrays.npz", x=np.zeros(3))
     paths["npz"] = (directory / "arrays.npz", r"not a file torch.save wrote.*smcd_rl.save")
+    import pickle
+
+    (directory / "pickled.pkl").write_bytes(pickle.dumps(net))  # pickle.dump, not torch.save
+    paths["pickle"] = (directory / "pickled.pkl", r"a pickle that torch.save did not write.*smcd_rl.save")
     return paths
 
 
@@ -360,3 +364,13 @@ def test_loading_a_file_that_is_not_a_model_checkpoint_says_so_and_how_to_load_i
     (tmp_path / "m.pt").write_bytes(data[: len(data) // 2])
     with pytest.raises(smcd_rl.UnreadableFileError, match="corrupt or truncated.*save the model again"):
         smcd_rl.load(tmp_path / "m.pt")
+
+
+def test_a_float64_network_makes_a_float64_model_without_a_cast() -> None:
+    net = smcd_rl.MaskedMLP(2, 2, hidden=(16,)).double()  # before: float32 normalisers, torch's dtype error
+    model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee", adaptation=smcd_rl.SMCD(num_particles=20))
+    model.fitted = True
+    model.reset()
+    td = TensorDict({"q": torch.randn(2, dtype=torch.float64), "ee": torch.randn(2, dtype=torch.float64)}, [])
+    model.observe(td)
+    assert model(td.clone())["ee"].dtype == torch.float64 == model.input_norm.mean.dtype
