@@ -612,8 +612,7 @@ class ActionTransform:
             dims = tuple(self.dims) if ordered else None
             if dims is None or not all(_is_int(d) and d >= 0 for d in dims):
                 raise ValueError(
-                    "dims must be action indices (non-negative ints) in order, e.g. dims=(0, 1, 2); "
-                    f"got {self.dims!r}"
+                    f"dims must be action indices (non-negative ints) in order, e.g. dims=(0, 1, 2); got {self.dims!r}"
                 )
             if len(set(dims)) != len(dims):
                 raise ValueError(f"dims must name each action entry once, got {self.dims!r}")
