@@ -93,6 +93,7 @@ from smcd_rl.experiments.common import format_table, save_figure
 from smcd_rl.experiments.configs.ant import ADAPTATIONS, CONDITIONS, FULL, PLANNERS, TASKS, AntConfig
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.scoreboard import scoreboard_entry
+from smcd_rl.experiments.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.tuning import VARIANTS, Tuning, tune
 from smcd_rl.experiments.video import video_name, write_gif
@@ -123,12 +124,14 @@ ADAPTIVE = ("M+S", "M+S(paper)", "M+G")
 def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the experiment and write its files; returns the JSON payload."""
     with Experiment(config, progress=progress) as ex:
+        ex.plan(stage_costs(config))
         # --- seed, data from the healthy Ant ----------------------------------------------------
         data_key = {k: getattr(config, k) for k in DATA_SETTINGS}
-        collected = ex.store.get("data", data_key)
-        if collected is None:
-            collected = collect(config, progress=progress)
-            ex.store.put("data", data_key, collected)
+        with ex.stage("collect"):
+            collected = ex.store.get("data", data_key)
+            if collected is None:
+                collected = collect(config, progress=progress)
+                ex.store.put("data", data_key, collected)
         n_val = max(1, int(round(config.validation * config.transitions)))
         train, val = collected["data"][:-n_val].to(ex.device), collected["data"][-n_val:].to(ex.device)
 
@@ -325,6 +328,56 @@ def _write_videos(done: dict[tuple[str, str, str], dict[str, Any]], config: AntC
 def _strategy(tuning: Tuning, config: AntConfig, device: torch.device, variant: str) -> smcd_rl.Adaptation:
     """A fresh strategy of ``variant`` with the tuned (or paper) settings; SMCD's generator seeded alike."""
     return tuning.strategy(variant, seed=config.seed + 11, device=device)
+
+
+def stage_costs(config: AntConfig) -> dict[str, float]:
+    """Each stage's rough seconds at ``config`` (see :func:`~smcd_rl.experiments.stages.estimate`), in run order.
+
+    Collecting counts a third of a step's overhead per simulated transition, 300 for making the
+    environment (and, with ``--data-policy sac``, three per SAC step); training its optimiser steps and a forward and
+    backward (3 forwards) per training transition and epoch; the tuning its filter runs
+    (:func:`~smcd_rl.experiments.stages.tuning_cost`); each prediction stage ``prediction_steps``
+    steps of every episode, each an update (:func:`~smcd_rl.experiments.stages.update_cost`) and an
+    open-loop prediction of ``prediction_horizon`` forwards (the rollouts batched); each MPC cell
+    ``episodes x episode_steps`` steps, each an update and a plan of ``candidates x iterations x
+    horizon`` forwards in ``iterations x horizon`` rollout steps, a tenth of a step's overhead each
+    (measured on a 4000-transition run).
+
+    Example:
+        >>> costs = stage_costs(AntConfig())
+        >>> list(costs)[:4], costs["evaluate cem/S/crippled"] > costs["evaluate cem/N/crippled"]
+        (['collect', 'train', 'tune M', 'prediction-healthy N'], True)
+    """
+    flops = mlp_flops(OBS_DIM + ACTION_DIM, (config.hidden,) * config.depth, OBS_DIM)
+    samples = config.transitions * (1 - config.validation)
+    sac = 3 * config.sac_steps if config.data_policy == "sac" else 0
+    costs = {
+        "collect": estimate(steps=300 + config.transitions / 3 + sac),
+        "train": estimate(
+            steps=config.epochs * math.ceil(samples / config.batch_size),
+            forwards=3 * config.epochs * samples,
+            flops=flops,
+        ),
+        "tune M": tuning_cost(config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops),
+    }
+    horizon = config.prediction_horizon
+    for condition in config.conditions:
+        for variant in VARIANTS:
+            overhead, update = update_cost(variant, config)
+            forwards = config.prediction_episodes * config.prediction_steps * (update + horizon)
+            steps = config.prediction_steps * (1 + overhead) + horizon  # the open-loop rollouts run batched
+            costs[f"prediction-{condition} {variant}"] = estimate(steps=steps, forwards=forwards, flops=flops)
+    plan = config.candidates * config.iterations * config.horizon
+    for cell in CELLS:
+        if cell[0] in config.planners and cell[1] in config.adaptations and cell[2] in config.conditions:
+            overhead, update = update_cost(cell[1], config)
+            steps = config.episodes * config.episode_steps
+            costs[f"evaluate {'/'.join(cell)}"] = estimate(
+                steps=steps * (1 + overhead + config.iterations * config.horizon / 10),
+                forwards=steps * (update + plan),
+                flops=flops,
+            )
+    return costs
 
 
 def _metrics(config: AntConfig) -> list[tuple[str, str]]:

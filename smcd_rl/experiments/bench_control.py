@@ -88,9 +88,12 @@ def run(config: BenchControlConfig, *, progress: bool = True) -> dict[str, Any]:
                 adapted = model.with_adaptation(_strategy(name, config, device))
                 adapted.reset(batch_shape=(config.batch,))
                 contenders[name] = _control_step(adapted.predict, None if name == "M+N" else adapted, world, goals)
-        times = interleaved_times(
-            contenders, config.steps, warmup=config.warmup, device=device, desc="bench control", progress=progress
-        )
+        # One stage: the contenders are timed interleaved, step by step, so the loop cannot be split.
+        ex.plan({"time": 1.0})
+        with ex.stage("time"):
+            times = interleaved_times(
+                contenders, config.steps, warmup=config.warmup, device=device, desc="bench control", progress=progress
+            )
 
         # --- results ----------------------------------------------------------------------------
         rows = [_timing_row(name, samples) for name, samples in times.items()]

@@ -47,7 +47,6 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from tqdm.auto import tqdm
 
 import smcd_rl
 from smcd_rl.experiments.bench_filter_report import GOAL_PARTICLES, GOALS, SCHEDULES, goals, report
@@ -55,6 +54,7 @@ from smcd_rl.experiments.benchmarking import publish, scale_to_unit_spread
 from smcd_rl.experiments.common import config_dict, machine_info, seed_everything
 from smcd_rl.experiments.configs.bench_filter import FULL, BenchFilterConfig
 from smcd_rl.experiments.harness import Experiment
+from smcd_rl.experiments.stages import estimate, mlp_flops
 from smcd_rl.particle_forward import ParticlePath
 
 __all__ = ["BenchFilterConfig", "FULL", "GOALS", "GOAL_PARTICLES", "NaiveSMCD", "SCHEDULES", "run"]
@@ -117,13 +117,18 @@ def run(config: BenchFilterConfig, *, progress: bool = True) -> dict[str, Any]:
         net, observations = _problem(config, config.hidden, config.steps + config.warmup, device, ex.generator)
 
         # --- every particle count, regime and schedule; then the memory in a fresh process ------
+        ex.plan(stage_costs(config))
         rows = []
         with torch.no_grad():
-            for n in tqdm(config.particles, desc="bench filter", unit="N", disable=not progress):
-                for regime in ("realistic", "worst"):
-                    for schedule in SCHEDULES:
-                        rows.append(_time_regime(net, observations, n, regime, schedule, config, device))
-        memory = _memory(config, device) if config.memory_particles > 0 else None
+            for n in config.particles:  # each N prints its stage line: the progress bar it replaces
+                with ex.stage(f"N={n}"):
+                    for regime in ("realistic", "worst"):
+                        for schedule in SCHEDULES:
+                            rows.append(_time_regime(net, observations, n, regime, schedule, config, device))
+        memory = None
+        if config.memory_particles > 0:
+            with ex.stage("memory"):
+                memory = _memory(config, device)
 
         # --- results ----------------------------------------------------------------------------
         payload = {
@@ -144,6 +149,28 @@ def run(config: BenchFilterConfig, *, progress: bool = True) -> dict[str, Any]:
         }
         publish(ex.out, payload, rows, report(payload), as_json=config.json)
     return payload
+
+
+def stage_costs(config: BenchFilterConfig) -> dict[str, float]:
+    """Each stage's rough seconds at ``config`` (see :func:`~smcd_rl.experiments.stages.estimate`), in run order.
+
+    Each particle count N times, in both regimes and both schedules (back to back: two rounds),
+    ``warmup`` plus ``steps`` (realistic) or ``repeats`` (worst case) updates of the four contenders,
+    each about N forwards (the naive filter about 2 N); the memory stage starts two fresh
+    processes (about 3 s each) that run ``warmup + 5`` updates of ``memory_particles`` particles.
+
+    Example:
+        >>> list(stage_costs(BenchFilterConfig()))
+        ['N=100', 'N=1000', 'N=5000', 'memory']
+    """
+    flops = mlp_flops(config.inputs, config.hidden, config.outputs)
+    updates = sum(3 * (config.warmup + steps) for steps in (config.steps, config.repeats))
+    costs = {f"N={n}": estimate(steps=4 * updates, forwards=5 * n * updates, flops=flops) for n in config.particles}
+    if config.memory_particles > 0:
+        flops = mlp_flops(config.inputs, config.memory_hidden, config.outputs)
+        updates = config.warmup + 5
+        costs["memory"] = estimate(steps=2000, forwards=3 * updates * config.memory_particles, flops=flops)
+    return costs
 
 
 def _problem(

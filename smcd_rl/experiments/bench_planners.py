@@ -85,9 +85,17 @@ def run(config: BenchPlannersConfig, *, progress: bool = True) -> dict[str, Any]
 
         # --- the contenders, timed side by side ------------------------------------------------
         contenders = _contenders(model, obs, config, device, generator)
-        times = interleaved_times(
-            contenders, config.repeats, warmup=config.warmup, device=device, desc="bench planners", progress=progress
-        )
+        # One stage: the contenders are timed interleaved, step by step, so the loop cannot be split.
+        ex.plan({"time": 1.0})
+        with ex.stage("time"):
+            times = interleaved_times(
+                contenders,
+                config.repeats,
+                warmup=config.warmup,
+                device=device,
+                desc="bench planners",
+                progress=progress,
+            )
 
         # --- results ------------------------------------------------------------------------------
         rows = [_timing_row(name, samples) for name, samples in times.items()]

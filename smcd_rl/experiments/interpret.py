@@ -63,6 +63,7 @@ from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.interpret_masks import shared_prior
 from smcd_rl.experiments.multipart import PartsReport
 from smcd_rl.experiments.scoreboard import scoreboard_entry
+from smcd_rl.experiments.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.stats import verdict_table
 from smcd_rl.experiments.tuning import Tuning, method_variant, tune
 
@@ -72,9 +73,79 @@ __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SI
 ADAPTIVE: tuple[str, ...] = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N")
 
 
+#: Mean steps of a simulated landing (62 in the tiny test run's dataset), and the drone model's sizes.
+LANDING_STEPS = 60
+DRONE_STATE, DRONE_ACTION = 7, 3
+
+
+def stage_costs(config: InterpretConfig) -> dict[str, float]:
+    """Each stage's rough seconds at ``config`` (see :func:`~smcd_rl.experiments.stages.estimate`), in run order.
+
+    Training counts its optimiser steps and a forward and backward (3 forwards) per sample and
+    epoch (Fig. 9's babbling, 10 steps an episode; the drone's training landings, ``LANDING_STEPS``
+    each, also for Reptile); Fig. 9's masks ``fig9_burn_in`` steps of ``fig9_particles`` forwards
+    per held-out arm; the confidence masks (SMCD) and each look-ahead method one update
+    (:func:`~smcd_rl.experiments.stages.update_cost`) and a forward per landing step, in chunks of
+    ``chunk`` landings; the tuning its filter runs
+    (:func:`~smcd_rl.experiments.stages.tuning_cost`). A ``--dataset`` of another size scales every
+    drone stage alike, so the estimate of the time left is still right once a drone stage is timed.
+
+    Example:
+        >>> costs = stage_costs(InterpretConfig())
+        >>> list(costs)[:2], costs["lookahead M+S"] > costs["lookahead M+N"]
+        (['train fig9_ld32', 'train fig9_ld128'], True)
+    """
+    costs: dict[str, float] = {}
+    if "fig9" in config.parts:
+        samples = config.fig9_tasks * config.fig9_episodes * 10
+        for latent in config.fig9_latents:
+            flops = mlp_flops(2, (latent, latent), 2)
+            steps = config.fig9_epochs * -(-samples // config.batch_size)
+            costs[f"train fig9_ld{latent}"] = estimate(
+                steps=steps, forwards=3 * config.fig9_epochs * samples, flops=flops
+            )
+        for latent in config.fig9_latents:
+            forwards = config.fig9_arms * config.fig9_burn_in * config.fig9_particles
+            flops = mlp_flops(2, (latent, latent), 2)
+            costs[f"fig9 ld={latent}"] = estimate(steps=config.fig9_burn_in, forwards=forwards, flops=flops)
+    if "confidence" not in config.parts and "lookahead" not in config.parts:
+        return costs
+    flops = mlp_flops(DRONE_STATE, (config.hidden,) * config.depth, DRONE_ACTION)
+    landings = config.operators * config.trajectories_per_operator
+    shares = {"known": config.known_fraction, "unknown": config.unknown_fraction}
+    shares["stored"] = max(0.0, 1.0 - shares["known"] - shares["unknown"])
+
+    def filtering(share: float, variant: str) -> float:  # over the landings of one share of the data
+        overhead, update = update_cost(variant, config)
+        chunks = -(-max(1, round(share * landings)) // config.chunk)
+        forwards = share * landings * LANDING_STEPS * (1 + update)
+        return estimate(steps=chunks * LANDING_STEPS * (1 + overhead), forwards=forwards, flops=flops)
+
+    train = shares["stored"] * landings * LANDING_STEPS
+    steps = config.epochs * -(-round(train) // config.batch_size)
+    costs["train bc"] = estimate(steps=steps, forwards=3 * config.epochs * train, flops=flops)
+    if "confidence" in config.parts:
+        for s in ("stored", *drone.SETS):
+            costs[f"confidence {s}"] = filtering(shares[s], "S")
+    if "lookahead" in config.parts:
+        if any(name.startswith("R+") for name in config.methods):
+            steps = config.reptile_epochs * -(-round(train) // config.reptile_batch_size)
+            costs["train reptile"] = estimate(steps=steps, forwards=3 * config.reptile_epochs * train, flops=flops)
+        for family in sorted(
+            {method_variant(m)[0] for m in config.methods if method_variant(m)[1] != "N"}, key="MR".index
+        ):
+            costs[f"tune {family}"] = tuning_cost(
+                config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops
+            )
+        for name in config.methods:
+            costs[f"lookahead {name}"] = sum(filtering(shares[s], method_variant(name)[1]) for s in drone.SETS)
+    return costs
+
+
 def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the selected parts and write their files; returns the JSON payload."""
     with Experiment(config, progress=progress) as ex:
+        ex.plan(stage_costs(config))
         report = PartsReport()
 
         # --- Fig. 9: two-link masks against link lengths ---------------------------------------------

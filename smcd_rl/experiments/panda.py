@@ -75,6 +75,7 @@ from smcd_rl.experiments.configs.panda import DEFAULT_INTERVALS, FULL, METHODS, 
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.panda_reaching import method_kinematics, reach, sample_tasks, tuning_episodes
 from smcd_rl.experiments.scoreboard import scoreboard_entry
+from smcd_rl.experiments.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.tuning import tune
 from smcd_rl.experiments.video import video_name, write_gif
@@ -104,6 +105,7 @@ def method_labels(config: PandaConfig) -> list[str]:
 def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the experiment and write its files; returns the JSON payload."""
     with Experiment(config, progress=progress) as ex:
+        ex.plan(stage_costs(config))
         # --- seed, data, model --------------------------------------------------------------------
         data = panda_kinematics_data(config.samples, tool_range=config.tool_range, generator=ex.generator)
         held_out = panda_kinematics_data(2000, tool_range=config.tool_range, generator=ex.generator)
@@ -245,6 +247,42 @@ def _write_videos(
             names.append(video_name(label, k))
             write_gif(frames, out / names[-1], fps=1 / config.dt)
     return names
+
+
+def stage_costs(config: PandaConfig) -> dict[str, float]:
+    """Each stage's rough seconds at ``config`` (see :func:`~smcd_rl.experiments.stages.estimate`), in run order.
+
+    Training counts its optimiser steps and a forward and backward (3 forwards) per sample and
+    epoch; the tuning its filter runs (:func:`~smcd_rl.experiments.stages.tuning_cost`); each
+    (method, n) ``seeds x steps`` control steps of ``tasks`` arms, each a Jacobian of the model
+    (about 4 forwards; FK's analytic one costs twice a step's overhead instead), plus at every n-th
+    step an update (:func:`~smcd_rl.experiments.stages.update_cost`) of every arm.
+
+    Example:
+        >>> costs = stage_costs(PandaConfig())
+        >>> list(costs)[:3], costs["evaluate M+S n=20"] > costs["evaluate M+N n=20"]
+        (['train', 'tune M', 'evaluate FK n=1'], True)
+    """
+    flops = mlp_flops(7, (config.hidden,) * config.depth, 3)
+    costs = {
+        "train": estimate(
+            steps=config.epochs * -(-config.samples // config.batch_size),
+            forwards=3 * config.epochs * config.samples,
+            flops=flops,
+        )
+    }
+    if any(m in config.methods for m in ("M+G", "M+S", "M+S(paper)")):
+        costs["tune M"] = tuning_cost(config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops)
+    for label in method_labels(config):
+        for n in _intervals(label, config):
+            steps = config.seeds * config.steps
+            updates = config.seeds * -(-config.steps // n)
+            overhead, update = update_cost(label.partition("+")[2] or "N", config)
+            forwards = 0.0 if label == "FK" else config.tasks * (4 * steps + update * updates)
+            costs[f"evaluate {label} n={n}"] = estimate(
+                steps=(2 if label == "FK" else 1) * steps + overhead * updates, forwards=forwards, flops=flops
+            )
+    return costs
 
 
 def _intervals(label: str, config: PandaConfig) -> list[int]:

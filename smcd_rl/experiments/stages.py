@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from typing import TextIO
+from itertools import pairwise, product
+from types import SimpleNamespace
+from typing import Any, TextIO
 
-__all__ = ["StagePlan", "duration"]
+__all__ = ["StagePlan", "duration", "estimate", "mlp_flops", "tuning_cost", "update_cost"]
 
 #: A stage that finished faster than this was resumed, not computed: it says nothing about speed.
 RESUMED_SECONDS = 1.0
@@ -37,6 +39,84 @@ def duration(seconds: float) -> str:
     if seconds < 3600:
         return f"{seconds // 60} min {seconds % 60} s"
     return f"{seconds // 3600} h {seconds % 3600 // 60} min"
+
+
+#: Rough speeds of one CPU thread, the units of :func:`estimate`: seconds of Python and kernel
+#: overhead per batched step of a loop (measured on the tiny test runs, where the networks cost
+#: nothing), and floating-point operations per second on the small matrix products of these networks.
+STEP_SECONDS = 3e-3
+FLOPS = 1e10
+
+
+def estimate(*, steps: float, forwards: float = 0.0, flops: float = 0.0) -> float:
+    """A stage's rough seconds: ``steps`` batched steps and ``forwards`` one-sample network forwards of ``flops`` each.
+
+    Only the ratios between a run's stages matter: the time left scales them by the run's speed.
+
+    Example:
+        >>> round(estimate(steps=100, forwards=1e6, flops=mlp_flops(2, (512, 512), 2)), 1)
+        53.1
+    """
+    return steps * STEP_SECONDS + forwards * flops / FLOPS
+
+
+def mlp_flops(inputs: int, hidden: Sequence[int], outputs: int) -> float:
+    """Floating-point operations of one sample's forward through an MLP (a multiply-add counts 2).
+
+    Example:
+        >>> mlp_flops(2, (4,), 1)
+        24.0
+    """
+    return 2.0 * sum(a * b for a, b in pairwise([inputs, *hidden, outputs]))
+
+
+def update_cost(variant: str, config: Any) -> tuple[float, float]:
+    """One observation's update by adaptation ``variant`` ("N", "G", "S", "S(paper)"): (steps, forwards per item).
+
+    SMCD runs ``particles`` forwards per item, with about twice a plain step's overhead; GD
+    ``gd_steps`` gradient steps over ``gd_window`` transitions (the grid's mean: tuning picks one),
+    a backward counted as two forwards and a gradient step as three steps' overhead (measured:
+    ``smcd-rl panda`` at hidden 128). No adaptation costs nothing.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> update_cost("G", SimpleNamespace(gd_steps=(1, 5), gd_window=(5, 10), particles=100))
+        (9.0, 67.5)
+    """
+    if variant.startswith("S"):
+        return 2.0, float(config.particles)
+    if variant == "G":
+        steps = sum(config.gd_steps) / len(config.gd_steps)
+        return 3.0 * steps, 3.0 * steps * sum(config.gd_window) / len(config.gd_window)
+    return 0.0, 0.0
+
+
+def tuning_cost(config: Any, *, episodes: int, steps: int, flops: float, options: bool = True) -> float:
+    """Rough seconds of :func:`~smcd_rl.experiments.tuning.tune` on ``episodes`` x ``steps`` at ``config``.
+
+    It counts filter runs over all episodes at once: the calibration runs SMCD about
+    ``len(calibrate_flips) + 8`` times, the diagnosis twice (S, S(paper)), and the options (5x
+    particles, predictive mean, a Student-t calibration) ``len(calibrate_flips) + 15`` times more;
+    each run is ``steps`` SMCD updates (:func:`update_cost`) of every episode. The GD grid traces
+    each (lr, steps, window) once, one update per step.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> grid = {"gd_lr": (0.1,), "gd_steps": (1,), "gd_window": (5,)}
+        >>> config = SimpleNamespace(calibrate_flips=(0.01, 0.03), particles=100, **grid)
+        >>> round(tuning_cost(config, episodes=32, steps=20, flops=mlp_flops(2, (64, 64), 2)), 1)
+        5.3
+    """
+    flips = len(config.calibrate_flips)
+    runs = flips + 10 + (flips + 15 if options else 0)
+    overhead, forwards = update_cost("S", config)
+    smcd = estimate(steps=runs * steps * overhead, forwards=runs * episodes * steps * forwards, flops=flops)
+    gd = 0.0
+    for _, s, w in product(config.gd_lr, config.gd_steps, config.gd_window):
+        one = SimpleNamespace(gd_steps=(s,), gd_window=(w,))
+        overhead, forwards = update_cost("G", one)
+        gd += estimate(steps=steps * (1 + overhead), forwards=episodes * steps * (1 + forwards), flops=flops)
+    return smcd + gd
 
 
 class StagePlan:

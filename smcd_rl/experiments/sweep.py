@@ -40,6 +40,8 @@ Example:
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
@@ -48,6 +50,7 @@ from smcd_rl.experiments.common import write_csv
 from smcd_rl.experiments.configs.sweep import FULL, SweepConfig
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.result_store import ResultStore
+from smcd_rl.experiments.stages import estimate, mlp_flops
 from smcd_rl.experiments.sweep_grid import (
     FULL_GRIDS,
     GRIDS,
@@ -96,41 +99,46 @@ def run(config: SweepConfig, *, progress: bool = True) -> dict[str, Any]:
         points = trial_configs(config, grid)
         parameters = list(grid)
         work = SweepWork(config, points, ResultStore(ex.out / "partial", what="sweep result"))
+        ex.plan(stage_costs(config, points, work.groups))
         if not work.finished and config.study == "drone":  # a bad --subset fails here, not in every Ray task
             training_data(points[0], ex.generator)
 
         # --- the trials, on Ray -----------------------------------------------------------------
-        if not work.finished:
-            with ray_session(config) as ray:
-                work.run(ray, progress=progress)
+        with ex.stage("trials"):
+            if not work.finished:
+                with ray_session(config) as ray:
+                    work.run(ray, progress=progress)
 
         # --- results: the summary per parameter value; in the smcd study, CIs and paired verdicts ---
-        rows = [{**{p: point[p] for p in parameters}, **work.results[i]["metrics"]} for i, point in enumerate(points)]
-        metrics = list(work.results[0]["metrics"])
-        # A parameter with one value is a fixed setting here: it has no panel (unless nothing varies).
-        varied = [p for p in parameters if len(grid[p]) > 1 or config.design == "one-at-a-time"] or parameters
-        summary = summarise(rows, varied, metrics)
-        what = "Look-ahead MSE (m^2)" if config.study == "smcd" else "Last epoch's training loss (normalised MSE)"
-        tables = {
-            f"{what} per parameter value: mean, std and min over the other parameters' grid points": table(summary)
-        }
-        trials: list[dict[str, Any]] = []
-        comparisons: list[dict[str, Any]] = []
-        extra: dict[str, Any] = {}
-        if config.study == "smcd":
-            references = {
-                tuple(work.run_configs[key][p] for p in MODEL_PARAMETERS): {
-                    m: work.references[key, m]["arms"] for m in REFERENCES
-                }
-                for key in work.groups
+        with ex.stage("statistics"):
+            rows = [
+                {**{p: point[p] for p in parameters}, **work.results[i]["metrics"]} for i, point in enumerate(points)
+            ]
+            metrics = list(work.results[0]["metrics"])
+            # A parameter with one value is a fixed setting here: it has no panel (unless nothing varies).
+            varied = [p for p in parameters if len(grid[p]) > 1 or config.design == "one-at-a-time"] or parameters
+            summary = summarise(rows, varied, metrics)
+            what = "Look-ahead MSE (m^2)" if config.study == "smcd" else "Last epoch's training loss (normalised MSE)"
+            tables = {
+                f"{what} per parameter value: mean, std and min over the other parameters' grid points": table(summary)
             }
-            arms = [work.results[i]["arms"] for i in range(len(points))]
-            pairs = [(t, h) for t in config.burn_in for h in config.horizons]
-            extra["references"], comparisons = smcd_statistics(
-                rows, arms, references, parameters, pairs, seed=config.seed
-            )
-            trials = _trial_rows(rows, arms, references, parameters)
-            tables |= _smcd_tables(config, parameters, comparisons, extra["references"], len(points))
+            trials: list[dict[str, Any]] = []
+            comparisons: list[dict[str, Any]] = []
+            extra: dict[str, Any] = {}
+            if config.study == "smcd":
+                references = {
+                    tuple(work.run_configs[key][p] for p in MODEL_PARAMETERS): {
+                        m: work.references[key, m]["arms"] for m in REFERENCES
+                    }
+                    for key in work.groups
+                }
+                arms = [work.results[i]["arms"] for i in range(len(points))]
+                pairs = [(t, h) for t in config.burn_in for h in config.horizons]
+                extra["references"], comparisons = smcd_statistics(
+                    rows, arms, references, parameters, pairs, seed=config.seed
+                )
+                trials = _trial_rows(rows, arms, references, parameters)
+                tables |= _smcd_tables(config, parameters, comparisons, extra["references"], len(points))
         write_csv(ex.out / "summary.csv", summary)
         ex.write(
             experiment=f"hyper-parameter sweep, study {config.study} (paper Fig. {FIGURES[config.study]})",
@@ -155,6 +163,57 @@ def run(config: SweepConfig, *, progress: bool = True) -> dict[str, Any]:
         )
         print(f"{len(points)} grid points ({len(points) - work.reused} computed, {work.reused} from the cache)")
     return ex.result
+
+
+#: Mean steps of a simulated drone landing (as ``smcd-rl interpret`` counts them).
+LANDING_STEPS = 60
+
+
+def stage_costs(
+    config: SweepConfig, points: Sequence[Mapping[str, Any]], groups: Mapping[str, Sequence[int]]
+) -> dict[str, float]:
+    """The two stages' rough seconds (see :func:`~smcd_rl.experiments.stages.estimate`): the trials on Ray, the statistics.
+
+    The trials count starting Ray, and for each training run (``groups``: its grid points) a Ray
+    task's overhead per task, its optimiser steps and
+    a forward and backward (3 forwards) per sample and epoch (the most its points need), and in the
+    smcd study each point's and each reference's filtering of ``arms`` held-out arms (``particles``
+    forwards per arm and burn-in step), all shared among the Ray workers (``--cpus`` over
+    ``--cpus-per-trial``); work already stored counts all the same, as a rerun's trials stage ends
+    at once and so does not count towards the speed. The statistics count a bootstrap per point and
+    (T, H) pair in the smcd study, and the summary and plot (about a second) in every study.
+
+    Example:
+        >>> from smcd_rl.experiments.sweep_grid import trial_configs
+        >>> config = SweepConfig(grid=("hidden=8,16", "epochs=2"))
+        >>> points = trial_configs(config)
+        >>> list(stage_costs(config, points, {"a": [0], "b": [1]}))
+        ['trials', 'statistics']
+    """
+    trials = 0.0
+    for indices in groups.values():
+        trials += estimate(steps=30 * (1 + len(indices)))  # a Ray task's own overhead, about 0.1 s
+        point = points[indices[0]]
+        epochs = max(int(points[i]["epochs"]) for i in indices)
+        drone = point["study"] == "drone"
+        dims = (7, 3) if drone else (2, 2)
+        flops = mlp_flops(dims[0], (int(point["hidden"]),) * int(point["depth"]), dims[1])
+        if drone:
+            samples = int(point["subset"] or point["operators"] * point["trajectories_per_operator"]) * LANDING_STEPS
+        else:
+            samples = int(point["tasks"]) * int(point["episodes"]) * int(point["steps"])
+        steps = epochs * -(-samples // int(point["batch_size"]))
+        trials += estimate(steps=steps, forwards=3 * epochs * samples, flops=flops)
+        if point["study"] == "smcd":
+            runs = [int(points[i]["particles"]) for i in indices] + [1, 3 * config.gd_steps * config.gd_window]
+            burn = max(point["burn_in"]) + max(point["horizons"])
+            chunks = -(-int(point["arms"]) // int(point["chunk"]))
+            for per_arm in runs:
+                trials += estimate(steps=chunks * burn, forwards=int(point["arms"]) * burn * per_arm, flops=flops)
+    workers = max(1, (config.cpus or os.cpu_count() or 1) // config.cpus_per_trial)
+    pairs = len(config.burn_in) * len(config.horizons) if config.study == "smcd" else 0
+    ray_start = 30.0  # starting Ray and its workers (each imports torch): about half a minute on 2 CPUs
+    return {"trials": ray_start + trials / workers, "statistics": estimate(steps=300 + 30 * pairs * len(points))}
 
 
 def _smcd_tables(

@@ -38,6 +38,7 @@ from smcd_rl.experiments.common import format_table, save_figure, write_csv
 from smcd_rl.experiments.configs.telescoping import DEFAULT_METHODS, FULL, METHODS, TelescopingConfig
 from smcd_rl.experiments.harness import Experiment
 from smcd_rl.experiments.scoreboard import scoreboard_entry
+from smcd_rl.experiments.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.telescoping_tracking import make_method, sample_episodes, track_recorded
 from smcd_rl.experiments.tuning import tune
@@ -62,6 +63,7 @@ ADAPTIVE = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N", "O+P"
 def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the experiment and write its files; returns the JSON payload."""
     with Experiment(config, progress=progress) as ex:
+        ex.plan(stage_costs(config))
         # --- seed, data, models -------------------------------------------------------------------
         families = {_family(name) for name in config.methods} - {""}
         trains = families - ({"M"} if config.model else set())
@@ -205,6 +207,45 @@ def table(rows: list[dict[str, Any]], config: TelescopingConfig) -> str:
         for r in rows
     ]
     return format_table(body, header)
+
+
+def stage_costs(config: TelescopingConfig) -> dict[str, float]:
+    """Each stage's rough seconds at ``config`` (see :func:`~smcd_rl.experiments.stages.estimate`), in run order.
+
+    Training M counts its optimiser steps and a forward and backward (3 forwards) per babbling
+    sample and epoch; Reptile the same per inner epoch, with one inner step per batch of each task;
+    the tuning its filter runs on ``tuning_episodes x 20`` steps
+    (:func:`~smcd_rl.experiments.stages.tuning_cost`); each method ``horizon`` control steps of
+    ``trials`` arms, each a Jacobian of the model (about 3 forwards) and an update
+    (:func:`~smcd_rl.experiments.stages.update_cost`), or ``oracle_particles`` analytic kinematics
+    (about 200 operations each) for O+P.
+
+    Example:
+        >>> costs = stage_costs(TelescopingConfig())
+        >>> list(costs)[:3], costs["evaluate M+S"] > costs["evaluate M+N"]
+        (['train', 'train reptile', 'tune M'], True)
+    """
+    flops = mlp_flops(2, (config.hidden,) * config.depth, 2)
+    samples = config.tasks * config.episodes * config.steps
+    families = {_family(name) for name in config.methods} - {""}
+    costs: dict[str, float] = {}
+    if "M" in families and not config.model:
+        steps = config.epochs * -(-samples // config.batch_size)
+        costs["train"] = estimate(steps=steps, forwards=3 * config.epochs * samples, flops=flops)
+    if "R" in families:
+        inner = config.reptile_epochs * config.reptile_inner_epochs
+        steps = inner * config.tasks * -(-config.episodes * config.steps // config.reptile_batch_size)
+        costs["train reptile"] = estimate(steps=steps, forwards=3 * inner * samples, flops=flops)
+    for family in sorted(families):
+        if any(_family(m) == family and not m.endswith("+N") for m in config.methods):
+            tuning = tuning_cost(config, episodes=config.tuning_episodes, steps=TUNING_STEPS, flops=flops)
+            costs[f"tune {family}"] = tuning
+    for name in config.methods:
+        overhead, update = update_cost(name.partition("+")[2], config) if _family(name) else (0.0, 0.0)
+        per_arm = {"true": 0.0, "O+P": config.oracle_particles * 200 / flops}.get(name, 3 + update)
+        forwards = config.horizon * config.trials * per_arm
+        costs[f"evaluate {name}"] = estimate(steps=config.horizon * (1 + overhead), forwards=forwards, flops=flops)
+    return costs
 
 
 def _family(name: str) -> str:

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from smcd_rl import cli
-from smcd_rl.experiments import ant
+from smcd_rl.experiments import ant, stages
+from tests.experiments.test_stages import planned_stages
 
 TINY = [
     "--transitions",
@@ -60,8 +61,12 @@ ONE_CELL = ["--planners", "rs", "--adaptations", "N", "--conditions", "crippled"
 
 def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch) -> None:
     out = tmp_path / "run"
+    monkeypatch.setattr(stages, "RESUMED_SECONDS", 0.0)  # tiny stages count as timed: the time left shows
     assert cli.main(["ant", "--out", str(out), *TINY, *ALL_CELLS]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    planned = planned_stages(captured.err, "run")
+    assert planned[:3] == ["collect", "train", "tune M"] and len(planned) == 3 + 2 * 4 + 3 * 4 * 2
     # The primary table (prediction error) comes first, then its verdicts, the returns and the tuning.
     first = [printed.index(t) for t in ("Prediction error", "M+S paired with M+N", "Episode return", "Tuning of M")]
     assert first == sorted(first)

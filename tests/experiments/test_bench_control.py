@@ -10,6 +10,7 @@ import pytest
 
 from smcd_rl import cli
 from smcd_rl.experiments.bench_control import CONTENDERS
+from tests.experiments.test_stages import planned_stages
 
 TINY = [
     "--hidden",
@@ -35,7 +36,9 @@ TINY = [
 def test_bench_control_prints_rates_and_ratios_and_writes_files(tmp_path, capsys) -> None:
     out = tmp_path / "bench"
     assert cli.main(["bench", "control", "--out", str(out), *TINY]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert planned_stages(captured.err, "bench") == ["time"]  # the contenders are timed interleaved: one stage
     assert "torch_threads=1" in printed and "analytic / M+S =" in printed and "M+S / M+G" in printed
     rows = list(csv.DictReader(open(out / "results.csv")))
     assert [r["loop"] for r in rows] == list(CONTENDERS)

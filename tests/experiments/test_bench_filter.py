@@ -10,6 +10,8 @@ import pytest
 import torch
 
 from smcd_rl import cli
+from smcd_rl.experiments import stages
+from tests.experiments.test_stages import planned_stages
 
 TINY = [
     "--particles",
@@ -31,7 +33,8 @@ TINY = [
 ]
 
 
-def test_bench_filter_prints_ratios_memory_and_writes_files(tmp_path, capsys) -> None:
+def test_bench_filter_prints_ratios_memory_and_writes_files(tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.setattr(stages, "RESUMED_SECONDS", 0.0)  # tiny stages count as timed: the time left shows
     out = tmp_path / "bench"
     args = [
         "bench",
@@ -47,7 +50,9 @@ def test_bench_filter_prints_ratios_memory_and_writes_files(tmp_path, capsys) ->
         "16",
     ]
     assert cli.main(args) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert planned_stages(captured.err, "bench") == ["N=20", "N=60", "memory"]
     assert "torch_threads=1" in printed and "naive / ours" in printed and "extra peak memory" in printed
     assert "not measured interleaved, not measured back to back" in printed
     rows = list(csv.DictReader(open(out / "results.csv")))

@@ -9,6 +9,7 @@ import json
 import pytest
 
 from smcd_rl import cli
+from tests.experiments.test_stages import planned_stages
 
 TINY = [
     "--observation",
@@ -44,7 +45,9 @@ NAMES = {
 def test_bench_planners_prints_ratios_and_writes_files(tmp_path, capsys) -> None:
     out = tmp_path / "bench"
     assert cli.main(["bench", "planners", "--out", str(out), *TINY]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert planned_stages(captured.err, "bench") == ["time"]  # the contenders are timed interleaved: one stage
     assert "torch_threads=" in printed and "torchrl / ours =" in printed and "ours / floor" in printed
     rows = list(csv.DictReader(open(out / "results.csv")))
     assert {r["planner"] for r in rows} == NAMES

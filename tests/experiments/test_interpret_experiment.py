@@ -13,8 +13,9 @@ import torch
 
 from smcd_rl import cli
 from smcd_rl.envs.drone_operators import save_dataset, simulate_operators
-from smcd_rl.experiments import interpret, interpret_links, interpret_lookahead
+from smcd_rl.experiments import interpret, interpret_links, interpret_lookahead, stages
 from smcd_rl.interpret import top_k_neighbour_accuracy
+from tests.experiments.test_stages import planned_stages
 
 TINY = [
     "--fig9-latents",
@@ -119,8 +120,15 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
     tmp_path, capsys, monkeypatch
 ) -> None:
     first = tmp_path / "first"
+    monkeypatch.setattr(stages, "RESUMED_SECONDS", 0.0)  # tiny stages count as timed: the time left shows
     assert cli.main(["interpret", "--out", str(first), *TINY]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert planned_stages(captured.err, "first") == [
+        *("train fig9_ld8", "train fig9_ld16", "fig9 ld=8", "fig9 ld=16", "train bc"),
+        *("confidence stored", "confidence known", "confidence unknown", "train reptile", "tune M"),
+        *("lookahead M+N", "lookahead M+S", "lookahead R+N"),
+    ]
     for name in FILES:
         assert (first / name).is_file(), name
     for pattern in CHECKPOINTS:

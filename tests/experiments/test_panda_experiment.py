@@ -10,9 +10,10 @@ import torch
 import smcd_rl
 from smcd_rl import cli
 from smcd_rl.envs.panda_reach import panda_fk, sample_goals, sample_tool_lengths
-from smcd_rl.experiments import panda, tuning
+from smcd_rl.experiments import panda, stages, tuning
 from smcd_rl.experiments.common import torch_threads
 from smcd_rl.experiments.scoreboard import COLUMNS
+from tests.experiments.test_stages import planned_stages
 
 TINY = [
     "--samples",
@@ -60,8 +61,11 @@ def _table(printed: str) -> list[str]:
 
 def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, capsys, monkeypatch) -> None:
     out = tmp_path / "run"
+    monkeypatch.setattr(stages, "RESUMED_SECONDS", 0.0)  # tiny stages count as timed: the time left shows
     assert cli.main(["panda", "--out", str(out), *TINY]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert planned_stages(captured.err, "run")[:3] == ["train", "tune M", "evaluate FK n=1"]
     table = _table(printed)
     assert [cell.strip() for cell in table[0].split("|")[1:-1]] == ["method", "n=2", "n=5"]
     assert [line.split("|")[1].strip() for line in table[2:]] == LABELS

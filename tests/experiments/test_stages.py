@@ -8,6 +8,23 @@ import pytest
 from smcd_rl.experiments import stages
 from smcd_rl.experiments.stages import StagePlan
 
+#: One stage line: command, k, n (if planned), stage, and the times.
+STAGE_LINE = re.compile(r"(\S+) \[(\d+)(?:/(\d+))?\] (.+?) \| (\S.* elapsed.*)")
+
+
+def planned_stages(err: str, command: str) -> list[str]:
+    """The stages ``command`` printed on ``err``, checked: each ``[k/n]`` with one n, k counting up to n, time left from the 2nd on.
+
+    A tiny run's stages take well under :data:`~smcd_rl.experiments.stages.RESUMED_SECONDS`, so a
+    test that wants the time left sets that to 0 first (``monkeypatch``).
+    """
+    lines = [m for line in err.splitlines() if (m := STAGE_LINE.fullmatch(line)) and m[1] == command]
+    assert lines, err
+    assert {m[3] for m in lines} == {lines[0][3]} and lines[0][3] is not None, [m[0] for m in lines]
+    assert [int(m[2]) for m in lines] == list(range(1, int(lines[0][3]) + 1)), [m[0] for m in lines]
+    assert all(", about " in m[5] and m[5].endswith(" left") for m in lines[1:]), [m[0] for m in lines]
+    return [m[4] for m in lines]
+
 
 class Clock:
     """A perf_counter the test advances by hand."""

@@ -13,6 +13,7 @@ import torch
 
 from smcd_rl import cli
 from smcd_rl.experiments import sweep
+from tests.experiments.test_stages import planned_stages
 
 TINY_TWO_LINK = ["--tasks", "6", "--episodes", "4", "--cpus", "2"]
 
@@ -30,7 +31,9 @@ def test_training_sweep_on_local_ray_equals_in_process_trials_and_resumes(tmp_pa
     out = tmp_path / "run"
     grid = ["hidden=8,16", "dropout=0.5", "lr=0.01", "batch_size=64", "epochs=2"]
     assert cli.main(["sweep", "--out", str(out), "--grid", *grid, *TINY_TWO_LINK]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert planned_stages(captured.err, "run") == ["trials", "statistics"]  # starting Ray: the trials take > 1 s
     assert "| train_loss | hidden" in printed and "2 computed, 0 from the cache" in printed
     for name in ("results.csv", "summary.csv", "results.json", "sweep.png", "report.md"):
         assert (out / name).is_file(), name

@@ -10,8 +10,9 @@ import torch
 import smcd_rl
 from smcd_rl import cli
 from smcd_rl.envs.two_link_arm import motor_babbling
-from smcd_rl.experiments import telescoping
+from smcd_rl.experiments import stages, telescoping
 from smcd_rl.experiments.telescoping_tracking import sample_episodes, track
+from tests.experiments.test_stages import planned_stages
 
 TINY = [
     "--tasks",
@@ -48,10 +49,14 @@ def first_table(printed: str) -> list[str]:
     return lines[start:end]
 
 
-def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, capsys) -> None:
+def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, capsys, monkeypatch) -> None:
     whole = tmp_path / "whole"
+    monkeypatch.setattr(stages, "RESUMED_SECONDS", 0.0)  # tiny stages count as timed: the time left shows
     assert cli.main(["telescoping", "--out", str(whole), *TINY]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    expected = ["train", "train reptile", "tune M", "tune R", *(f"evaluate {m}" for m in telescoping.DEFAULT_METHODS)]
+    assert planned_stages(captured.err, "whole") == expected
     uninterrupted = first_table(printed)
     assert [line.split("|")[1].strip() for line in uninterrupted[2:]] == list(telescoping.DEFAULT_METHODS)
     # the headline verdicts: M+S against M+N, M+G and M+S(paper)
