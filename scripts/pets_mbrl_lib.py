@@ -18,7 +18,6 @@ Needs mbrl-lib: ``bash scripts/install_mbrl_lib.sh``. Copy this file and edit it
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -34,6 +33,7 @@ from torch import Tensor
 
 import smcd_rl
 from smcd_rl.integrations.mbrl_lib import pets_loop
+from smcd_rl.script_options import parse_config, save_options
 
 
 @dataclass
@@ -93,21 +93,6 @@ TASKS = {"InvertedPendulum-v5": (inverted_pendulum_reward, inverted_pendulum_ter
 
 
 CHOICES = {"env_id": sorted(TASKS), "propagation": ["fixed_model", "random_model", "expectation"]}
-#: Options a run may be resumed with other values of: where it is, and speed alone.
-RESUMABLE_WITH_OTHER = ("out", "threads")
-
-
-def within(value: float, interval: str) -> bool:
-    """Whether ``value`` lies in ``interval``, written ``"[1, inf)"`` or ``"(0, 1]"``; NaN never does."""
-    low, high = (float(end) for end in interval[1:-1].split(","))
-    above = low < value if interval[0] == "(" else low <= value
-    below = value < high if interval[-1] == ")" else value <= high
-    return above and below
-
-
-def describe(interval: str) -> str:
-    low, high = interval[1:-1].split(", ")
-    return f"{'>' if interval[0] == '(' else '>='} {low}" if high == "inf" else f"in {interval}"
 
 
 def run_dir(config: Config) -> Path:
@@ -116,55 +101,19 @@ def run_dir(config: Config) -> Path:
 
 def parse_args() -> Config:
     """The options, checked (ranges, and a checkpoint's options when resuming) before any work: usage and exit 2 if not."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    for f in dataclasses.fields(Config):
-        flag = "--" + f.name.replace("_", "-")
-        if f.type in (bool, "bool"):
-            parser.add_argument(flag, action="store_true", help=f.metadata["help"])
-        else:
-            kind = {"int": int, "float": float, "str": str}[str(f.type)]
-            valid = f"; {describe(f.metadata['valid'])}" if "valid" in f.metadata else ""
-            parser.add_argument(
-                flag, type=kind, default=f.default, choices=CHOICES.get(f.name),
-                help=f"{f.metadata['help']} (default: {f.default}{valid})",
-            )  # fmt: skip
-    config = Config(**vars(parser.parse_args()))
-    config = dataclasses.replace(config, **TINY) if config.tiny else config
-    for f in dataclasses.fields(Config):
-        value = getattr(config, f.name)
-        if "valid" in f.metadata and not within(value, f.metadata["valid"]):
-            parser.error(f"argument --{f.name.replace('_', '-')}: must be {describe(f.metadata['valid'])}, got {value}")
-    elites = math.ceil(config.population_size * config.elite_ratio)
-    if config.cem_iterations > 1 and elites < 2:  # one elite has no variance: CEM's next iteration plans NaN
-        parser.error(
-            f"argument --elite-ratio: --population-size {config.population_size} x --elite-ratio {config.elite_ratio} "
-            f"keeps {elites} elite, but CEM with --cem-iterations {config.cem_iterations} needs at least 2; "
-            "raise either, or pass --cem-iterations 1"
-        )
-    check_resume(parser, config)
-    return config
 
+    def check(config: Config) -> str | None:
+        elites = math.ceil(config.population_size * config.elite_ratio)
+        if config.cem_iterations > 1 and elites < 2:  # one elite has no variance: CEM's next iteration plans NaN
+            return (
+                f"argument --elite-ratio: --population-size {config.population_size} x --elite-ratio "
+                f"{config.elite_ratio} keeps {elites} elite, but CEM with --cem-iterations {config.cem_iterations} "
+                "needs at least 2; raise either, or pass --cem-iterations 1"
+            )
+        return None
 
-def check_resume(parser: argparse.ArgumentParser, config: Config) -> None:
-    """Refuse to resume a checkpoint that a run with other options wrote."""
-    run = run_dir(config)
-    if not (run / "checkpoint.pt").is_file():
-        return
-    fix = f"use another --out, or delete {run / 'checkpoint.pt'} to start afresh"
-    if not (run / "options.json").is_file():
-        parser.error(f"{run} holds a checkpoint but no options.json saying which options wrote it; {fix}")
-    saved = json.loads((run / "options.json").read_text())
-    now = {k: v for k, v in dataclasses.asdict(config).items() if k not in RESUMABLE_WITH_OTHER}
-    differ = [
-        f"--{k.replace('_', '-')} {saved.get(k)} (now {now.get(k)})"
-        for k in sorted(set(saved) | set(now))
-        if saved.get(k) != now.get(k)
-    ]
-    if differ:
-        parser.error(
-            f"{run} holds a checkpoint of a run with other options: {', '.join(differ)}; rerun with those to "
-            f"resume it, or {fix}"
-        )
+    description = __doc__.split("\n")[0]
+    return parse_config(Config, run_dir=run_dir, tiny=TINY, description=description, choices=CHOICES, check=check)
 
 
 def random_returns(env: gymnasium.Env, episodes: int, seed: int) -> list[float]:
@@ -188,8 +137,7 @@ def main() -> None:
     run = run_dir(config)
     run.mkdir(parents=True, exist_ok=True)
     resuming = (run / "checkpoint.pt").is_file()
-    options = {k: v for k, v in dataclasses.asdict(config).items() if k not in RESUMABLE_WITH_OTHER}
-    (run / "options.json").write_text(json.dumps(options, indent=2) + "\n")
+    save_options(config, run)
     if resuming:
         print(f"resuming {run} from its checkpoint", flush=True)
     torch.set_num_threads(config.threads)

@@ -22,7 +22,6 @@ Copy this file and edit it; ``python scripts/sb3_context.py --help`` lists the s
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
@@ -42,6 +41,7 @@ from stable_baselines3.common.logger import configure
 import smcd_rl
 from smcd_rl.files import load_file, save_file
 from smcd_rl.integrations.gymnasium import AdaptationWrapper, collect_transitions
+from smcd_rl.script_options import parse_config, save_options
 
 
 @dataclass
@@ -90,72 +90,15 @@ class RandomPendulum(gymnasium.Wrapper):
         return obs, {**info, "mass": pendulum.m, "length": pendulum.l}
 
 
-CHOICES: dict[str, list[str]] = {}
-#: Options a run may be resumed with other values of: where it is, and speed alone.
-RESUMABLE_WITH_OTHER = ("out", "threads")
-
-
-def within(value: float, interval: str) -> bool:
-    """Whether ``value`` lies in ``interval``, written ``"[1, inf)"`` or ``"(0, 1]"``; NaN never does."""
-    low, high = (float(end) for end in interval[1:-1].split(","))
-    above = low < value if interval[0] == "(" else low <= value
-    below = value < high if interval[-1] == ")" else value <= high
-    return above and below
-
-
-def describe(interval: str) -> str:
-    low, high = interval[1:-1].split(", ")
-    return f"{'>' if interval[0] == '(' else '>='} {low}" if high == "inf" else f"in {interval}"
-
-
 def run_dir(config: Config) -> Path:
     return Path(config.out) / f"sb3_context_k{config.context}"
 
 
 def parse_args() -> Config:
     """The options, checked (ranges, and a checkpoint's options when resuming) before any work: usage and exit 2 if not."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    for f in dataclasses.fields(Config):
-        flag = "--" + f.name.replace("_", "-")
-        if f.type in (bool, "bool"):
-            parser.add_argument(flag, action="store_true", help=f.metadata["help"])
-        else:
-            kind = {"int": int, "float": float, "str": str}[str(f.type)]
-            valid = f"; {describe(f.metadata['valid'])}" if "valid" in f.metadata else ""
-            parser.add_argument(
-                flag, type=kind, default=f.default, choices=CHOICES.get(f.name),
-                help=f"{f.metadata['help']} (default: {f.default}{valid})",
-            )  # fmt: skip
-    config = Config(**vars(parser.parse_args()))
-    config = dataclasses.replace(config, **TINY) if config.tiny else config
-    for f in dataclasses.fields(Config):
-        value = getattr(config, f.name)
-        if "valid" in f.metadata and not within(value, f.metadata["valid"]):
-            parser.error(f"argument --{f.name.replace('_', '-')}: must be {describe(f.metadata['valid'])}, got {value}")
-    check_resume(parser, config)
-    return config
-
-
-def check_resume(parser: argparse.ArgumentParser, config: Config) -> None:
-    """Refuse to resume a checkpoint that a run with other options wrote."""
-    run = run_dir(config)
-    if not ((run / "checkpoint.pt").is_file() or (run / "fit.pt").is_file()):
-        return
-    fix = f"use another --out, or delete {run / 'checkpoint.pt'} and {run / 'fit.pt'} to start afresh"
-    if not (run / "options.json").is_file():
-        parser.error(f"{run} holds a checkpoint but no options.json saying which options wrote it; {fix}")
-    saved = json.loads((run / "options.json").read_text())
-    now = {k: v for k, v in dataclasses.asdict(config).items() if k not in RESUMABLE_WITH_OTHER}
-    differ = [
-        f"--{k.replace('_', '-')} {saved.get(k)} (now {now.get(k)})"
-        for k in sorted(set(saved) | set(now))
-        if saved.get(k) != now.get(k)
-    ]
-    if differ:
-        parser.error(
-            f"{run} holds a checkpoint of a run with other options: {', '.join(differ)}; rerun with those to "
-            f"resume it, or {fix}"
-        )
+    return parse_config(
+        Config, run_dir=run_dir, tiny=TINY, description=__doc__.split("\n")[0], checkpoints=("checkpoint.pt", "fit.pt")
+    )
 
 
 def mean_ci(values: list[float]) -> dict[str, float]:
@@ -172,8 +115,7 @@ def main() -> None:
     run.mkdir(parents=True, exist_ok=True)
     resume = run / "checkpoint.pt"
     resuming = resume.is_file() or (run / "fit.pt").is_file()
-    options = {k: v for k, v in dataclasses.asdict(config).items() if k not in RESUMABLE_WITH_OTHER}
-    (run / "options.json").write_text(json.dumps(options, indent=2) + "\n")
+    save_options(config, run)
     torch.set_num_threads(config.threads)
     torch.manual_seed(0)
     start = time.perf_counter()
