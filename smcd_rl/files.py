@@ -48,6 +48,7 @@ __all__ = [
     "load_file",
     "save_file",
     "write_atomic",
+    "write_text",
     "UnreadableFileError",
     "FileWriteError",
     "CheckpointMismatchError",
@@ -239,6 +240,21 @@ def write_atomic(path: str | os.PathLike[str], write: Callable[[IO[bytes]], obje
         raise
 
 
+def write_text(path: str | os.PathLike[str], text: str, *, what: str = "file") -> None:
+    """Write ``text`` (UTF-8) atomically through :func:`write_atomic`: a full disk leaves no half file.
+
+    Example:
+        >>> import tempfile
+        >>> from smcd_rl.files import write_text
+        >>> path = Path(tempfile.mkdtemp()) / "notes.md"
+        >>> write_text(path, "# notes\\n", what="notes")
+        >>> path.read_text()
+        '# notes\\n'
+    """
+    data = text.encode("utf-8")
+    write_atomic(path, lambda handle: handle.write(data), what=what)
+
+
 def _create_unique(directory: Path, name: str) -> tuple[Path, Any]:
     """Create and open a new temporary file for ``name`` in ``directory``, a name no other writer uses.
 
@@ -272,10 +288,10 @@ def _format_bytes(size: int) -> str:
     """``size`` bytes in words: ``"512 bytes"``, ``"3.4 kB"``, ``"1.2 MB"``, ``"2.0 GB"`` (powers of 1000)."""
     if size < 1000:
         return f"{size} bytes"
-    for unit, scale in (("kB", 1e3), ("MB", 1e6), ("GB", 1e9)):
-        if size < 1000 * scale or unit == "GB":
+    for unit, scale in (("kB", 1e3), ("MB", 1e6)):
+        if size < 1000 * scale:
             return f"{size / scale:.1f} {unit}"
-    raise AssertionError("unreachable")
+    return f"{size / 1e9:.1f} GB"
 
 
 def _os_error(err: BaseException) -> OSError | None:

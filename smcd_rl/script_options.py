@@ -26,7 +26,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
-from smcd_rl.files import write_atomic
+from smcd_rl.files import write_text
 
 __all__ = ["RESUMABLE_WITH_OTHER", "describe", "parse_config", "save_options", "within"]
 
@@ -133,5 +133,4 @@ def _check_resume(parser: argparse.ArgumentParser, config: Any, run: Path, check
 
 def save_options(config: Any, run: Path) -> None:
     """Write ``run/options.json``, the options a resumed run must repeat (all but :data:`RESUMABLE_WITH_OTHER`)."""
-    text = json.dumps(_options(config), indent=2) + "\n"
-    write_atomic(run / "options.json", lambda handle: handle.write(text.encode("utf-8")), what="options")
+    write_text(run / "options.json", json.dumps(_options(config), indent=2) + "\n", what="options")

@@ -18,7 +18,7 @@ import torch
 from tqdm.auto import tqdm
 
 from smcd_rl.experiments.configs import config_dict
-from smcd_rl.files import write_atomic
+from smcd_rl.files import write_atomic, write_text
 
 __all__ = [
     "config_dict",
@@ -130,20 +130,6 @@ def write_csv(path: str | os.PathLike[str], rows: Sequence[Mapping[str, Any]]) -
 def write_json(path: str | os.PathLike[str], payload: Any) -> None:
     """Write ``payload`` as indented JSON (values JSON cannot hold as their ``str``), atomically."""
     write_text(path, json.dumps(payload, indent=2, default=str) + "\n", what="JSON file")
-
-
-def write_text(path: str | os.PathLike[str], text: str, *, what: str = "file") -> None:
-    """Write ``text`` (UTF-8) atomically through :func:`smcd_rl.files.write_atomic`: a full disk leaves no half file.
-
-    Example:
-        >>> import tempfile
-        >>> path = Path(tempfile.mkdtemp()) / "notes.md"
-        >>> write_text(path, "# notes\\n", what="notes")
-        >>> path.read_text()
-        '# notes\\n'
-    """
-    data = text.encode("utf-8")
-    write_atomic(path, lambda handle: handle.write(data), what=what)
 
 
 def save_figure(fig: Any, path: str | os.PathLike[str], **options: Any) -> None:
