@@ -21,7 +21,7 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl.experiments.common import machine_info
+from smcd_rl.experiments.shared.runtime import machine_info
 
 
 def _spin() -> None:  # pragma: no cover - runs in the busy process

@@ -29,7 +29,7 @@ def main() -> None:
     parser.add_argument("page", type=Path, help="the docs directory of the experiment's page")
     args = parser.parse_args()
     if args.run.is_file() and args.run.name == "scoreboard.json":
-        from smcd_rl.experiments import scoreboard
+        from smcd_rl.experiments.scoreboard import run as scoreboard
 
         out = Path(scoreboard.ScoreboardConfig().out)
         try:

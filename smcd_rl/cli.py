@@ -5,8 +5,8 @@ Every sub-command is a config dataclass (its field help is the ``--help`` text),
 A name with a space in :data:`COMMANDS` is a nested command: ``"bench planners"`` runs as
 ``smcd-rl bench planners``.
 
-The parser is built from the configs alone, which live in torch-free modules
-(:mod:`smcd_rl.experiments.configs`); a command's experiment module, and with it torch, is
+The parser is built from the configs alone, which live in torch-free modules (each command's
+package has its ``config.py``); a command's ``run`` module, and with it torch, is
 imported only once its options have parsed, so ``--help`` and option errors come back at once.
 
 Example:
@@ -45,69 +45,69 @@ class Command(NamedTuple):
 #: sub-command -> its :class:`Command`.
 COMMANDS: dict[str, Command] = {
     "two-link": Command(
-        "smcd_rl.experiments.configs.two_link",
+        "smcd_rl.experiments.two_link.config",
         "TwoLinkConfig",
-        "smcd_rl.experiments.two_link",
+        "smcd_rl.experiments.two_link.run",
         "two-link arm look-ahead prediction after T burn-in steps (paper Fig. 2)",
     ),
     "panda": Command(
-        "smcd_rl.experiments.configs.panda",
+        "smcd_rl.experiments.panda.config",
         "PandaConfig",
-        "smcd_rl.experiments.panda",
+        "smcd_rl.experiments.panda.run",
         "7-DOF Panda reaching with an unknown tool, measured every n-th step: FK, M+N, M+G, M+S (paper Fig. 3)",
     ),
     "telescoping": Command(
-        "smcd_rl.experiments.configs.telescoping",
+        "smcd_rl.experiments.telescoping.config",
         "TelescopingConfig",
-        "smcd_rl.experiments.telescoping",
+        "smcd_rl.experiments.telescoping.run",
         "PD tracking of a circling target with a telescoping link, adapted Jacobians (paper appendix A.4, Fig. 8)",
     ),
     "interpret": Command(
-        "smcd_rl.experiments.configs.interpret",
+        "smcd_rl.experiments.interpret.config",
         "InterpretConfig",
-        "smcd_rl.experiments.interpret",
+        "smcd_rl.experiments.interpret.run",
         "mask interpretability: link lengths (Fig. 9), drone skill/strategy/phase/success (Figs. 4, 13), drone look-ahead (Fig. 14)",
     ),
     "sweep": Command(
-        "smcd_rl.experiments.configs.sweep",
+        "smcd_rl.experiments.sweep.config",
         "SweepConfig",
-        "smcd_rl.experiments.sweep",
+        "smcd_rl.experiments.sweep.run",
         "hyper-parameter ablations on Ray: training loss (Figs. 5, 12) and SMCD look-ahead error (Fig. 6)",
     ),
     "ant": Command(
-        "smcd_rl.experiments.configs.ant",
+        "smcd_rl.experiments.ant.config",
         "AntConfig",
-        "smcd_rl.experiments.ant",
+        "smcd_rl.experiments.ant.run",
         "crippled-leg Ant: planners x adaptations, healthy and crippled (paper appendix C, Fig. 15)",
     ),
     "fetch": Command(
-        "smcd_rl.experiments.configs.fetch",
+        "smcd_rl.experiments.fetch.config",
         "FetchConfig",
-        "smcd_rl.experiments.fetch",
+        "smcd_rl.experiments.fetch.run",
         "Fetch task families (rotated reach, heavy push): MPC with CEM/MPPI on a learnt model, N/G/S/S(paper)",
     ),
     "scoreboard": Command(
-        "smcd_rl.experiments.configs.scoreboard",
+        "smcd_rl.experiments.scoreboard.config",
         "ScoreboardConfig",
-        "smcd_rl.experiments.scoreboard",
+        "smcd_rl.experiments.scoreboard.run",
         "one table and plot of every task from experiments' run directories: none, GD, SMCD (paper), SMCD (calibrated)",
     ),
     "bench planners": Command(
-        "smcd_rl.experiments.configs.bench_planners",
+        "smcd_rl.experiments.bench.planners.config",
         "BenchPlannersConfig",
-        "smcd_rl.experiments.bench_planners",
+        "smcd_rl.experiments.bench.planners.run",
         "time our CEM against torchrl's CEMPlanner on the same model, with the bare forwards as the floor",
     ),
     "bench filter": Command(
-        "smcd_rl.experiments.configs.bench_filter",
+        "smcd_rl.experiments.bench.filter.config",
         "BenchFilterConfig",
-        "smcd_rl.experiments.bench_filter",
+        "smcd_rl.experiments.bench.filter.run",
         "time one SMCD update against a dense matmul and a naive update, realistic and worst case; peak memory",
     ),
     "bench control": Command(
-        "smcd_rl.experiments.configs.bench_control",
+        "smcd_rl.experiments.bench.control.config",
         "BenchControlConfig",
-        "smcd_rl.experiments.bench_control",
+        "smcd_rl.experiments.bench.control.run",
         "time the Panda reaching loop (observe + Jacobian + PD) with SMCD against gradient descent and the analytic chain",
     ),
 }

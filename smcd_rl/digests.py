@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import importlib.util
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -73,15 +74,13 @@ def code_digest() -> str:
     Cached results are keyed by it, so any change to the code, an upgrade or a local edit, makes
     them be computed afresh instead of reused from the code that was there before.
     """
-    import smcd_rl  # imported here: the package imports this module while it initialises
-    import smcd_rl.agents
-    import smcd_rl.envs
-
     digest = hashlib.sha256()
-    for package in (smcd_rl, smcd_rl.envs, smcd_rl.agents):
-        for root in package.__path__:
+    for package in ("smcd_rl", "smcd_rl.envs", "smcd_rl.agents"):
+        # Found, not imported: the package itself imports this module while it initialises.
+        spec = importlib.util.find_spec(package)
+        for root in spec.submodule_search_locations or () if spec else ():
             for path in sorted(Path(root).rglob("*.py")):
-                digest.update(f"{package.__name__}/{path.relative_to(root)}".encode())
+                digest.update(f"{package}/{path.relative_to(root)}".encode())
                 digest.update(path.read_bytes())
     return digest.hexdigest()
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import pytest
 
 from smcd_rl import cli
-from smcd_rl.experiments.harness import ExperimentConfig, setting
+from smcd_rl.experiments.shared.harness import ExperimentConfig, setting
 
 
 @dataclass
@@ -96,7 +96,8 @@ def test_every_command_runs_the_config_that_its_help_describes(command: str) -> 
 
 def test_env_constants_repeated_in_the_torch_free_configs_agree_with_the_envs() -> None:
     from smcd_rl.envs import panda_reach, two_link_telescoping
-    from smcd_rl.experiments.configs import panda, telescoping
+    from smcd_rl.experiments.panda import config as panda
+    from smcd_rl.experiments.telescoping import config as telescoping
 
     for name in ("TELESCOPING_DT", "TARGET_ANGULAR_SPEED"):
         assert getattr(telescoping, name) == getattr(two_link_telescoping, name), name
@@ -110,7 +111,7 @@ def test_a_full_disk_under_any_write_is_one_error_line(
     """A write that is not the project's own (a library's log) meeting a full disk was a traceback."""
     import errno
 
-    from smcd_rl.experiments import scoreboard
+    from smcd_rl.experiments.scoreboard import run as scoreboard
 
     def full(config, **kwargs):  # type: ignore[no-untyped-def]
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "ray.log"))

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 from smcd_rl.cli import make_config
-from smcd_rl.experiments.common import config_dict, settings_fingerprint
-from smcd_rl.experiments.configs import OUTPUT_ONLY
+from smcd_rl.experiments.shared.config import OUTPUT_ONLY, config_dict
+from smcd_rl.experiments.shared.outputs import settings_fingerprint
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "experiments"
 

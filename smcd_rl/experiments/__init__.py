@@ -1,5 +1,8 @@
-"""The ``smcd-rl`` experiments and benchmarks: one module per command, its config in :mod:`.configs`.
+"""The ``smcd-rl`` experiments and benchmarks: one package per command, and what they share.
 
-This package's ``__init__`` imports nothing, and :mod:`.configs` imports no torch, so that the
-command line can build its ``--help`` without the seconds torch takes to import.
+Each command's package (``two_link``, ``telescoping``, ``panda``, ``interpret``, ``sweep``,
+``ant``, ``fetch``, ``scoreboard``, ``bench.planners``, ``bench.filter``, ``bench.control``)
+holds its torch-free ``config.py`` (what ``--help`` is built from), its ``run.py`` and the modules
+only it uses; :mod:`.shared` holds the machinery they all use. No ``__init__`` here imports
+anything, so that the command line builds its ``--help`` without the seconds torch takes to import.
 """

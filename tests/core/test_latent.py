@@ -9,7 +9,7 @@ from tensordict import TensorDict
 import smcd_rl
 from smcd_rl.baselines import LatentVariableModel, fit_latent
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, motor_babbling, two_link_fk
-from smcd_rl.experiments.common import torch_threads
+from smcd_rl.experiments.shared.runtime import torch_threads
 
 
 @pytest.fixture(autouse=True)

@@ -25,7 +25,7 @@ from tensordict import TensorDict
 import smcd_rl
 from smcd_rl import cli
 from smcd_rl.baselines import LatentVariableModel
-from smcd_rl.experiments.result_store import ResultStore
+from smcd_rl.experiments.shared.result_store import ResultStore
 
 pytestmark = pytest.mark.filterwarnings("ignore::smcd_rl.UnfittedModelWarning")  # toy networks, untrained on purpose
 PACKAGE = Path(smcd_rl.__file__).parent

@@ -6,7 +6,7 @@ from tensordict import TensorDict
 
 import smcd_rl
 from smcd_rl.envs.two_link_arm import motor_babbling
-from smcd_rl.experiments.common import torch_threads
+from smcd_rl.experiments.shared.runtime import torch_threads
 
 
 @pytest.fixture(autouse=True)

@@ -28,7 +28,7 @@ from smcd_rl.envs.panda_reach import (
     sample_joint_configurations,
     sample_tool_lengths,
 )
-from smcd_rl.experiments.common import torch_threads
+from smcd_rl.experiments.shared.runtime import torch_threads
 
 ENV_ID = "smcd_rl/PandaReach-v0"
 F64 = torch.float64

@@ -23,7 +23,7 @@ from smcd_rl.envs.panda_reach import READY_POSE, PandaReachEnv, panda_fk, panda_
 from smcd_rl.envs.rendering import BACKGROUND, Canvas
 from smcd_rl.envs.two_link_arm import EE_COLOR, GOAL_COLOR, TwoLinkArmEnv, two_link_frame
 from smcd_rl.envs.two_link_telescoping import TwoLinkTelescopingEnv, telescoping_frame
-from smcd_rl.experiments.video import RecordGif, video_name, write_gif
+from smcd_rl.experiments.shared.video import RecordGif, video_name, write_gif
 
 IDS = sorted({env_id for env_id, _, _ in TASKS} | {i for i in gymnasium.registry if i.startswith("smcd_rl/")})
 MUJOCO = {"smcd_rl/CrippledAnt-v0"}

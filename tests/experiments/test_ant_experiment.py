@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from smcd_rl import cli
-from smcd_rl.experiments import ant, stages
+from smcd_rl.experiments.ant import run as ant
+from smcd_rl.experiments.shared import stages
 from tests.experiments.test_stages import planned_stages
 
 TINY = [

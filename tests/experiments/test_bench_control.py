@@ -9,7 +9,7 @@ import json
 import pytest
 
 from smcd_rl import cli
-from smcd_rl.experiments.bench_control import CONTENDERS
+from smcd_rl.experiments.bench.control.run import CONTENDERS
 from tests.experiments.test_stages import planned_stages
 
 TINY = [

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from smcd_rl import cli
-from smcd_rl.experiments import stages
+from smcd_rl.experiments.shared import stages
 from tests.experiments.test_stages import planned_stages
 
 TINY = [

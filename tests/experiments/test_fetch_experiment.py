@@ -116,7 +116,7 @@ def test_video_writes_gifs_and_changes_no_number(tmp_path: Path) -> None:
 
 
 def test_bad_options_are_refused() -> None:
-    from smcd_rl.experiments.configs.fetch import FetchConfig
+    from smcd_rl.experiments.fetch.config import FetchConfig
 
     for bad, message in [
         ({"elites": 200}, "--elites"),

@@ -19,9 +19,9 @@ import torch
 
 import smcd_rl.files
 from smcd_rl import cli
-from smcd_rl.experiments.common import save_figure, write_csv
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig
-from smcd_rl.experiments.result_store import ResultStore
+from smcd_rl.experiments.shared.harness import Experiment, ExperimentConfig
+from smcd_rl.experiments.shared.outputs import save_figure, write_csv
+from smcd_rl.experiments.shared.result_store import ResultStore
 from smcd_rl.files import FileWriteError, UnreadableFileError
 
 
@@ -174,7 +174,7 @@ def test_a_result_that_is_not_a_mapping_is_refused(tmp_path: Path) -> None:
 _HOLDER = textwrap.dedent(
     """
     import sys, time
-    from smcd_rl.experiments.harness import Experiment, ExperimentConfig
+    from smcd_rl.experiments.shared.harness import Experiment, ExperimentConfig
     with Experiment(ExperimentConfig(out=sys.argv[1]), progress=False):
         print("running", flush=True)
         time.sleep(120)

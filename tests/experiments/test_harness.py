@@ -11,8 +11,8 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl.experiments.harness import Experiment, ExperimentConfig, setting
-from smcd_rl.experiments.stats import cell_statistics, mean_ci, paired_comparisons
+from smcd_rl.experiments.shared.harness import Experiment, ExperimentConfig, setting
+from smcd_rl.experiments.shared.stats import cell_statistics, mean_ci, paired_comparisons
 
 
 @dataclass
@@ -213,7 +213,7 @@ def test_a_rerun_removes_the_files_of_the_earlier_run_that_it_does_not_write(tmp
 
 def test_results_are_recomputed_after_the_code_changes(tmp_path: Path, monkeypatch) -> None:
     """The cache was keyed by the package version, which does not change with the code."""
-    from smcd_rl.experiments import result_store
+    from smcd_rl.experiments.shared import result_store
 
     calls: list[str] = []
 
@@ -231,7 +231,7 @@ def test_results_are_recomputed_after_the_code_changes(tmp_path: Path, monkeypat
 
 def test_a_verdict_table_of_no_comparisons_is_left_out_of_the_report(tmp_path: Path, capsys) -> None:
     """Without the baseline a command used to print a verdict table of headers only."""
-    from smcd_rl.experiments.stats import verdict_table
+    from smcd_rl.experiments.shared.stats import verdict_table
 
     with Experiment(ToyConfig(out=str(tmp_path)), progress=False) as ex:
         tables = {"Scores": "| a |\n|---|\n| 1 |", "Verdicts": verdict_table([], cell=["T"])}

@@ -13,7 +13,10 @@ import torch
 
 from smcd_rl import cli
 from smcd_rl.envs.drone_operators import save_dataset, simulate_operators
-from smcd_rl.experiments import interpret, interpret_links, interpret_lookahead, stages
+from smcd_rl.experiments.interpret import links as interpret_links
+from smcd_rl.experiments.interpret import lookahead as interpret_lookahead
+from smcd_rl.experiments.interpret import run as interpret
+from smcd_rl.experiments.shared import stages
 from smcd_rl.interpret import top_k_neighbour_accuracy
 from tests.experiments.test_stages import planned_stages
 

@@ -10,9 +10,10 @@ import torch
 import smcd_rl
 from smcd_rl import cli
 from smcd_rl.envs.panda_reach import panda_fk, sample_goals, sample_tool_lengths
-from smcd_rl.experiments import panda, stages, tuning
-from smcd_rl.experiments.common import torch_threads
-from smcd_rl.experiments.scoreboard import COLUMNS
+from smcd_rl.experiments.panda import run as panda
+from smcd_rl.experiments.shared import stages, tuning
+from smcd_rl.experiments.shared.runtime import torch_threads
+from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS
 from tests.experiments.test_stages import planned_stages
 
 TINY = [

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from smcd_rl.experiments import scoreboard
+from smcd_rl.experiments.scoreboard import run as scoreboard
 
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "experiments" / "scoreboard"
 

@@ -5,8 +5,8 @@ import re
 
 import pytest
 
-from smcd_rl.experiments import stages
-from smcd_rl.experiments.stages import StagePlan
+from smcd_rl.experiments.shared import stages
+from smcd_rl.experiments.shared.stages import StagePlan
 
 #: One stage line: command, k, n (if planned), stage, and the times.
 STAGE_LINE = re.compile(r"(\S+) \[(\d+)(?:/(\d+))?\] (.+?) \| (\S.* elapsed.*)")
@@ -15,7 +15,7 @@ STAGE_LINE = re.compile(r"(\S+) \[(\d+)(?:/(\d+))?\] (.+?) \| (\S.* elapsed.*)")
 def planned_stages(err: str, command: str) -> list[str]:
     """The stages ``command`` printed on ``err``, checked: each ``[k/n]`` with one n, k counting up to n, time left from the 2nd on.
 
-    A tiny run's stages take well under :data:`~smcd_rl.experiments.stages.RESUMED_SECONDS`, so a
+    A tiny run's stages take well under :data:`~smcd_rl.experiments.shared.stages.RESUMED_SECONDS`, so a
     test that wants the time left sets that to 0 first (``monkeypatch``).
     """
     lines = [m for line in err.splitlines() if (m := STAGE_LINE.fullmatch(line)) and m[1] == command]

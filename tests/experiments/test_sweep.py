@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from smcd_rl import cli
-from smcd_rl.experiments import sweep
+from smcd_rl.experiments.sweep import run as sweep
 from tests.experiments.test_stages import planned_stages
 
 TINY_TWO_LINK = ["--tasks", "6", "--episodes", "4", "--cpus", "2"]

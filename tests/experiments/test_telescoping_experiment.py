@@ -10,8 +10,9 @@ import torch
 import smcd_rl
 from smcd_rl import cli
 from smcd_rl.envs.two_link_arm import motor_babbling
-from smcd_rl.experiments import stages, telescoping
-from smcd_rl.experiments.telescoping_tracking import sample_episodes, track
+from smcd_rl.experiments.shared import stages
+from smcd_rl.experiments.telescoping import run as telescoping
+from smcd_rl.experiments.telescoping.tracking import sample_episodes, track
 from tests.experiments.test_stages import planned_stages
 
 TINY = [

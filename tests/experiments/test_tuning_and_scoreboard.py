@@ -13,10 +13,12 @@ import torch
 import smcd_rl
 from smcd_rl import cli
 from smcd_rl.calibration import calibrate
-from smcd_rl.experiments import scoreboard, tuning
-from smcd_rl.experiments.adaptations import AdaptationConfig
-from smcd_rl.experiments.harness import Experiment
-from smcd_rl.experiments.stats import cell_statistics
+from smcd_rl.experiments.scoreboard import run as scoreboard
+from smcd_rl.experiments.shared import tuning
+from smcd_rl.experiments.shared.adaptations import AdaptationConfig
+from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
+from smcd_rl.experiments.shared.stats import cell_statistics
 from tests.core.test_calibration import SIGMA, known_mask_episodes
 
 
@@ -108,7 +110,7 @@ def fake_run(path, task: str, *, better: bool, adaptive: tuple[str, ...] = ("M+S
         }
     }
     rows, comparisons = cell_statistics(scores, cell=("T",), baseline="M+N", adaptive=adaptive, metric="rmse")
-    entry = scoreboard.scoreboard_entry(task, rows, comparisons, cell={"T": 10}, metric="rmse", unit="m")
+    entry = scoreboard_entry(task, rows, comparisons, cell={"T": 10}, metric="rmse", unit="m")
     path.mkdir()
     (path / "results.json").write_text(json.dumps({"scoreboard": entry}))
 

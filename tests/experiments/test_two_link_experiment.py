@@ -6,8 +6,8 @@ import json
 import pytest
 
 from smcd_rl import cli
-from smcd_rl.experiments import two_link
-from smcd_rl.experiments.common import torch_threads
+from smcd_rl.experiments.shared.runtime import torch_threads
+from smcd_rl.experiments.two_link import run as two_link
 
 SMALL = [
     "--tasks",

@@ -13,8 +13,8 @@ from PIL import Image
 from smcd_rl import cli
 from smcd_rl.cli import make_config
 from smcd_rl.envs.two_link_telescoping import circle_target, telescoping_frame
-from smcd_rl.experiments.common import settings_fingerprint
-from smcd_rl.experiments.telescoping_tracking import sample_episodes
+from smcd_rl.experiments.shared.outputs import settings_fingerprint
+from smcd_rl.experiments.telescoping.tracking import sample_episodes
 
 # The tiny settings of tests/experiments/test_panda_experiment.py and test_telescoping_experiment.py.
 PANDA = (

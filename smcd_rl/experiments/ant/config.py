@@ -1,0 +1,158 @@
+"""The config of ``smcd-rl ant`` (:mod:`smcd_rl.experiments.ant.run`): its settings, ``--full`` preset, tasks and cells.
+
+Example:
+    >>> AntConfig().task, tuple(TASKS), tuple(PLANNERS), ADAPTATIONS["S"]
+    ('l2a', ('l2a', 'ant-v5'), ('cem', 'mppi', 'rs'), 'M+S')
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import Any, ClassVar, TypedDict
+
+from smcd_rl.experiments.shared.adaptation_config import VARIANTS, TuningConfig, check_learnt_dynamics
+from smcd_rl.experiments.shared.config import setting
+
+__all__ = ["AntConfig", "FULL", "TASKS", "RewardWeights", "PLANNERS", "ADAPTATIONS", "CONDITIONS", "CELLS"]
+
+
+class RewardWeights(TypedDict, total=False):
+    """Keyword arguments of :func:`~smcd_rl.envs.crippled_ant.ant_reward` that a task changes."""
+
+    ctrl_cost_weight: float
+    healthy_reward: float
+
+
+#: Per task: CrippledAntEnv arguments, the planners' reward weights, whether episodes end on a fall.
+TASKS: dict[str, tuple[dict[str, Any], RewardWeights, bool]] = {
+    "l2a": (
+        {
+            "ctrl_cost_weight": 0.0,
+            "contact_cost_weight": 0.0,
+            "healthy_reward": 0.05,
+            "terminate_when_unhealthy": False,
+        },
+        {"ctrl_cost_weight": 0.0, "healthy_reward": 0.05},
+        False,
+    ),
+    "ant-v5": ({}, {}, True),
+}
+
+
+#: Planner names and their labels in the table and plot.
+PLANNERS: dict[str, str] = {"cem": "CEM", "mppi": "MPPI", "rs": "RS"}
+#: Adaptation names (:data:`~smcd_rl.experiments.shared.adaptation_config.VARIANTS`) and their method labels.
+ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
+#: Conditions: the Ant the model was trained on, and the Ant with one leg crippled per episode.
+CONDITIONS: tuple[str, ...] = ("healthy", "crippled")
+#: Every (planner, adaptation, condition) cell of Fig. 15.
+CELLS: tuple[tuple[str, str, str], ...] = tuple(itertools.product(PLANNERS, ADAPTATIONS, CONDITIONS))
+
+
+@dataclass
+class AntConfig(TuningConfig):
+    """Settings of ``smcd-rl ant``; the defaults finish in about 12 minutes on 2 CPU cores."""
+
+    out: str = setting("runs/ant", "output directory (results, plot, report, data, trained model)")
+    task: str = setting(
+        "l2a", "reward and episode end: l2a (Learning to Adapt's, the paper's) or ant-v5", choices=tuple(TASKS)
+    )
+    data_policy: str = setting(
+        "random", "policy that collects the training data: random or sac", choices=("random", "sac")
+    )
+    sac_steps: int = setting(5000, "training steps of the SAC data policy (--data-policy sac)", low=1)
+    transitions: int = setting(100_000, "transitions collected from the healthy Ant (see --validation)", low=3)
+    data_episode_steps: int = setting(200, "steps per data-collection episode", low=1)
+    hidden: int = setting(200, "width of each hidden layer", low=1)
+    depth: int = setting(2, "number of hidden layers", low=1)
+    dropout: float = setting(
+        0.1, "dropout probability p (0 < p < 1) used in training (the paper's 0.5 with --full)", above=0.0
+    )
+    epochs: int = setting(40, "training epochs", low=1)
+    batch_size: int = setting(256, "training batch size", low=1)
+    lr: float = setting(1e-3, "Adam learning rate", above=0.0)
+    validation: float = setting(
+        0.1, "fraction (0 < f < 1) of the transitions held out (validation RMSE, SMCD(paper) noise)", above=0.0
+    )
+    planners: tuple[str, ...] = setting(
+        ("cem",), "planners of the return episodes: cem, mppi, rs", choices=tuple(PLANNERS)
+    )
+    adaptations: tuple[str, ...] = setting(
+        ("N", "G", "S"),
+        "adaptations of the return episodes: N (none), G (tuned gradient descent), S (calibrated SMCD), "
+        "S(paper) (SMCD at --noise-scale, --flip-prob); the prediction error always compares all four",
+        choices=tuple(ADAPTATIONS),
+    )
+    conditions: tuple[str, ...] = setting(CONDITIONS, "conditions to run: healthy, crippled", choices=CONDITIONS)
+    crippled_legs: tuple[int, ...] = setting(
+        (0, 1, 2, 3), "legs the crippled leg is drawn from per episode", choices=(0, 1, 2, 3)
+    )
+    prediction_episodes: int = setting(
+        50, "random-action episodes per condition on which the prediction error (primary metric) is paired", low=2
+    )
+    prediction_steps: int = setting(50, "steps per prediction episode (more than --prediction-horizon)", low=2)
+    prediction_horizon: int = setting(10, "open-loop look-ahead H of the H-step prediction error", low=1)
+    episodes: int = setting(
+        30, "MPC episodes per planner x adaptation x condition cell (return, secondary metric)", low=2
+    )
+    episode_steps: int = setting(100, "steps per MPC episode (ant-v5: a fall ends it sooner)", low=1)
+    horizon: int = setting(10, "planning horizon (steps)", low=1)
+    candidates: int = setting(200, "action sequences per planner iteration (RS: times --iterations, once)", low=1)
+    elites: int = setting(20, "CEM elites per iteration (at most --candidates)", low=1)
+    iterations: int = setting(3, "CEM and MPPI iterations per step", low=1)
+    temperature: float = setting(1.0, "MPPI temperature (units of the predicted return)", above=0.0)
+    mppi_noise: float = setting(0.5, "MPPI perturbation std (actions lie in [-1, 1])", above=0.0)
+    particles: int = setting(100, "SMCD mask particles (both SMCD variants)", low=1)
+    flip_prob: float = setting(0.01, "bit-flip probability per step of SMCD at the paper's settings", low=0.0)
+    noise_scale: float = setting(
+        3.0, "likelihood noise of SMCD at the paper's settings, in units of the held-out RMSE per dimension", above=0.0
+    )
+    tuning_episodes: int = setting(
+        32, "held-out random-action episodes of the healthy Ant (training distribution) SMCD and GD are tuned on", low=2
+    )
+    tuning_steps: int = setting(25, "steps per tuning episode", low=2)
+    full: bool = setting(
+        False,
+        "the paper's scale: 3 x 1024 model, 10^6 transitions, every planner and adaptation, 110 episodes of 1000 steps",
+    )
+
+    NON_EMPTY: ClassVar[tuple[str, ...]] = (
+        "planners",
+        "adaptations",
+        "conditions",
+        "crippled_legs",
+    )  # and TuningConfig's
+    SELECTION = ("planners", "adaptations", "conditions")  # which cells run: a subset rerun reuses cells
+
+    def validate(self) -> None:
+        """The declared bounds, then what they cannot express: upper bounds and bounds across options."""
+        super().validate()
+        check_learnt_dynamics(self)
+        if self.prediction_steps <= self.prediction_horizon:
+            raise ValueError(
+                f"--prediction-steps ({self.prediction_steps}) must be > --prediction-horizon "
+                f"({self.prediction_horizon})"
+            )
+
+
+#: What ``--full`` changes (options given explicitly still win).
+FULL = {
+    "transitions": 1_000_000,
+    "data_episode_steps": 1000,
+    "hidden": 1024,
+    "depth": 3,
+    "dropout": 0.5,
+    "epochs": 100,
+    "lr": 1e-4,
+    "planners": tuple(PLANNERS),
+    "adaptations": tuple(ADAPTATIONS),
+    "episodes": 110,
+    "episode_steps": 1000,
+    "horizon": 15,
+    "candidates": 500,
+    "elites": 50,
+    "iterations": 5,
+    "particles": 1000,
+    "threads": 0,
+}

@@ -1,0 +1,62 @@
+"""The stage plan of ``smcd-rl ant``: each stage's rough cost from the settings, for the progress line."""
+
+from __future__ import annotations
+
+import math
+
+from smcd_rl.experiments.ant.config import CELLS, AntConfig
+from smcd_rl.experiments.ant.episodes import ACTION_DIM, OBS_DIM
+from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
+from smcd_rl.experiments.shared.tuning import VARIANTS
+
+__all__ = ["stage_costs"]
+
+
+def stage_costs(config: AntConfig) -> dict[str, float]:
+    """Each stage's rough seconds at ``config`` (see :func:`~smcd_rl.experiments.shared.stages.estimate`), in run order.
+
+    Collecting counts a third of a step's overhead per simulated transition, 300 for making the
+    environment (and, with ``--data-policy sac``, three per SAC step); training its optimiser steps and a forward and
+    backward (3 forwards) per training transition and epoch; the tuning its filter runs
+    (:func:`~smcd_rl.experiments.shared.stages.tuning_cost`); each prediction stage ``prediction_steps``
+    steps of every episode, each an update (:func:`~smcd_rl.experiments.shared.stages.update_cost`) and an
+    open-loop prediction of ``prediction_horizon`` forwards (the rollouts batched); each MPC cell
+    ``episodes x episode_steps`` steps, each an update and a plan of ``candidates x iterations x
+    horizon`` forwards in ``iterations x horizon`` rollout steps, a tenth of a step's overhead each
+    (measured on a 4000-transition run).
+
+    Example:
+        >>> costs = stage_costs(AntConfig())
+        >>> list(costs)[:4], costs["evaluate cem/S/crippled"] > costs["evaluate cem/N/crippled"]
+        (['collect', 'train', 'tune M', 'prediction-healthy N'], True)
+    """
+    flops = mlp_flops(OBS_DIM + ACTION_DIM, (config.hidden,) * config.depth, OBS_DIM)
+    samples = config.transitions * (1 - config.validation)
+    sac = 3 * config.sac_steps if config.data_policy == "sac" else 0
+    costs = {
+        "collect": estimate(steps=300 + config.transitions / 3 + sac),
+        "train": estimate(
+            steps=config.epochs * math.ceil(samples / config.batch_size),
+            forwards=3 * config.epochs * samples,
+            flops=flops,
+        ),
+        "tune M": tuning_cost(config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops),
+    }
+    horizon = config.prediction_horizon
+    for condition in config.conditions:
+        for variant in VARIANTS:
+            overhead, update = update_cost(variant, config)
+            forwards = config.prediction_episodes * config.prediction_steps * (update + horizon)
+            steps = config.prediction_steps * (1 + overhead) + horizon  # the open-loop rollouts run batched
+            costs[f"prediction-{condition} {variant}"] = estimate(steps=steps, forwards=forwards, flops=flops)
+    plan = config.candidates * config.iterations * config.horizon
+    for cell in CELLS:
+        if cell[0] in config.planners and cell[1] in config.adaptations and cell[2] in config.conditions:
+            overhead, update = update_cost(cell[1], config)
+            steps = config.episodes * config.episode_steps
+            costs[f"evaluate {'/'.join(cell)}"] = estimate(
+                steps=steps * (1 + overhead + config.iterations * config.horizon / 10),
+                forwards=steps * (update + plan),
+                flops=flops,
+            )
+    return costs

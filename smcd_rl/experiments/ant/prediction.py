@@ -1,0 +1,138 @@
+"""The crippled-leg Ant's primary metric: prediction error of the adapted model on logged episodes.
+
+:mod:`smcd_rl.experiments.ant.run` calls these. :func:`random_episodes` logs episodes of the Ant under
+a fixed behaviour policy (uniform random actions, the default data-collection policy), as a
+TensorDict of batch ``[E, T]`` in the dynamics model's keys; it makes both the fair protocol's
+tuning episodes (healthy Ant, seeds of their own) and the test episodes (healthy, and one leg
+crippled per episode). :func:`prediction_errors` filters one strategy along every episode at
+once and scores each episode by
+
+* ``one_step``: the RMSE of the prediction of transition ``t`` from the transitions before it,
+  made before observing it (``t = 1..T-1``, as :func:`smcd_rl.diagnostics.trace` scores it);
+* ``open_loop``: from each step ``t = 1..T-H``, after observing the transitions before ``t``, the
+  adapted model rolled ``H`` steps ahead on the logged actions from the logged state at ``t``, its
+  RMSE against the logged states ``t+1..t+H`` (pooled over the ``H`` steps).
+
+Both are in observation units, pooled over the 41 dimensions, one number per episode, so that
+strategies are compared paired over the same episodes.
+
+Example:
+    >>> import torch, smcd_rl
+    >>> from tensordict import TensorDict
+    >>> model = smcd_rl.AdaptiveDynamicsModel(smcd_rl.MaskedMLP(3 + 1, 3, hidden=(8,)))
+    >>> model.fitted = True  # a toy network: declare it trained
+    >>> td = TensorDict({"observation": torch.rand(4, 6, 3), "action": torch.rand(4, 6, 1),
+    ...                  "next": {"observation": torch.rand(4, 6, 3)}}, [4, 6])
+    >>> errors = prediction_errors(model, smcd_rl.NoAdaptation(), td, horizon=2)
+    >>> errors["one_step"].shape, errors["open_loop"].shape, errors["refused"]
+    (torch.Size([4]), torch.Size([4]), 0)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+import smcd_rl
+
+__all__ = ["random_episodes", "prediction_errors"]
+
+
+def random_episodes(
+    task_env: dict[str, Any], legs: Sequence[int] | None, *, count: int, steps: int, seed: int
+) -> tuple[TensorDict, list[int]]:
+    """``count`` episodes of ``steps`` uniform random actions: batch ``[count, steps]``, and each one's leg.
+
+    Episode ``k`` resets with env seed ``seed + k`` (its start state and, crippled, its leg drawn
+    from ``legs``; ``None``: healthy) and draws its actions from a generator of the same seed, so
+    the episodes depend on nothing else. The Ant never ends an episode early here (only the
+    dynamics matter), whatever the task's termination.
+
+    Args:
+        task_env: the task's :class:`~smcd_rl.envs.crippled_ant.CrippledAntEnv` arguments.
+        legs: legs the crippled leg is drawn from, or ``None`` for the healthy Ant.
+        count: episodes.
+        steps: transitions per episode.
+        seed: the first episode's seed.
+    """
+    from smcd_rl.envs.crippled_ant import CrippledAntEnv
+
+    env = CrippledAntEnv(crippled_legs=legs, **{**task_env, "terminate_when_unhealthy": False})
+    observations, actions, nexts, chosen = [], [], [], []
+    for k in range(count):
+        obs, info = env.reset(seed=seed + k)
+        chosen.append(int(info["crippled_leg"]))
+        rng = np.random.default_rng(seed + k)
+        episode_obs, episode_actions = [obs], []
+        for _ in range(steps):
+            action = rng.uniform(-1.0, 1.0, size=env.action_space.shape).astype(np.float32)
+            obs, *_ = env.step(action)
+            episode_obs.append(obs)
+            episode_actions.append(action)
+        states = torch.as_tensor(np.stack(episode_obs))
+        observations.append(states[:-1])
+        nexts.append(states[1:])
+        actions.append(torch.as_tensor(np.stack(episode_actions)))
+    env.close()
+    td = TensorDict(
+        {
+            "observation": torch.stack(observations),
+            "action": torch.stack(actions),
+            "next": {"observation": torch.stack(nexts)},
+        },
+        batch_size=[count, steps],
+    )
+    return td, chosen
+
+
+@torch.no_grad()
+def prediction_errors(
+    model: smcd_rl.AdaptiveDynamicsModel, strategy: smcd_rl.Adaptation, episodes: TensorDict, *, horizon: int
+) -> dict[str, Any]:
+    """Per-episode one-step and ``horizon``-step open-loop RMSE of ``strategy`` (see the module doc).
+
+    Args:
+        model: the trained model; ``strategy`` adapts a copy of it (``model.with_adaptation``).
+        strategy: a fresh strategy.
+        episodes: batch ``[E, T]`` with ``observation``, ``action`` and ``("next", "observation")``;
+            ``T > horizon``.
+        horizon: the open-loop look-ahead ``H`` (steps).
+
+    Returns:
+        ``{"one_step": [E], "open_loop": [E]}`` (float64, observation units) and ``"refused"``: the
+        steps whose observation the strategy refused (skipped: it keeps its state and goes on).
+    """
+    count, steps = episodes.batch_size
+    if steps <= horizon:
+        raise ValueError(f"episodes of {steps} steps are too short for a {horizon}-step open-loop error")
+    adapted = model.with_adaptation(strategy)
+    assert isinstance(adapted, smcd_rl.AdaptiveDynamicsModel)
+    adapted.reset(batch_shape=(count,))
+    obs, act = episodes.get("observation"), episodes.get("action")
+    target = episodes.get(("next", "observation")).to(torch.float64)
+    one_step = torch.zeros(count, dtype=torch.float64)
+    open_loop = torch.zeros(count, dtype=torch.float64)
+    starts, refused = 0, 0
+    for t in range(steps):
+        if t > 0:
+            predicted = adapted.step(obs[:, t], act[:, t]).to(torch.float64)
+            one_step += (predicted - target[:, t]).square().mean(-1).cpu()
+            if t + horizon <= steps:
+                state = obs[:, t]
+                for k in range(horizon):
+                    state = adapted.step(state, act[:, t + k])
+                    open_loop += (state.to(torch.float64) - target[:, t + k]).square().mean(-1).cpu()
+                starts += 1
+        try:
+            adapted.observe(episodes[:, t])
+        except ValueError:
+            refused += 1
+    return {
+        "one_step": (one_step / (steps - 1)).sqrt(),
+        "open_loop": (open_loop / (starts * horizon)).sqrt(),
+        "refused": refused,
+    }

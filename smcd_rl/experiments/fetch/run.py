@@ -1,0 +1,351 @@
+"""Model-based control of the Fetch task families with online adaptation: ``smcd-rl fetch``.
+
+Reads top to bottom, per family: seed, collect transitions from many draws of the family, fit one
+dropout dynamics model of the ``observation`` entry, tune the adaptations by the fair protocol
+(:mod:`smcd_rl.experiments.shared.tuning`), then run MPC episodes on held-out test draws for every
+planner x adaptation cell, and the same draws under uniform random actions as a reference.
+All strategies share the trained network (``model.with_adaptation``).
+
+Families (``--families``; only ``reach`` by default):
+
+* ``reach``: ``smcd_rl/FetchReachRotated-v0``, the commanded gripper displacement rotated about z
+  by an angle drawn from ``U(-r, r)`` (``r = --rotation``, 1.5 rad; the family's own default range
+  is 0.5 rad, which plain MPC already solves without adaptation) and scaled by a gain from
+  ``U(0.5, 1.5)``, per episode. Training data: uniform random actions.
+* ``push``: ``smcd_rl/FetchPushHeavy-v0``, the block's mass and friction drawn per episode.
+  Training data: a noisy scripted push towards the block (random actions seldom touch it).
+  Pushing a block to a goal with MPC on a learnt model is much harder than reaching: at the
+  default planner settings no 5-step plan reaches the block, the dense reward (the block's
+  distance to the goal) ranks no candidate, and every method ends as random actions do. The
+  push family is therefore left out of the default.
+
+The adaptations (``--adaptations``), labelled as in every experiment:
+
+* ``M+N``: no adaptation;
+* ``M+G``: online gradient descent, its ``--gd-lr x --gd-steps x --gd-window`` grid point of best
+  one-step error on the tuning episodes;
+* ``M+S``: SMCD calibrated by log evidence (:func:`smcd_rl.calibrate`) on the tuning episodes;
+* ``M+S(paper)``: SMCD at fixed settings. The paper has no Fetch task, so the fixed setting is
+  this: likelihood noise per observation dimension ``--noise-scale`` (1) times the network's
+  held-out one-step RMSE, and ``--flip-prob`` (0.01, the paper's Ant setting).
+
+**Fair protocol.** The tuning episodes are ``--tuning-episodes`` episodes of ``--tuning-steps``
+data-policy actions, each on a fresh draw of the family (the training distribution), from env
+seeds of their own (``--seed + 2000003 + k``), neither training data nor any test draw.
+
+**Metric.** ``--episodes`` test draws per family, episode ``k`` from env seed ``--seed + 1000003
++ k`` (its draw and its goal), the same in every cell, one MPC episode of ``--episode-steps``
+steps each. Scored by the env's ``is_success`` after the last step (success rate) and by the
+final distance (m) of the achieved goal to the goal; the planners rank candidates by the
+family's dense reward (``reward_type="dense"``, minus the distance), since the sparse one gives
+every candidate the same reward until one already reaches the goal. Per cell the mean with a 95%
+bootstrap CI, and paired comparisons over the same draws (and planner seeds) of every adaptive
+method against ``M+N`` and each other (:func:`~smcd_rl.experiments.shared.stats.cell_statistics`). The
+scoreboard entry is the reach success rate under CEM.
+
+Writes ``results.csv`` (per family, planner, method and metric the mean with its CI),
+``trials.csv`` (every episode, with its draw), ``comparisons.csv``, ``results.json`` (with
+``training``, ``tuning`` and ``scoreboard``), ``fetch.png`` (success rate and final distance per
+cell), ``tuning-<family>.png`` and ``report.md``. The data, training, tuning and finished cells are
+reused by a rerun.
+
+Example:
+    >>> from smcd_rl.experiments.fetch.config import FetchConfig
+    >>> config = FetchConfig()
+    >>> config.families, config.planners, config.adaptations
+    (('reach',), ('cem', 'mppi'), ('N', 'G', 'S', 'S(paper)'))
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+
+import smcd_rl
+from smcd_rl.digests import model_digest
+from smcd_rl.experiments.fetch.config import ADAPTATIONS, FAMILIES, FULL, PLANNERS, FetchConfig
+from smcd_rl.experiments.fetch.episodes import collect, random_cell, run_cell, tuning_episodes, validation_error
+from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.experiments.shared.outputs import format_table, save_figure
+from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
+from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.shared.tuning import tune
+from smcd_rl.experiments.shared.video import video_name
+from smcd_rl.experiments.shared.workers import computed
+
+__all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "ADAPTATIONS", "run", "table"]
+
+#: Offsets of the env seeds from ``--seed``: test draws, tuning draws.
+EPISODE_SEED, TUNING_SEED = 1_000_003, 2_000_003
+#: Settings that determine the collected transitions (besides the family).
+DATA_SETTINGS = ("seed", "rotation", "transitions", "data_episode_steps")
+#: The paired comparisons: each adaptive method against M+N and against each other.
+ADAPTIVE = ("M+S", "M+S(paper)", "M+G")
+#: The reference row: uniform random actions on the same test draws.
+RANDOM = "random actions"
+#: Metrics: name in the rows -> (label, higher is better).
+METRICS = {"success": ("success rate", True), "distance": ("final distance (m)", False)}
+#: Relative stage costs (seconds of the default run on 2 CPU cores, one torch thread).
+COSTS = {"collect": 20.0, "train": 9.0, "tune": 7.0, "evaluate": 15.0, "random": 1.0}
+
+
+def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Run the experiment and write its files; returns the JSON payload."""
+    with Experiment(config, progress=progress) as ex:
+        ex.plan(_costs(config))
+        episode_seeds = [config.seed + EPISODE_SEED + k for k in range(config.episodes)]  # the same in every cell
+        episodes: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
+        seconds: dict[tuple[str, str, str], float] = {}
+        training: dict[str, Any] = {}
+        tunings: dict[str, Any] = {}
+        plots: dict[str, Any] = {}
+        tables: dict[str, str] = {}
+        videos: list[str] = []  # --video: the GIFs the cells wrote
+        for family in config.families:
+            # --- data from many draws of the family ------------------------------------------------
+            data_key = {"family": family, **{k: getattr(config, k) for k in DATA_SETTINGS}}
+            with ex.stage(f"collect {family}"):
+                collected = ex.store.get("data", data_key)
+                if collected is None:
+                    collected = collect(family, config, progress=progress)
+                    ex.store.put("data", data_key, collected)
+            data = collected["data"]
+            n_val = max(1, int(round(config.validation * data.shape[0])))
+            train, val = data[:-n_val].to(ex.device), data[-n_val:].to(ex.device)
+
+            # --- one dropout dynamics model for every strategy ------------------------------------
+            obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
+            torch.manual_seed(config.seed)  # the same initial weights whether the data was collected or loaded
+            net = smcd_rl.MaskedMLP(
+                obs_dim + action_dim,
+                obs_dim,
+                hidden=(config.hidden,) * config.depth,
+                dropout=config.dropout,
+                device=ex.device,
+            )
+            model = smcd_rl.AdaptiveDynamicsModel(net)
+            fit = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
+            losses = ex.train(family, smcd_rl.fit_dynamics, model, train, **fit)
+            model.save(ex.out / f"model-{family}.pt")
+            val_rmse = validation_error(model, val)
+            paper_noise = (config.noise_scale * val_rmse).clamp_min(1e-4)
+            training[family] = {
+                "transitions": data.shape[0],
+                "held_out": n_val,
+                "collect_seconds": collected["seconds"],
+                "loss": losses,
+                "validation_rmse": val_rmse.tolist(),
+                "paper_noise_std": paper_noise.tolist(),
+            }
+
+            # --- the fair protocol: tuned on fresh training draws, never the test draws ----------
+            tuning_data = tuning_episodes(family, config, seed=config.seed + TUNING_SEED).to(ex.device)
+            tuning = tune(ex, model, tuning_data, config, name=family, paper_noise_std=paper_noise.tolist())
+            tunings[family] = tuning
+            content: dict[str, Any] = {
+                "model": model_digest(model),
+                "tuned": asdict(tuning.tuned),
+                "paper": asdict(tuning.paper),
+            }
+
+            # --- MPC episodes of every (planner, adaptation) cell on the same test draws ----------
+            cells = {
+                f"{family}/{planner}/{variant}": functools.partial(
+                    run_cell,
+                    model,
+                    family,
+                    planner,
+                    config,
+                    tuning.strategy(variant, seed=config.seed + 11, device=ex.device),
+                    # One planner seed per planner, the same for every adaptation.
+                    planner_seed=config.seed + 1000 * (1 + list(PLANNERS).index(planner)),
+                    episode_seeds=episode_seeds,
+                    device=ex.device,
+                    progress=progress,
+                    video=min(config.video, config.episodes),
+                    video_path=functools.partial(_video_path, ex.out, f"{family}-{planner}-{variant}"),
+                )
+                for planner in config.planners
+                for variant in config.adaptations
+            }
+            # The videos are written by the cells, so their count keys the cells (only when recorded).
+            content |= {"video": config.video} if config.video else {}
+            done = ex.evaluate(cells, computed, content=content)
+            videos += [v for result in done.values() for v in result.get("videos", []) if Path(v).is_file()]
+            reference = ex.evaluate(
+                {f"{family}/random": functools.partial(random_cell, family, config, episode_seeds=episode_seeds)},
+                computed,
+                content={"family": family},
+                kind="random",
+            )
+            for name, result in done.items():
+                _, planner, variant = name.split("/")
+                episodes[(family, PLANNERS[planner], ADAPTATIONS[variant])] = result["episodes"]
+                seconds[(family, PLANNERS[planner], ADAPTATIONS[variant])] = result["seconds"]
+            episodes[(family, "-", RANDOM)] = reference[f"{family}/random"]["episodes"]
+            seconds[(family, "-", RANDOM)] = reference[f"{family}/random"]["seconds"]
+            tables[tuning.caption()] = tuning.table()
+            plots[f"tuning-{family}.png"] = tuning.plot
+
+        # --- statistics: paired over the same draws in every cell ----------------------------------
+        rows: list[dict[str, Any]] = []
+        comparisons: list[dict[str, Any]] = []
+        for metric, (_, higher) in METRICS.items():
+            scores: dict[tuple[str, ...], dict[str, torch.Tensor]] = {}
+            for (family, planner, method), records in episodes.items():
+                values = torch.tensor([e[metric] for e in records], dtype=torch.float64)
+                scores.setdefault((family, planner), {})[method] = values
+            m_rows, m_comparisons = cell_statistics(
+                scores,
+                cell=("family", "planner"),
+                baseline="M+N",
+                adaptive=ADAPTIVE,
+                metric=metric,
+                lower_is_better=not higher,
+                seed=config.seed,
+            )
+            rows += [
+                {"metric": metric, **_rename(r, metric), "seconds": seconds[(r["family"], r["planner"], r["method"])]}
+                for r in m_rows
+            ]
+            comparisons += [{"metric": metric, **c} for c in m_comparisons]
+        trials = [
+            {"family": family, "planner": planner, "method": method, **e}
+            for (family, planner, method), records in episodes.items()
+            for e in records
+        ]
+
+        results_tables = {
+            f"Success rate (the env's is_success after the last step) and final distance to the goal, mean [95% CI] "
+            f"over {config.episodes} held-out test draws per family, one MPC episode of {config.episode_steps} steps "
+            "each (the same draws and planner seeds in every row)": table(rows),
+            "M+S paired with M+N, M+G and M+S(paper) over the same draws (success: positive is better; "
+            "distance: negative is better)": verdict_table(
+                [c for c in comparisons if c["method"] == "M+S"], cell=("metric", "family", "planner")
+            ),
+            "The other adaptive methods paired with M+N over the same draws": verdict_table(
+                [c for c in comparisons if c["method"] != "M+S" and c["against"] == "M+N"],
+                cell=("metric", "family", "planner"),
+            ),
+        }
+        ex.write(
+            experiment="Fetch task families, MPC on a learnt model with online adaptation",
+            tables={**results_tables, **tables},
+            rows=rows,
+            trials=trials,
+            comparisons=comparisons,
+            payload={
+                "training": training,
+                "tuning": {family: t.payload() for family, t in tunings.items()},
+                "scoreboard": [
+                    scoreboard_entry(
+                        f"Fetch {family} success ({PLANNERS[config.planners[0]]})",
+                        [_unrename(r) for r in rows if r["metric"] == "success"],
+                        [c for c in comparisons if c["metric"] == "success"],
+                        cell={"family": family, "planner": PLANNERS[config.planners[0]]},
+                        metric="success",
+                        unit="success rate",
+                        lower_is_better=False,
+                    )
+                    for family in config.families
+                ],
+            },
+            plots={"fetch.png": lambda path: _plot(rows, config, path), **plots},
+            files=[str(Path(v).relative_to(ex.out)) for v in videos],
+        )
+    return ex.result
+
+
+def _video_path(out: Path, cell: str, k: int) -> Path:
+    """``out/videos/<family>-<planner>-<adaptation>-<k>.gif``."""
+    return out / video_name(cell, k)
+
+
+def _costs(config: FetchConfig) -> dict[str, float]:
+    """Relative stage costs for the progress line, scaled by the settings from the default run's seconds."""
+    defaults = FetchConfig()
+    data = COSTS["collect"] * config.transitions / defaults.transitions
+    train = COSTS["train"] * config.epochs * config.transitions / (defaults.epochs * defaults.transitions)
+    steps = config.episodes * config.episode_steps / (defaults.episodes * defaults.episode_steps)
+    plan = float(config.candidates * config.iterations * config.horizon)
+    plan /= defaults.candidates * defaults.iterations * defaults.horizon
+    costs: dict[str, float] = {}
+    for family in config.families:
+        costs[f"collect {family}"] = data
+        costs[f"train {family}"] = train
+        costs[f"tune {family}"] = COSTS["tune"] * config.tuning_episodes / defaults.tuning_episodes
+        for planner in config.planners:
+            for variant in config.adaptations:
+                costs[f"evaluate {family}/{planner}/{variant}"] = COSTS["evaluate"] * steps * plan
+        costs[f"random {family}/random"] = COSTS["random"] * steps
+    return costs
+
+
+def _rename(row: dict[str, Any], metric: str) -> dict[str, Any]:
+    """A statistics row with its metric's fields under generic names (``mean``, ``low``, ``high``, ``std``)."""
+    out = {k: v for k, v in row.items() if not k.startswith(f"{metric}_")}
+    return out | {k.removeprefix(f"{metric}_"): v for k, v in row.items() if k.startswith(f"{metric}_")}
+
+
+def _unrename(row: dict[str, Any]) -> dict[str, Any]:
+    """The inverse of :func:`_rename` (what :func:`scoreboard_entry` reads)."""
+    metric = row["metric"]
+    return {(f"{metric}_{k}" if k in ("mean", "low", "high", "std") else k): v for k, v in row.items()}
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """``mean [95% CI]`` per family, planner and method (down), per metric (across)."""
+    lookup = {(r["family"], r["planner"], r["method"], r["metric"]): r for r in rows}
+    keys = list(dict.fromkeys((r["family"], r["planner"], r["method"]) for r in rows))
+    body = []
+    for family, planner, method in keys:
+        cells = []
+        for metric in METRICS:
+            r = lookup.get((family, planner, method, metric))
+            digits = 2 if metric == "success" else 3
+            cells.append(
+                "-" if r is None else f"{r['mean']:.{digits}f} [{r['low']:.{digits}f}, {r['high']:.{digits}f}]"
+            )
+        body.append([family, planner, method, *cells])
+    return format_table(body, ["family", "planner", "method", *(label for label, _ in METRICS.values())])
+
+
+def _plot(rows: list[dict[str, Any]], config: FetchConfig, path: Path) -> None:
+    """``fetch.png``: one row of panels per family (success rate, final distance), bars per method grouped by planner."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    families = list(dict.fromkeys(r["family"] for r in rows))
+    fig, axes = plt.subplots(
+        len(families), len(METRICS), figsize=(5.0 * len(METRICS), 3.4 * len(families)), squeeze=False
+    )
+    for i, family in enumerate(families):
+        for ax, (metric, (label, _)) in zip(axes[i], METRICS.items(), strict=True):
+            sel = [r for r in rows if r["family"] == family and r["metric"] == metric]
+            labels = [
+                r["method"] if r["planner"] == "-" else f"{r['planner']}\n{r['method'].removeprefix('M+')}" for r in sel
+            ]
+            colors = [
+                f"C{list(ADAPTATIONS.values()).index(r['method'])}" if r["method"] in ADAPTATIONS.values() else "grey"
+                for r in sel
+            ]
+            ax.bar(
+                range(len(sel)),
+                [r["mean"] for r in sel],
+                yerr=[[r["mean"] - r["low"] for r in sel], [r["high"] - r["mean"] for r in sel]],
+                capsize=3,
+                color=colors,
+            )
+            ax.set_xticks(range(len(sel)), labels, fontsize=7)
+            ax.set_title(f"{family}: {label}", fontsize=10)
+            ax.grid(axis="y", alpha=0.3)
+    fig.suptitle(f"Fetch MPC, {config.episodes} test draws x {config.episode_steps} steps (95% CI)")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,398 @@
+"""7-DOF Panda reaching with an unknown tool and sparse measurements (paper sec. 4.2, Fig. 3): ``smcd-rl panda``.
+
+Reads top to bottom: seed, sample joint configurations with random tools, train one dropout
+forward-kinematics network ``q (7) -> x (3)``, tune its adaptation strategies by the fair protocol,
+then for every method, measurement interval ``n`` and seed drive ``tasks`` arms at once from the
+ready pose towards random feasible goals with :class:`~smcd_rl.agents.pd.JacobianPD` through the
+method's kinematics, and count the arms whose true end effector gets within 5 cm of the goal
+within ``steps`` control steps.
+
+Methods (Fig. 3): ``FK``, the analytic chain that does not know the tool (assumes ``l = 0``);
+``M+N``, the trained network with no adaptation; ``M+G``, online gradient descent (tuned);
+``M+S``, SMCD (calibrated); ``M+S(paper)``, SMCD at the paper's settings (``--noise-std`` 0.02 m,
+``--flip-prob`` 0.05). At every n-th step (0, n, 2n, ...) the true end effector is measured: the
+adaptive model observes ``(q, measured x)`` and the controller corrects the measured error. In
+between, nothing is observed and the controller corrects the error of its own kinematics'
+prediction (model-reference control). ``FK`` at ``n = 1`` is the reference line of Fig. 3.
+
+The fair protocol (:mod:`smcd_rl.experiments.shared.tuning`): before any test task is seen,
+``--tuning-episodes`` episodes are drawn from the *training* distribution (each a fresh tool from
+``U(-tool_range, tool_range)`` observed at ``--tuning-steps`` uniform joint configurations, from a
+generator of its own, so neither training samples nor test tasks are among them). On them SMCD's
+likelihood noise and flip probability are calibrated by log evidence (``M+S``) and gradient
+descent's learning rate, steps and window are picked from the grid ``--gd-lr x --gd-steps x
+--gd-window`` by one-step error (``M+G``; one value each makes a one-point grid). ``M+S(paper)`` is
+not tuned. The report's tuning table and ``tuning-M.png`` show the chosen settings and each
+strategy's diagnosis on those episodes; ``results.json`` holds them under ``"tuning"``.
+
+Writes ``results.csv`` (success rate per method and n: mean and 95 % CI over all arms, std over
+seeds), ``trials.csv`` (every arm: reached, steps, final distance, tool), ``comparisons.csv``
+(every adaptive method paired with M+N and the others over the same arms), ``results.json`` (with
+the ``"tuning"`` entry and the ``"scoreboard"`` entry, success rate at n = 20, for ``smcd-rl
+scoreboard``), ``panda.png`` (success rate against n), ``tuning-M.png`` and ``report.md``.
+Finished (method, n) runs are kept in ``partial/`` and skipped by a rerun with the same network and
+settings (methods and intervals aside).
+
+Choices the paper leaves open, made here:
+
+* Control: ``u`` is a joint acceleration (``q_dot += dt u; q += dt q_dot``, dt = 0.05 s) with the
+  Panda's acceleration, velocity and position limits, and the gains of the paper's two-link
+  controller (K1 = 20, K2 = 5). With the true kinematics this reaches every one of 300 random
+  goals, median 23 steps (``tests/envs/test_panda_reach.py`` checks >= 95 % of 50).
+* Seeds: one trained network and one tuning; each seed draws its own ``tasks`` test tools and goals
+  (the same for every method and n, so the methods are compared on identical tasks) and its own
+  filter noise.
+* Trials: 3 seeds x 100 tasks = 300 arms by default, enough for a paired comparison to detect a
+  success-rate difference of 0.1 between two methods (see the note above :class:`PandaConfig`).
+* Measurements are exact unless ``--measurement-noise`` is set (then the tuning episodes carry the
+  same noise); SMCD's likelihood noise stands for the network's own error.
+
+Example:
+    >>> from smcd_rl.experiments.panda.run import PandaConfig, method_labels
+    >>> config = PandaConfig()
+    >>> method_labels(config)
+    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(paper)']
+    >>> config.tasks * config.seeds, config.gd_lr, PandaConfig(gd_lr=(0.01,)).gd_lr
+    (300, (0.003, 0.01, 0.03, 0.1), (0.01,))
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor
+from tqdm.auto import tqdm
+
+import smcd_rl
+from smcd_rl.digests import model_digest
+from smcd_rl.envs.panda_reach import panda_frame, panda_kinematics_data
+from smcd_rl.experiments.panda.config import DEFAULT_INTERVALS, FULL, METHODS, PandaConfig
+from smcd_rl.experiments.panda.reaching import method_kinematics, reach, sample_tasks, tuning_episodes
+from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.experiments.shared.outputs import format_table, save_figure
+from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
+from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
+from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.shared.tuning import Tuning, tune
+from smcd_rl.experiments.shared.video import video_name, write_gif
+
+__all__ = [
+    "PandaConfig",
+    "FULL",
+    "METHODS",
+    "DEFAULT_INTERVALS",
+    "HEADLINE_INTERVAL",
+    "method_labels",
+    "reach",
+    "run",
+    "table",
+]
+
+#: The scoreboard's cell: the sparsest default measurements, where Fig. 3's methods differ most
+#: (a run without it reports its largest n instead).
+HEADLINE_INTERVAL = 20
+
+
+def method_labels(config: PandaConfig) -> list[str]:
+    """The table's method rows, in the order of :data:`METHODS`."""
+    return [name for name in METHODS if name in config.methods]
+
+
+def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Run the experiment and write its files; returns the JSON payload."""
+    with Experiment(config, progress=progress) as ex:
+        ex.plan(stage_costs(config))
+        # --- seed, data, model --------------------------------------------------------------------
+        data = panda_kinematics_data(config.samples, tool_range=config.tool_range, generator=ex.generator)
+        held_out = panda_kinematics_data(2000, tool_range=config.tool_range, generator=ex.generator)
+        net = smcd_rl.MaskedMLP(7, 3, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=ex.device)
+        model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+        fit = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
+        losses = ex.train("train", smcd_rl.fit, model, data.to(ex.device), **fit)
+        model.save(ex.out / "model.pt")
+        held_out_rmse = _held_out_rmse(model, held_out.to(ex.device))
+
+        # --- the fair protocol: SMCD and GD tuned on held-out episodes of fresh training tools ------
+        adapts = any(m in config.methods for m in ("M+G", "M+S", "M+S(paper)"))
+        tuning = tune(ex, model, tuning_episodes(config, ex.device), config, name="M") if adapts else None
+
+        # --- every (method, n) on the same arms: each seed's tasks run as one batch -----------------
+        labels = method_labels(config)
+        runs = {f"{label} n={n}": (label, n) for label in labels for n in _intervals(label, config)}
+        video_n = _video_interval(config)
+
+        units = {name: functools.partial(_unit, *unit) for name, unit in runs.items()}
+        digest = model_digest(model)
+        done = ex.evaluate(
+            units,
+            functools.partial(_evaluate, model, tuning, config, video_n, ex.device, progress),
+            # The recorded videos are part of those results, so their count keys them (only where recorded).
+            content=lambda name: {"model": digest, **({"video": config.video} if runs[name][1] == video_n else {})},
+        )
+        videos = _write_videos({unit: done[name] for name, unit in runs.items()}, video_n, config, ex.out)
+
+        # --- results: success over all arms per (n, method), CIs, paired verdicts -------------------
+        results = {unit: done[name] for name, unit in runs.items()}
+        intervals = sorted({n for _, n in results})
+        scores = {
+            (n,): {label: r["reached"].reshape(-1).double() for (label, m), r in results.items() if m == n}
+            for n in intervals
+        }
+        adaptive = [m for m in ("M+S", "M+S(paper)", "M+G", "FK") if m in labels]
+        rows, comparisons = cell_statistics(
+            scores,
+            cell=("interval",),
+            baseline="M+N",
+            adaptive=adaptive,
+            metric="success",
+            lower_is_better=False,
+            seed=config.seed,
+        )
+        rows = sorted((_describe(row, results, config) for row in rows), key=lambda r: labels.index(r["method"]))
+        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
+        tunings = {"M": tuning} if tuning is not None else {}
+        ex.write(
+            experiment="7-DOF Panda reaching with an unknown tool and sparse measurements (paper Fig. 3)",
+            tables={
+                f"Success rate (within {100 * config.tolerance:.0f} cm in {config.steps} steps), mean [95% CI] over "
+                f"{config.seeds} seeds x {config.tasks} arms; the network's held-out RMSE (mean mask) is "
+                f"{held_out_rmse:.3f} m": table(rows, config),
+                "M+S paired with M+N, M+G and M+S(paper) over the same arms (positive: M+S reaches more goals)": (
+                    verdict_table(headline, cell=("interval",))
+                ),
+                **{t.caption(): t.table() for t in tunings.values()},
+            },
+            rows=rows,
+            trials=_trial_rows(results, config),
+            comparisons=comparisons,
+            payload={
+                "train_loss": losses,
+                "held_out_rmse_m": held_out_rmse,
+                "tuning": {name: t.payload() for name, t in tunings.items()},
+                "scoreboard": scoreboard_entry(
+                    "Panda reaching",
+                    rows,
+                    comparisons,
+                    cell={"interval": HEADLINE_INTERVAL if HEADLINE_INTERVAL in intervals else max(intervals)},
+                    metric="success",
+                    unit="success rate",
+                    lower_is_better=False,
+                ),
+            },
+            plots={
+                "panda.png": lambda path: _plot(rows, config, path),
+                **{f"tuning-{name}.png": t.plot for name, t in tunings.items()},
+            },
+            files=videos,
+        )
+    return ex.result
+
+
+def _evaluate(
+    model: smcd_rl.AdaptiveModel,
+    tuning: Tuning | None,
+    config: PandaConfig,
+    video_n: int | None,
+    device: torch.device,
+    progress: bool,
+    name: str,
+    unit: tuple[str, int],
+) -> dict[str, Tensor]:
+    """One (method, n)'s reaches over every seed's tasks (a function, so a worker process can run it)."""
+    label, n = unit
+    per_seed: list[dict[str, Tensor]] = []
+    videos: list[dict[str, Tensor]] = []
+    for s in tqdm(range(config.seeds), desc=name, unit="seed", disable=not progress):
+        tools, goals = sample_tasks(config, s, device)
+        kinematics, observe = method_kinematics(label, model, tools, tuning, config, s, device)
+        # Measurement noise (if any) from the seed alone: every method and n sees the same draws.
+        noise = torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + 104_729 * (s + 1))
+        # --video: the first arms (seed 0's, then seed 1's, ...) keep their joint angles at every step.
+        record = min(config.video - sum(int(v["q"].shape[0]) for v in videos), config.tasks) if n == video_n else 0
+        outcome = reach(kinematics, observe, tools, goals, interval=n, config=config, generator=noise, record=record)
+        if record > 0:
+            trajectory = outcome.pop("trajectory")
+            first_arms = {"tools": tools[:record], "goals": goals[:record], "steps": outcome["steps"][:record]}
+            videos.append({"q": trajectory, **{key: value.cpu() for key, value in first_arms.items()}})
+        per_seed.append({**outcome, "tools": tools})
+    result = {key: torch.stack([r[key].cpu() for r in per_seed]) for key in per_seed[0]}  # [seeds, tasks]
+    if videos:
+        result |= {f"video_{key}": torch.cat([v[key] for v in videos]) for key in videos[0]}
+    return result
+
+
+def _unit(label: str, n: int) -> tuple[str, int]:
+    return label, n
+
+
+def _video_interval(config: PandaConfig) -> int | None:
+    """The interval whose reaches ``--video`` records: the scoreboard's (or the largest), ``None`` without videos."""
+    if not config.video:
+        return None
+    return HEADLINE_INTERVAL if HEADLINE_INTERVAL in config.intervals else max(config.intervals)
+
+
+def _write_videos(
+    results: dict[tuple[str, int], dict[str, Any]], interval: int | None, config: PandaConfig, out: Path
+) -> list[str]:
+    """``videos/<method>-<k>.gif``: the first ``--video`` arms of each method at ``interval``, until they reach the goal.
+
+    A ring round the end effector marks the steps at which it was measured.
+    """
+    names = []
+    for (label, n), r in results.items():
+        if n != interval:
+            continue
+        for k in range(len(r["video_q"])):
+            last = min(int(r["video_steps"][k]), config.steps)  # the first arrival ends the episode
+            tool, goal = float(r["video_tools"][k]), r["video_goals"][k].numpy()
+            frames = [panda_frame(r["video_q"][k, t].numpy(), tool, goal, measured=t % n == 0) for t in range(last + 1)]
+            names.append(video_name(label, k))
+            write_gif(frames, out / names[-1], fps=1 / config.dt)
+    return names
+
+
+def stage_costs(config: PandaConfig) -> dict[str, float]:
+    """Each stage's rough seconds at ``config`` (see :func:`~smcd_rl.experiments.shared.stages.estimate`), in run order.
+
+    Training counts its optimiser steps and a forward and backward (3 forwards) per sample and
+    epoch; the tuning its filter runs (:func:`~smcd_rl.experiments.shared.stages.tuning_cost`); each
+    (method, n) ``seeds x steps`` control steps of ``tasks`` arms, each a Jacobian of the model
+    (about 4 forwards; FK's analytic one costs twice a step's overhead instead), plus at every n-th
+    step an update (:func:`~smcd_rl.experiments.shared.stages.update_cost`) of every arm.
+
+    Example:
+        >>> costs = stage_costs(PandaConfig())
+        >>> list(costs)[:3], costs["evaluate M+S n=20"] > costs["evaluate M+N n=20"]
+        (['train', 'tune M', 'evaluate FK n=1'], True)
+    """
+    flops = mlp_flops(7, (config.hidden,) * config.depth, 3)
+    costs = {
+        "train": estimate(
+            steps=config.epochs * -(-config.samples // config.batch_size),
+            forwards=3 * config.epochs * config.samples,
+            flops=flops,
+        )
+    }
+    if any(m in config.methods for m in ("M+G", "M+S", "M+S(paper)")):
+        costs["tune M"] = tuning_cost(config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops)
+    for label in method_labels(config):
+        for n in _intervals(label, config):
+            steps = config.seeds * config.steps
+            updates = config.seeds * -(-config.steps // n)
+            overhead, update = update_cost(label.partition("+")[2] or "N", config)
+            forwards = 0.0 if label == "FK" else config.tasks * (4 * steps + update * updates)
+            costs[f"evaluate {label} n={n}"] = estimate(
+                steps=(2 if label == "FK" else 1) * steps + overhead * updates, forwards=forwards, flops=flops
+            )
+    return costs
+
+
+def _intervals(label: str, config: PandaConfig) -> list[int]:
+    # FK with a measurement every step is the reference line of Fig. 3, so it always runs.
+    return sorted(set(config.intervals) | ({1} if label == "FK" else set()))
+
+
+def _describe(row: dict[str, Any], results: dict[tuple[str, int], dict[str, Any]], config: PandaConfig) -> dict:
+    """A table row with what the success rate leaves out: spread over seeds, steps, final distance."""
+    r = results[(row["method"], row["interval"])]
+    rates, reached = r["reached"].double().mean(1), r["reached"].reshape(-1)
+    steps = r["steps"].reshape(-1).double()
+    return {
+        **row,
+        "success_seed_std": float(rates.std()) if len(rates) > 1 else 0.0,
+        "steps_mean": float(steps[reached].mean()) if bool(reached.any()) else None,
+        "final_distance_median": float(r["final_distance"].median()),
+        "seeds": config.seeds,
+        "tasks": config.tasks,
+        "seconds": r["seconds"],
+    }
+
+
+def _trial_rows(results: dict[tuple[str, int], dict[str, Any]], config: PandaConfig) -> list[dict[str, Any]]:
+    return [
+        {
+            "method": label,
+            "interval": n,
+            "seed": s,
+            "task": k,
+            "reached": bool(r["reached"][s, k]),
+            "steps": int(r["steps"][s, k]),
+            "final_distance": float(r["final_distance"][s, k]),
+            "tool_length": float(r["tools"][s, k]),
+        }
+        for (label, n), r in results.items()
+        for s in range(config.seeds)
+        for k in range(config.tasks)
+    ]
+
+
+def table(rows: list[dict[str, Any]], config: PandaConfig) -> str:
+    """Success rate (mean [95% CI] over all arms), method down and measurement interval n across."""
+    intervals = sorted(set(config.intervals))
+    lookup = {(r["method"], r["interval"]): r for r in rows}
+    body = []
+    for label in dict.fromkeys(r["method"] for r in rows):
+        cells = []
+        for n in intervals:
+            r = lookup.get((label, n))
+            cells.append(
+                "-" if r is None else f"{r['success_mean']:.2f} [{r['success_low']:.2f}, {r['success_high']:.2f}]"
+            )
+        body.append([label, *cells])
+    return format_table(body, ["method", *[f"n={n}" for n in intervals]])
+
+
+def _held_out_rmse(model: smcd_rl.AdaptiveModel, data: TensorDict) -> float:
+    """RMSE (m) of the unadapted network's prediction on fresh samples with random tools."""
+    model.reset()
+    with torch.no_grad():
+        error = model.predict(data["q"]) - data["ee"]
+    return float(error.square().sum(-1).mean().sqrt())
+
+
+def _plot(rows: list[dict[str, Any]], config: PandaConfig, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    intervals = sorted(set(config.intervals))
+    # Orange is the reference line's, as in Fig. 3; the methods take the other colours.
+    colours = itertools.cycle(
+        ["tab:blue", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan"]
+    )
+    for label in dict.fromkeys(r["method"] for r in rows):
+        sel = [r for r in rows if r["method"] == label and r["interval"] in intervals]
+        ax.errorbar(
+            [r["interval"] for r in sel],
+            [r["success_mean"] for r in sel],
+            color=next(colours),
+            yerr=[
+                [r["success_mean"] - r["success_low"] for r in sel],
+                [r["success_high"] - r["success_mean"] for r in sel],
+            ],
+            marker="o",
+            capsize=2,
+            label=label,
+        )
+    reference = [r for r in rows if r["method"] == "FK" and r["interval"] == 1]
+    if reference:
+        ax.axhline(reference[0]["success_mean"], color="tab:orange", linestyle="--", label="FK, measured every step")
+    ax.set_xscale("log")
+    ax.set_xticks(intervals, [str(n) for n in intervals])
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("measurement interval n (steps)")
+    ax.set_ylabel(f"success rate (within {100 * config.tolerance:.0f} cm in {config.steps} steps)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower left")
+    ax.set_title(f"Panda reaching, unknown tool ({config.tasks} tasks x {config.seeds} seeds)")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,301 @@
+"""One table of every task: ``smcd-rl scoreboard RUN_DIR...``.
+
+Each experiment writes into its ``results.json`` the cell of its table that stands for the task
+(e.g. two-link at burn-in T = 10, horizon H = 1): the estimates of its methods for "none", "GD",
+"SMCD (paper)" and "SMCD (calibrated)" and their paired verdicts (:func:`~smcd_rl.experiments.shared.scoreboard_entry.scoreboard_entry`). The
+scoreboard reads those entries from the given run directories and writes three tables of one row
+per task, narrow enough for a docs page: its metric and cell, each strategy's mean with its 95 % CI, and the verdicts
+of both SMCD variants against none and GD (the experiment's own comparisons, over the same
+trials); ``results.csv`` holds every number of all three. A task that several runs have is labelled
+with each run's directory. The plot has a panel per task in its own metric, two to a row. The
+entries are kept in ``scoreboard.json``, from which :func:`render` draws the scoreboard again.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from smcd_rl.experiments.scoreboard.config import ScoreboardConfig
+from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.experiments.shared.outputs import format_table, save_figure, write_json
+from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, VERDICT_LABELS, VERDICTS
+from smcd_rl.experiments.shared.stats import Estimate
+
+__all__ = ["ScoreboardConfig", "run", "render", "read_entries"]
+
+
+def run(config: ScoreboardConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Read every run's scoreboard entries and write the tables, plot, report and ``scoreboard.json``."""
+    config.validate()
+    # Every input is read and checked before --out is made or anything in it is touched.
+    entries = [(str(run_dir), entry) for run_dir in _run_dirs(config) for entry in _entries(run_dir)]
+    return _write(config, entries, progress=progress)
+
+
+def render(path: str | Path, *, out: str | Path, progress: bool = True) -> dict[str, Any]:
+    """Write a scoreboard again from the ``scoreboard.json`` an earlier one wrote, without its run directories.
+
+    The tables, plot and report are those :func:`run` writes from the same entries, and the
+    settings are the earlier run's (its run directories), so the report's settings fingerprint is
+    unchanged: how the committed docs page is redrawn after a change of layout.
+
+    Args:
+        path: a ``scoreboard.json``.
+        out: the output directory (not the one holding ``path``: its files would be replaced).
+        progress: print the progress line.
+    """
+    path = Path(path)
+    runs, entries = read_entries(path)
+    note = json.loads(path.read_text()).get("note")
+    config = ScoreboardConfig(runs=tuple(runs), out=str(out))
+    config.validate()
+    if Path(out).resolve() == path.parent.resolve():
+        raise ValueError(f"--out {out} holds {path}, which this would replace; write to another directory")
+    _check_out(config)
+    return _write(config, entries, progress=progress, note=note if isinstance(note, str) else None)
+
+
+#: The ``format`` entry of ``scoreboard.json``.
+JSON_FORMAT = "smcd_rl.scoreboard/1"
+
+
+def read_entries(path: str | Path) -> tuple[list[str], list[tuple[str, dict[str, Any]]]]:
+    """The run directories and the (run directory, entry) pairs a ``scoreboard.json`` holds, checked."""
+    path = Path(path)
+    fix = "rerun smcd-rl scoreboard to rewrite it"
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no scoreboard.json at {path}; give the file a scoreboard run wrote") from None
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: not readable as JSON ({err}); {fix}") from err
+    if not isinstance(data, dict) or data.get("format") != JSON_FORMAT:
+        raise ValueError(
+            f"{path} is not a scoreboard.json (no format {JSON_FORMAT!r}); give the file a scoreboard wrote"
+        )
+    runs, items = data.get("runs"), data.get("entries")
+    if not isinstance(runs, list) or not all(isinstance(r, str) for r in runs) or not runs:
+        raise ValueError(f"{path}: 'runs' is not a list of run directories; {fix}")
+    if not isinstance(items, list) or not items:
+        raise ValueError(f"{path}: 'entries' is not a non-empty list; {fix}")
+    entries = []
+    for i, item in enumerate(items):
+        if not isinstance(item, dict) or not isinstance(item.get("run"), str):
+            raise ValueError(f"{path}: entry {i} has no run directory 'run'; {fix}")
+        _check_entry(item.get("entry"), f"{path}: entry {i}")
+        entries.append((item["run"], item["entry"]))
+    return runs, entries
+
+
+def _write(
+    config: ScoreboardConfig,
+    entries: Sequence[tuple[str, Mapping[str, Any]]],
+    *,
+    progress: bool,
+    note: str | None = None,
+) -> dict[str, Any]:
+    """The scoreboard of ``entries`` (run directory, entry): its tables, plot, report and ``scoreboard.json``.
+
+    ``note``: where the entries came from, kept in ``scoreboard.json`` when they were not read from runs.
+    """
+    rows = _rows(entries)
+    with Experiment(config, progress=progress) as ex:
+        tasks = [
+            [row["task"], row["metric"] + ("" if row["lower_is_better"] else ", higher is better"), row["cell"]]
+            for row in rows
+        ]
+        means = [[row["task"], *(row[f"{c} text"] for c in COLUMNS)] for row in rows]
+        verdicts = [[row["task"], *(row[f"{m} vs {a}"] for m, a in VERDICTS)] for row in rows]
+        write_json(
+            ex.out / "scoreboard.json",
+            {
+                "format": JSON_FORMAT,
+                **({"note": note} if note else {}),
+                "runs": list(config.runs),
+                "entries": [{"run": run_dir, "entry": dict(entry)} for run_dir, entry in entries],
+            },
+        )
+        ex.write(
+            experiment="scoreboard: every task, none / GD / SMCD (paper settings) / SMCD (calibrated)",
+            # Three narrow tables, not one wide one: each fits the width of a docs page.
+            tables={
+                "Each task's headline metric and cell (every number of the tables below: results.csv)": format_table(
+                    tasks, ["task", "metric", "cell"]
+                ),
+                "Mean [95% CI]": format_table(means, ["task", *COLUMNS]),
+                "Paired verdicts, over the same trials (difference [95% CI], method minus against)": format_table(
+                    verdicts, ["task", *(VERDICT_LABELS[v] for v in VERDICTS)]
+                ),
+            },
+            rows=[{k: v for k, v in row.items() if not k.endswith(" text")} for row in rows],
+            payload={"runs": list(config.runs)},
+            plots={"scoreboard.png": lambda path: _plot(rows, path)},
+            files=["scoreboard.json"],
+        )
+    return ex.result
+
+
+def _rows(entries: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict[str, Any]]:
+    """One row per entry; a task that several runs have is labelled with each one's run directory."""
+    counts = Counter(entry["task"] for _, entry in entries)
+    rows = []
+    for run_dir, entry in entries:
+        row = _row(entry)
+        if counts[entry["task"]] > 1:
+            row["task"] = f"{entry['task']} ({run_dir})"
+        rows.append(row)
+    return rows
+
+
+def _run_dirs(config: ScoreboardConfig) -> list[Path]:
+    """The run directories, each once, none of them ``--out`` (whose results the scoreboard would replace)."""
+    out = Path(config.out).resolve()
+    seen: dict[Path, str] = {}
+    for given in config.runs:
+        path = Path(given)
+        if path.resolve() in seen:
+            raise ValueError(f"RUN_DIR {given} is the same directory as {seen[path.resolve()]}; give each run once")
+        if path.resolve() == out:
+            raise ValueError(
+                f"--out {config.out} is one of the run directories: the scoreboard would replace that run's results; "
+                "pick another, e.g. --out runs/scoreboard"
+            )
+        seen[path.resolve()] = given
+    _check_out(config)
+    return [Path(given) for given in seen.values()]
+
+
+def _check_out(config: ScoreboardConfig) -> None:
+    """Never replace an experiment's results with the scoreboard's: refuse an ``--out`` that holds them."""
+    out = Path(config.out)
+    earlier = out / "results.json"
+    if earlier.is_file():
+        try:
+            experiment = json.loads(earlier.read_text()).get("experiment", "")
+        except (OSError, ValueError, AttributeError):
+            experiment = ""
+        if not str(experiment).startswith("scoreboard"):
+            raise ValueError(
+                f"--out {config.out} holds the results of another command ({experiment or 'unreadable'}); "
+                "pick another, e.g. --out runs/scoreboard"
+            )
+
+
+#: The keys of a scoreboard entry and their types (what :func:`scoreboard_entry` writes).
+_ENTRY = {
+    "task": str,
+    "cell": dict,
+    "metric": str,
+    "unit": str,
+    "lower_is_better": bool,
+    "estimates": dict,
+    "verdicts": dict,
+}
+
+
+def _entries(run_dir: Path) -> list[dict[str, Any]]:
+    """Every scoreboard entry of the run in ``run_dir``, checked, or a clear error."""
+    if run_dir.is_file():
+        raise ValueError(f"{run_dir} is a file; give the run's directory, e.g. {run_dir.parent}")
+    path = run_dir / "results.json"
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{run_dir}: no results.json; give the --out directory of a finished experiment run, e.g. runs/two-link"
+        )
+    try:
+        results = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: not readable as JSON ({err}); rerun the experiment to rewrite it") from err
+    if isinstance(results, dict) and str(results.get("experiment", "")).startswith("scoreboard"):
+        raise ValueError(f"{run_dir} is a scoreboard's output, not an experiment run; leave it out of RUN_DIR")
+    entries = results.get("scoreboard") if isinstance(results, dict) else None
+    if entries is None:
+        raise ValueError(
+            f"{path}: no scoreboard entry; it was written by a command without one (bench, sweep) or an older "
+            "version: rerun the experiment"
+        )
+    entries = entries if isinstance(entries, list) else [entries]
+    if not entries:
+        raise ValueError(f"{path}: its scoreboard list is empty; rerun the experiment to rewrite it")
+    for i, entry in enumerate(entries):
+        _check_entry(entry, f"{path}: scoreboard entry {i}")
+    return entries
+
+
+def _check_entry(entry: Any, where: str) -> None:
+    """A clear error unless ``entry`` has the shape :func:`scoreboard_entry` writes."""
+    fix = "rerun the experiment to rewrite it"
+    if not isinstance(entry, dict):
+        raise ValueError(f"{where} is a {type(entry).__name__}, not a mapping; {fix}")
+    for key, kind in _ENTRY.items():
+        if not isinstance(entry.get(key), kind):
+            raise ValueError(f"{where} has no {kind.__name__} {key!r}; {fix}")
+    for column, estimate in entry["estimates"].items():
+        numbers = [estimate.get(k) if isinstance(estimate, dict) else None for k in ("mean", "low", "high")]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
+            raise ValueError(f"{where}: the estimate of {column!r} needs numbers mean, low and high; {fix}")
+
+
+def _row(entry: Mapping[str, Any]) -> dict[str, Any]:
+    """One scoreboard row from one entry: each strategy's estimate and the verdicts."""
+    row: dict[str, Any] = {
+        "task": entry["task"],
+        "cell": ", ".join(f"{k}={v}" for k, v in entry["cell"].items()),
+        "metric": f"{entry['metric']} ({entry['unit']})",
+        "lower_is_better": entry["lower_is_better"],
+    }
+    for column in COLUMNS:
+        e = entry["estimates"].get(column)
+        mean, low, high = (e["mean"], e["low"], e["high"]) if e else (math.nan,) * 3
+        row[column], row[f"{column} low"], row[f"{column} high"] = mean, low, high
+        row[f"{column} text"] = str(Estimate(mean, low, high, 0)) if e else "not run"
+    for method, against in VERDICTS:
+        row[f"{method} vs {against}"] = entry["verdicts"].get(f"{method} vs {against}", "not compared")
+    return row
+
+
+#: The strategies' names under the bars.
+_BAR_LABELS = {"none": "none", "GD": "GD", "SMCD (paper)": "SMCD\n(paper)", "SMCD (calibrated)": "SMCD\n(calibrated)"}
+
+
+def _plot(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
+    """A panel per task (its own metric and scale), two to a row: each strategy's mean with its 95 % CI.
+
+    Two columns of panels, each about 4 inches wide, so that the picture is readable at the width
+    of a docs page (about 700 pixels) with no zooming.
+    """
+    import textwrap
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    columns = 1 if len(rows) == 1 else 2
+    lines = math.ceil(len(rows) / columns)
+    fig, axes = plt.subplots(lines, columns, figsize=(4.2 * columns, 2.9 * lines + 0.6), squeeze=False)
+    for ax, row in zip(axes.flat, rows, strict=False):
+        for j, column in enumerate(COLUMNS):
+            mean = row[column]
+            if not math.isfinite(mean):
+                continue  # not run
+            error = [[mean - row[f"{column} low"]], [row[f"{column} high"] - mean]]
+            ax.bar(j, mean, 0.7, yerr=error, capsize=3, color=f"C{j}")
+        ax.set_xticks(range(len(COLUMNS)), [_BAR_LABELS[c] for c in COLUMNS], fontsize=10)
+        ax.set_xlim(-0.6, len(COLUMNS) - 0.4)
+        ax.set_title("\n".join(textwrap.wrap(row["task"], 40)), fontsize=12)
+        better = "lower" if row["lower_is_better"] else "higher"
+        ax.set_ylabel("\n".join(textwrap.wrap(f"{row['metric']}, {better} is better", 28)), fontsize=10)
+        ax.tick_params(axis="y", labelsize=10)
+        ax.grid(axis="y", alpha=0.3)
+    for ax in axes.flat[len(rows) :]:
+        ax.axis("off")
+    fig.suptitle("Scoreboard: mean and 95% CI of each task's headline metric", fontsize=13)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+    plt.close(fig)

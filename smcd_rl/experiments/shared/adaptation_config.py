@@ -1,0 +1,89 @@
+"""The configs of the adaptation settings every adapting experiment shares (see :mod:`smcd_rl.experiments.shared.adaptations`).
+
+Example:
+    >>> AdaptationConfig().particles, TuningConfig().gd_steps, VARIANTS
+    (1000, (1, 5), ('N', 'G', 'S', 'S(paper)'))
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
+
+from smcd_rl.experiments.shared.config import EvaluationConfig, setting
+
+__all__ = ["TuningConfig", "AdaptationConfig", "VARIANTS", "LearntDynamicsSettings", "check_learnt_dynamics"]
+
+#: The strategies a method name may end in: none, tuned GD, calibrated SMCD, SMCD at the paper's settings.
+VARIANTS = ("N", "G", "S", "S(paper)")
+
+
+@dataclass
+class TuningConfig(EvaluationConfig):
+    """The settings of the fair protocol (:mod:`smcd_rl.experiments.shared.tuning`), shared by every experiment that adapts.
+
+    The calibrated SMCD (``S``) and gradient descent (``G``) are tuned on ``tuning_episodes``
+    held-out training-task episodes, GD over the grid ``gd_lr x gd_steps x gd_window``. An
+    experiment redeclares ``tuning_episodes`` to say what its episodes are.
+    """
+
+    tuning_episodes: int = setting(
+        32, "held-out episodes of fresh training-distribution tasks that SMCD and GD are tuned on", low=2
+    )
+    gd_lr: tuple[float, ...] = setting(
+        (0.003, 0.01, 0.03, 0.1), "gradient-descent learning rates tried in tuning (normalised units)", above=0.0
+    )
+    gd_steps: tuple[int, ...] = setting((1, 5), "gradient steps per observation tried in tuning", low=1)
+    gd_window: tuple[int, ...] = setting((5, 10), "recent transitions in the gradient-descent loss tried", low=1)
+    calibrate_flips: tuple[float, ...] = setting(
+        (0.001, 0.003, 0.01, 0.03), "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
+    )
+
+    NON_EMPTY: ClassVar[tuple[str, ...]] = ("gd_lr", "gd_steps", "gd_window", "calibrate_flips")
+
+
+@dataclass
+class AdaptationConfig(TuningConfig):
+    """The settings of SMCD and of online gradient descent, shared by every experiment that adapts.
+
+    SMCD's ``noise_std`` and ``flip_prob`` are the paper's fixed settings (variant ``S(paper)``); the
+    tuned variants' settings come from :class:`TuningConfig`'s fields.
+    """
+
+    particles: int = setting(1000, "SMCD mask particles", low=1)
+    flip_prob: float = setting(0.01, "bit-flip probability per step of SMCD at the paper's settings", low=0.0, high=1.0)
+    noise_std: float = setting(
+        0.05, "likelihood noise std of SMCD at the paper's settings (observation units)", above=0.0
+    )
+
+
+class LearntDynamicsSettings(Protocol):
+    """The settings of a command that plans with a learnt dynamics model (``ant``, ``fetch``)."""
+
+    dropout: float
+    validation: float  # the held-out share of the transitions
+    transitions: int
+    candidates: int
+    elites: int
+    flip_prob: float
+    calibrate_flips: tuple[float, ...]
+
+
+def check_learnt_dynamics(config: LearntDynamicsSettings) -> None:
+    """What the declared bounds of a learnt-dynamics MPC command cannot express; ValueError naming the option."""
+    for name, value in (("dropout", config.dropout), ("validation", config.validation)):
+        if value >= 1.0:
+            raise ValueError(f"--{name} must be < 1, got {value}")
+    if config.elites > config.candidates:
+        raise ValueError(f"--elites ({config.elites}) must be <= --candidates ({config.candidates})")
+    transitions, validation = config.transitions, config.validation
+    if transitions * validation < 1 or transitions * (1 - validation) < 2:
+        raise ValueError(f"{transitions} transitions are too few to hold out {validation:.0%}")
+    keep = 1.0 - config.dropout  # SMCD's keep_rate transition flips a bit with up to 2 d max(k, 1 - k)
+    for name, flips in (("flip-prob", (config.flip_prob,)), ("calibrate-flips", config.calibrate_flips)):
+        for flip in flips:
+            if flip > 1 / (2 * max(keep, 1 - keep)):
+                raise ValueError(
+                    f"--{name} {flip} is too large at dropout {config.dropout}: "
+                    f"use at most {1 / (2 * max(keep, 1 - keep)):.3g}"
+                )

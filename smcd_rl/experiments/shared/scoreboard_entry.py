@@ -1,0 +1,110 @@
+"""The scoreboard's entry of one experiment: the cell of its table that stands for its task.
+
+Each experiment writes it into its ``results.json`` (:func:`scoreboard_entry`): the estimates of
+its methods for "none", "GD", "SMCD (paper)" and "SMCD (calibrated)" and their paired verdicts;
+``smcd-rl scoreboard`` reads the entries of many runs into one table.
+
+Example:
+    >>> rows = [{"T": 10, "method": "M+N", "rmse_mean": 0.2, "rmse_low": 0.1, "rmse_high": 0.3, "trials": 9}]
+    >>> entry = scoreboard_entry("two-link", rows, [], cell={"T": 10}, metric="rmse", unit="m")
+    >>> entry["estimates"]["none"]["mean"], entry["verdicts"]["SMCD (calibrated) vs none"]
+    (0.2, 'not compared')
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from smcd_rl.experiments.shared.stats import Estimate
+
+__all__ = ["scoreboard_entry", "COLUMNS", "HEADLINE", "VERDICTS", "VERDICT_LABELS"]
+
+#: The scoreboard's strategies, in order.
+COLUMNS = ("none", "GD", "SMCD (paper)", "SMCD (calibrated)")
+#: Strategy -> the method suffix most experiments use for it (after ``M+``).
+HEADLINE = {"none": "N", "GD": "G", "SMCD (paper)": "S(paper)", "SMCD (calibrated)": "S"}
+#: The paired verdicts shown: (method, against).
+VERDICTS = (
+    ("SMCD (calibrated)", "none"),
+    ("SMCD (calibrated)", "GD"),
+    ("SMCD (paper)", "none"),
+    ("SMCD (paper)", "GD"),
+)
+#: The verdicts' column headers.
+VERDICT_LABELS = {(m, a): f"{m.split(' ')[1][1:-1]} vs {a}" for m, a in VERDICTS}
+
+
+def scoreboard_entry(
+    task: str,
+    rows: Sequence[Mapping[str, Any]],
+    comparisons: Sequence[Mapping[str, Any]],
+    *,
+    cell: Mapping[str, Any],
+    metric: str,
+    unit: str,
+    methods: Mapping[str, str] | None = None,
+    prefix: str = "M+",
+    lower_is_better: bool = True,
+) -> dict[str, Any]:
+    """The ``results.json`` entry that stands for ``task`` in the scoreboard: its estimates and verdicts.
+
+    Args:
+        task: the task's name in the scoreboard.
+        rows: the table rows of :func:`~smcd_rl.experiments.shared.stats.cell_statistics`.
+        comparisons: its paired comparisons.
+        cell: the headline cell, field -> value (if it did not run, e.g. other burn-in steps were
+            asked for, the first row's cell is used).
+        metric: the rows' score name (``rmse`` reads ``rmse_mean``, ``rmse_low``, ``rmse_high``).
+        unit: the metric's unit, for the table.
+        methods: strategy (a :data:`COLUMNS` name) -> method suffix; default :data:`HEADLINE`.
+        prefix: what the suffixes follow (``"M+"``).
+        lower_is_better: ``False`` for success rates and returns.
+    """
+    chosen = dict(cell)
+    if rows and not any(_in_cell(r, chosen) for r in rows):
+        chosen = {k: rows[0][k] for k in chosen}
+    labels = {column: prefix + suffix for column, suffix in (HEADLINE if methods is None else methods).items()}
+    found = {r["method"]: r for r in rows if _in_cell(r, chosen)}
+    estimates = {
+        column: {
+            "method": label,
+            "mean": found[label][f"{metric}_mean"],
+            "low": found[label][f"{metric}_low"],
+            "high": found[label][f"{metric}_high"],
+            "trials": found[label]["trials"],
+        }
+        for column, label in labels.items()
+        if label in found
+    }
+    pairs = {(c["method"], c["against"]): c for c in comparisons if _in_cell(c, chosen)}
+    verdicts = {
+        f"{method} vs {against}": _verdict(pairs, labels.get(method, ""), labels.get(against, ""))
+        for method, against in VERDICTS
+    }
+    return {
+        "task": task,
+        "cell": chosen,
+        "metric": metric,
+        "unit": unit,
+        "lower_is_better": lower_is_better,
+        "estimates": estimates,
+        "verdicts": verdicts,
+    }
+
+
+def _in_cell(row: Mapping[str, Any], cell: Mapping[str, Any]) -> bool:
+    return all(row.get(k) == v for k, v in cell.items())
+
+
+def _verdict(pairs: Mapping[tuple[str, str], Mapping[str, Any]], a: str, b: str) -> str:
+    """``a`` against ``b``: "better -0.02 [-0.03, -0.01]", from either orientation of the stored pair."""
+    flip = {"better": "worse", "worse": "better"}
+    if (a, b) in pairs:
+        c = pairs[(a, b)]
+        return f"{c['verdict']} {Estimate(c['difference'], c['low'], c['high'], 0)}"
+    if (b, a) in pairs:
+        c = pairs[(b, a)]
+        verdict = flip.get(c["verdict"], c["verdict"])
+        return f"{verdict} {Estimate(-c['difference'], -c['high'], -c['low'], 0)}"
+    return "not compared"

@@ -1,0 +1,114 @@
+"""What the two-link experiments share: motor-babbling data, the M and R networks, and the oracle.
+
+``smcd-rl two-link`` (Fig. 2) and ``smcd-rl telescoping`` (Fig. 8) both train a multi-task
+dropout network M and a Reptile network R on motor babbling of many two-link arms, and compare
+them with an oracle particle filter over the link lengths. Their configs derive from
+:class:`TwoLinkFamilyConfig`, which declares those settings once.
+
+Example:
+    >>> from smcd_rl.experiments.shared.two_link_family import TwoLinkFamilyConfig, network
+    >>> network(TwoLinkFamilyConfig(hidden=8, depth=2), "cpu").mask_dim
+    16
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+
+import smcd_rl
+from smcd_rl.baselines import OracleModel
+from smcd_rl.envs.two_link_arm import motor_babbling, sample_link_lengths, two_link_fk
+from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.experiments.shared.two_link_family_config import TwoLinkFamilyConfig
+
+__all__ = [
+    "TwoLinkFamilyConfig",
+    "babbling_data",
+    "tuning_episodes",
+    "network",
+    "fit_settings",
+    "train_reptile",
+    "oracle",
+]
+
+
+def babbling_data(config: TwoLinkFamilyConfig, ex: Experiment) -> TensorDictBase:
+    """Motor babbling of ``config.tasks`` arms (batch ``[tasks, episodes, steps]``), from the run's generator."""
+    data = motor_babbling(
+        config.tasks, config.episodes, config.steps, measurement_noise=config.measurement_noise, generator=ex.generator
+    )
+    return data.to(ex.device)
+
+
+def tuning_episodes(config: TwoLinkFamilyConfig, device: torch.device | str, *, steps: int) -> TensorDictBase:
+    """The fair protocol's held-out episodes: babbling of ``tuning_episodes`` fresh training-distribution arms.
+
+    One episode of ``steps`` steps per arm, batch ``[E, steps]``, drawn exactly as the training
+    data is but from a generator of its own (seed ``config.seed + 2_000_003``), so neither the
+    training arms nor the test arms are among them.
+    """
+    generator = torch.Generator().manual_seed(config.seed + 2_000_003)
+    data = motor_babbling(
+        config.tuning_episodes, 1, steps, measurement_noise=config.measurement_noise, generator=generator
+    )
+    return data.reshape(config.tuning_episodes, steps).select("q", "ee").to(device)
+
+
+def network(config: TwoLinkFamilyConfig, device: torch.device | str) -> smcd_rl.MaskedMLP:
+    """An untrained ``q (2) -> ee (2)`` dropout network of the config's width and depth."""
+    return smcd_rl.MaskedMLP(2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
+
+
+def fit_settings(config: TwoLinkFamilyConfig) -> dict[str, Any]:
+    """The :func:`smcd_rl.fit` settings of the M network."""
+    return {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
+
+
+def train_reptile(
+    ex: Experiment, config: TwoLinkFamilyConfig, data: TensorDictBase, *, init_seed: int
+) -> tuple[smcd_rl.AdaptiveModel, list[float]]:
+    """The R network trained (or resumed) by :func:`smcd_rl.fit_reptile`; its losses.
+
+    Its initial weights come from ``init_seed`` and the global RNG is left as it was, so adding or
+    dropping R methods changes nothing for the others. Reptile samples by task: the data's first
+    batch dim is the arm.
+    """
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(init_seed)
+        model = smcd_rl.AdaptiveModel(network(config, ex.device), in_keys=["q"], out_key="ee")
+    losses = ex.train(
+        "reptile",
+        smcd_rl.fit_reptile,
+        model,
+        data,
+        epochs=config.reptile_epochs,
+        batch_size=config.reptile_batch_size,
+        lr=config.reptile_lr,
+        inner_lr=config.reptile_inner_lr,
+        inner_epochs=config.reptile_inner_epochs,
+        tasks_per_batch=config.reptile_tasks_per_batch,
+        seed=config.seed,
+    )
+    return model, losses
+
+
+def oracle(config: TwoLinkFamilyConfig, device: torch.device | str) -> OracleModel:
+    """O+P: a particle filter over the link lengths that knows the two-link kinematics.
+
+    The lengths follow a random walk (``oracle_jitter`` per step), the filter's usual model of
+    slowly changing parameters; it does not know that a link may telescope.
+    """
+    return OracleModel(
+        lambda lengths, q: two_link_fk(q, lengths),
+        lambda shape, g: sample_link_lengths(shape, generator=g, device=g.device),
+        in_keys=["q"],
+        out_key="ee",
+        noise_std=config.noise_std,
+        num_particles=config.oracle_particles,
+        jitter_std=config.oracle_jitter,
+        lower=0.1,
+        generator=torch.Generator(device=device).manual_seed(config.seed + 7),
+    )

@@ -1,0 +1,262 @@
+"""Two-link arm look-ahead prediction (paper section 4.1, Fig. 2): ``smcd-rl two-link``.
+
+Reads top to bottom: seed, make data, train the models on the same data (a multi-task dropout
+network M, the same architecture trained with Reptile R, and the latent-variable VRNN LV), then
+for every method adapt for T burn-in steps on a held-out arm and predict the end effector H steps
+ahead with no further observations. Writes ``results.csv`` (the table), ``trials.csv`` (every
+trial's RMSE), ``results.json`` (settings, table, training losses, timings, machine) and
+``lookahead.png``.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+
+import smcd_rl
+from smcd_rl.baselines import LatentVariableModel, fit_latent
+from smcd_rl.digests import model_digest
+from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.experiments.shared.outputs import format_table, save_figure
+from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
+from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.shared.tuning import Tuning, method_variant, strategy_for, tune
+from smcd_rl.experiments.shared.two_link_family import (
+    babbling_data,
+    fit_settings,
+    network,
+    oracle,
+    train_reptile,
+    tuning_episodes,
+)
+from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED, lookahead_errors, test_arms
+from smcd_rl.experiments.two_link.config import DEFAULT_METHODS, FULL, METHODS, TwoLinkConfig
+
+__all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "run", "table"]
+
+#: The adaptive methods, each compared (paired over the same arms) with M+N and with each other.
+ADAPTIVE = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N", "LV+N", "O+P")
+
+
+def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Run the experiment and write its files; returns the JSON payload."""
+    with Experiment(config, progress=progress) as ex:
+        ex.plan(stage_costs(config))
+        # --- seed, data, models -----------------------------------------------------------------
+        data = babbling_data(config, ex)
+        model = smcd_rl.AdaptiveModel(network(config, ex.device), in_keys=["q"], out_key="ee")
+        losses = {"train_loss": ex.train("train", smcd_rl.fit, model, data, **fit_settings(config))}
+        model.save(ex.out / "model.pt")
+        reptile, latent = _train_baselines(ex, config, data, losses)
+
+        # --- the fair protocol: SMCD and GD tuned on held-out babbling of fresh training arms -------
+        episodes = tuning_episodes(config, ex.device, steps=max(2, *config.burn_in))  # calibration needs 2 steps
+        tunings = {
+            name: tune(ex, trained, episodes, config, name=name, options=config.tuning_options)
+            for name, trained in (("M", model), ("R", reptile))
+            if any(m.startswith(name + "+") and m[2:] in ("G", "S", "S(paper)") for m in config.methods)
+            and trained is not None
+        }
+
+        # --- every method on the same held-out arms -------------------------------------------------
+        q, ee, ee_true, lengths = test_arms(config, ex.device, count=config.trials, seed=config.seed + TEST_ARMS_SEED)
+        methods = {
+            name: functools.partial(_method, name, model, reptile, latent, tunings, config) for name in config.methods
+        }
+        trained = {"M": model, "R": reptile, "LV": latent}
+        content = {name: model_digest(m) for name, m in trained.items() if m is not None}
+        done = ex.evaluate(methods, functools.partial(_errors, q, ee, ee_true, config, progress), content=content)
+
+        # --- results: per-arm RMSE per (T, H), CIs, paired verdicts ---------------------------------
+        scores = {
+            (t, h): {name: r["sq_errors"][:, i, :h].mean(-1).sqrt() for name, r in done.items()}
+            for i, t in enumerate(config.burn_in)
+            for h in config.horizons
+        }
+        rows, comparisons = cell_statistics(
+            scores, cell=("burn_in", "horizon"), baseline="M+N", adaptive=ADAPTIVE, metric="rmse", seed=config.seed
+        )
+        trial_rows = [
+            {"method": name, "burn_in": t, "horizon": h, "trial": k, "rmse": float(v)}
+            for (t, h), by_method in scores.items()
+            for name, values in by_method.items()
+            for k, v in enumerate(values)
+        ]
+        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
+        ex.write(
+            experiment="two-link look-ahead prediction (paper Fig. 2)",
+            tables={
+                "End-effector RMSE (m), mean [95% CI] over held-out arms": table(rows, config),
+                "M+S paired with M+N, M+G and M+S(paper) over the same arms (negative: M+S's error is lower)": (
+                    verdict_table(headline, cell=("burn_in", "horizon"))
+                ),
+                **{t.caption(): t.table() for t in tunings.values()},
+            },
+            rows=rows,
+            trials=trial_rows,
+            comparisons=comparisons,
+            payload={
+                **losses,
+                "test_link_lengths": lengths.tolist(),
+                "tuning": {name: t.payload() for name, t in tunings.items()},
+                "scoreboard": scoreboard_entry(
+                    "two-link look-ahead",
+                    rows,
+                    comparisons,
+                    cell={"burn_in": 10, "horizon": 1},
+                    metric="rmse",
+                    unit="m",
+                ),
+            },
+            plots={
+                "lookahead.png": lambda path: _plot(rows, config, path),
+                **{f"tuning-{name}.png": t.plot for name, t in tunings.items()},
+            },
+        )
+    return ex.result
+
+
+#: Seconds of each stage at the defaults on 2 cores (Intel Xeon, one thread): the overall progress
+#: line scales these by the settings and by this run's measured speed to say how long is left.
+_REFERENCE_SECONDS = {
+    "train": 53.0,
+    "train reptile": 51.0,
+    "train latent": 58.0,
+    "tune": 93.0,  # calibration, GD grid and diagnosis of one network; the options add as much again
+    "evaluate G": 45.0,  # per method over 500 arms at T = 1, 5, 10
+    "evaluate S": 56.0,
+    "evaluate O+P": 1.0,
+    "evaluate N": 0.1,
+}
+
+
+def stage_costs(config: TwoLinkConfig) -> dict[str, float]:
+    """Each stage's expected relative cost at ``config``, in the order the stages run.
+
+    Example:
+        >>> costs = stage_costs(TwoLinkConfig())
+        >>> list(costs)[:4], costs["evaluate M+S"] > costs["evaluate M+N"]
+        (['train', 'train latent', 'tune M', 'evaluate O+P'], True)
+    """
+    ref = _REFERENCE_SECONDS
+    data = config.tasks * config.episodes * config.steps / 100_000 * (config.hidden / 512) ** 2 * config.depth / 2
+    filtering = config.trials / 500 * sum(config.burn_in) / 16
+    networks = [n for n in ("M", "R") if any(m.startswith(n + "+") and m[2:] != "N" for m in config.methods)]
+    costs = {"train": ref["train"] * config.epochs / 20 * data}
+    if any(m.startswith("R+") for m in config.methods):
+        costs["train reptile"] = ref["train reptile"] * config.reptile_epochs / 20 * data
+    if "LV+N" in config.methods:
+        costs["train latent"] = ref["train latent"] * config.lv_epochs / 20 * config.tasks * config.episodes / 10_000
+    tuning = config.tuning_episodes / 32 * max(config.burn_in) / 10 * (2 if config.tuning_options else 1)
+    costs.update({f"tune {n}": ref["tune"] * tuning * config.particles / 1000 for n in networks})
+    for name in config.methods:
+        variant = "O+P" if name == "O+P" else "N" if name.endswith("+N") else name.split("+")[1][0]
+        particles = {"O+P": config.oracle_particles, "S": config.particles}.get(variant, 1000)
+        costs[f"evaluate {name}"] = ref[f"evaluate {variant}"] * filtering * particles / 1000
+    return costs
+
+
+def table(rows: list[dict[str, Any]], config: TwoLinkConfig) -> str:
+    """RMSE (mean [95% CI] over arms) with burn-in T down and horizon H across, one block per method."""
+    header = ["method", "T", *[f"H={h}" for h in config.horizons]]
+    lookup = {
+        (r["method"], r["burn_in"], r["horizon"]): f"{r['rmse_mean']:.3f} [{r['rmse_low']:.3f}, {r['rmse_high']:.3f}]"
+        for r in rows
+    }
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    body = [[m, t, *[lookup[(m, t, h)] for h in config.horizons]] for m in methods for t in config.burn_in]
+    return format_table(body, header)
+
+
+def _train_baselines(
+    ex: Experiment, config: TwoLinkConfig, data: TensorDict, losses: dict[str, Any]
+) -> tuple[smcd_rl.AdaptiveModel | None, LatentVariableModel | None]:
+    """Train (or resume) the Reptile network and the VRNN that the chosen methods need.
+
+    Their initial weights come from seeds of their own, and the global RNG is left as it was,
+    so adding or dropping these methods changes nothing for the others.
+    """
+    reptile = latent = None
+    if any(name.startswith("R+") for name in config.methods):
+        reptile, losses["reptile_train_loss"] = train_reptile(ex, config, data, init_seed=config.seed + 17)
+        reptile.save(ex.out / "reptile_model.pt")
+    if "LV+N" in config.methods:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(config.seed + 19)
+            latent = LatentVariableModel(2, 2, in_keys=["q"], out_key="ee", width=config.lv_width, device=ex.device)
+        losses["latent_train_loss"] = ex.train(
+            "latent",
+            fit_latent,
+            latent,
+            data,
+            epochs=config.lv_epochs,
+            batch_size=config.lv_batch_size,
+            lr=config.lv_lr,
+            seed=config.seed,
+        )
+    return reptile, latent
+
+
+def _method(
+    name: str,
+    model: smcd_rl.AdaptiveModel,
+    reptile: smcd_rl.AdaptiveModel | None,
+    latent: LatentVariableModel | None,
+    tunings: dict[str, Tuning],
+    config: TwoLinkConfig,
+) -> Any:
+    if name == "LV+N":
+        return latent
+    if name == "O+P":
+        return oracle(config, "cpu")
+    # M and R differ only in how the network was trained; they adapt with identical strategies.
+    trained = {"M": model, "R": reptile}[method_variant(name)[0]]
+    assert trained is not None
+    return trained.with_adaptation(strategy_for(name, tunings, seed=config.seed + 11, device=config.device))
+
+
+def _errors(
+    q: torch.Tensor,
+    ee: torch.Tensor,
+    ee_true: torch.Tensor,
+    config: TwoLinkConfig,
+    progress: bool,
+    name: str,
+    method: Any,
+) -> dict[str, torch.Tensor]:
+    """One method's squared look-ahead errors on the test arms (a function, so a worker process can run it)."""
+    return {"sq_errors": lookahead_errors(method, q, ee, ee_true, config, desc=name, progress=progress)}
+
+
+def _plot(rows: list[dict[str, Any]], config: TwoLinkConfig, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(config.burn_in), figsize=(3.2 * len(config.burn_in) + 1.0, 3.2), sharey=True)
+    axes = [axes] if len(config.burn_in) == 1 else list(axes)
+    for ax, t in zip(axes, config.burn_in, strict=True):
+        for method in dict.fromkeys(r["method"] for r in rows):
+            sel = [r for r in rows if r["method"] == method and r["burn_in"] == t]
+            ax.errorbar(
+                [r["horizon"] for r in sel],
+                [r["rmse_mean"] for r in sel],
+                yerr=[[r["rmse_mean"] - r["rmse_low"] for r in sel], [r["rmse_high"] - r["rmse_mean"] for r in sel]],
+                marker="o",
+                capsize=2,
+                label=method,
+            )
+        ax.set_title(f"burn-in T = {t}")
+        ax.set_xlabel("look-ahead H (steps)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("end-effector RMSE (m)")
+    axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1.0))  # outside: eight methods would hide lines
+    fig.suptitle(f"Two-link look-ahead prediction ({config.trials} held-out arms)")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+    plt.close(fig)
