@@ -18,6 +18,7 @@ code), never by a file name, so no rerun ever picks up a stale result.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import sys
@@ -32,12 +33,13 @@ from tqdm.auto import tqdm
 
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.shared.config import OUTPUT_ONLY, ExperimentConfig, config_dict, setting
-from smcd_rl.experiments.shared.outputs import settings_fingerprint, write_csv, write_json, write_text
+from smcd_rl.experiments.shared.outputs import settings_fingerprint, write_csv, write_json
+from smcd_rl.experiments.shared.report import write_report
 from smcd_rl.experiments.shared.result_store import ResultStore
 from smcd_rl.experiments.shared.run_lock import lock_out, release
 from smcd_rl.experiments.shared.runtime import machine_info, resolve_device, seed_everything, torch_threads
 from smcd_rl.experiments.shared.stages import StagePlan, duration
-from smcd_rl.experiments.shared.workers import auto_workers, map_jobs
+from smcd_rl.experiments.shared.workers import auto_workers, computed, map_jobs
 
 __all__ = [
     "ExperimentConfig",
@@ -141,10 +143,53 @@ class Experiment:
 
         The wall time is recorded in :attr:`timings` under ``"train " + name``.
         """
+        return self._train(name, trainer, model, data, settings, announce=True)
+
+    def train_all(self, jobs: Mapping[str, tuple[Callable[..., Any], torch.nn.Module, Any, Mapping[str, Any]]]) -> dict:
+        """:meth:`train` every ``name -> (trainer, model, data, settings)``; independent ones side by side.
+
+        With ``--workers`` (:class:`~smcd_rl.experiments.shared.config.EvaluationConfig`), worker
+        processes train the models to their checkpoints first, then each is resumed here from its
+        finished checkpoint: the same weights as training them one after the other. Returns name ->
+        what its trainer returned (its losses).
+        """
+        stages = {name: _train_stage(name) for name in jobs}
+        paths = {name: self.checkpoint(name, t, m, d, **settings) for name, (t, m, d, settings) in jobs.items()}
+        workers = self._workers(list(stages.values())) if len(jobs) > 1 else 1
+        if workers > 1:
+            with self.stage(f"{', '.join(stages.values())} in {workers} workers", members=list(stages.values())):
+                seconds = map_jobs(
+                    {
+                        name: functools.partial(_train_to, trainer, model, data, paths[name], dict(settings))
+                        for name, (trainer, model, data, settings) in jobs.items()
+                    },
+                    computed,
+                    workers=workers,
+                    threads=self.config.threads,
+                    progress=self.progress,
+                )
+        results = {
+            name: self._train(name, trainer, model, data, settings, announce=workers <= 1)
+            for name, (trainer, model, data, settings) in jobs.items()
+        }
+        if workers > 1:
+            self.timings.update({f"train {name}": seconds[name] for name in jobs})
+        return results
+
+    def _train(
+        self,
+        name: str,
+        trainer: Callable[..., T],
+        model: torch.nn.Module,
+        data: Any,
+        settings: Mapping[str, Any],
+        *,
+        announce: bool,
+    ) -> T:
         path = self.checkpoint(name, trainer, model, data, **settings)
         started = time.perf_counter()
-        with self.stage(name if name.startswith("train") else f"train {name}"):
-            result = trainer(model, data, checkpoint=path, progress=self.progress, **settings)
+        with self.stage(_train_stage(name)) if announce else contextlib.nullcontext():
+            result = trainer(model, data, checkpoint=path, progress=self.progress and announce, **settings)
         self.timings[f"train {name}"] = time.perf_counter() - started
         return result
 
@@ -303,8 +348,15 @@ def _files_of_earlier_run(results: Path) -> list[str]:
     return [name for name in files if isinstance(name, str) and name == Path(name).name and name not in ("", ".", "..")]
 
 
-def _count(n: int, noun: str) -> str:
-    return f"{n} {noun}" + ("" if n == 1 else "s")
+def _train_stage(name: str) -> str:
+    return name if name.startswith("train") else f"train {name}"
+
+
+def _train_to(trainer: Callable[..., Any], model: Any, data: Any, path: Path, settings: dict[str, Any]) -> float:
+    """In a worker: train ``model`` to its checkpoint at ``path``; returns the wall seconds it took."""
+    started = time.perf_counter()
+    trainer(model, data, checkpoint=path, progress=False, **settings)
+    return time.perf_counter() - started
 
 
 def _timed(evaluate: Callable[[str, Any], Mapping[str, Any]], name: str, built: Any) -> dict[str, Any]:
@@ -315,34 +367,3 @@ def _timed(evaluate: Callable[[str, Any], Mapping[str, Any]], name: str, built: 
 
 def _content(content: Mapping[str, Any] | Callable[[str], Mapping[str, Any]], name: str) -> Mapping[str, Any]:
     return content(name) if callable(content) else content
-
-
-def write_report(path: Path, result: Mapping[str, Any], tables: Mapping[str, str], plots: Sequence[str]) -> None:
-    """``report.md``: an experiment's tables, plot, settings (with their fingerprint), machine and wall time.
-
-    The fingerprint is that of the settings that determine the numbers, so a reader (or a test)
-    can tell whether a committed report is what the current settings produce.
-    """
-    config = dict(result["config"])
-    settings = {k: v for k, v in config.items() if k not in OUTPUT_ONLY}
-    machine = result["machine"]
-    lines = [f"# {result['experiment']}", ""]
-    for caption, text in tables.items():
-        lines += [f"**{caption}**", "", text, ""]
-    for plot in plots:
-        lines += [f"![{plot}]({plot})", ""]
-    seconds = result["seconds"]["total"]
-    lines += [
-        f"Wall time {int(seconds // 60)} min {seconds % 60:.0f} s on {machine['processor']} "
-        f"({machine['cpus']} CPUs, {_count(machine['torch_threads'], 'torch thread')}, torch {machine['torch']}"
-        + (f", {machine['gpu']}" if "gpu" in machine else "")
-        + ").",
-        "",
-        f"Settings (fingerprint `{settings_fingerprint(settings)[:12]}`):",
-        "",
-        "```json",
-        json.dumps(config, indent=2, ensure_ascii=False),
-        "```",
-        "",
-    ]
-    write_text(path, "\n".join(lines), what="report")

@@ -257,7 +257,13 @@ def _tune(
     with timer("calibrate"):
         base = smcd_rl.SMCD(num_particles=config.particles)
         result = calibrate(
-            model, episodes, base=base, flip_probs=config.calibrate_flips, seed=seed, progress=ex.progress
+            model,
+            episodes,
+            base=base,
+            flip_probs=config.calibrate_flips,
+            criterion="evidence",
+            seed=seed,
+            progress=ex.progress,
         )
     calibration = [asdict(c) for c in result.candidates]
 
@@ -332,6 +338,7 @@ def _trace_options(
             episodes,
             base=smcd_rl.SMCD(num_particles=config.particles, likelihood="student-t"),
             flip_probs=config.calibrate_flips,
+            criterion="evidence",
             seed=seed,
             progress=ex.progress,
         )

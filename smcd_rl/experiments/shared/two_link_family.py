@@ -31,6 +31,8 @@ __all__ = [
     "network",
     "fit_settings",
     "train_reptile",
+    "reptile_model",
+    "reptile_settings",
     "oracle",
 ]
 
@@ -67,32 +69,35 @@ def fit_settings(config: TwoLinkFamilyConfig) -> dict[str, Any]:
     return {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
 
 
-def train_reptile(
-    ex: Experiment, config: TwoLinkFamilyConfig, data: TensorDictBase, *, init_seed: int
-) -> tuple[smcd_rl.AdaptiveModel, list[float]]:
-    """The R network trained (or resumed) by :func:`smcd_rl.fit_reptile`; its losses.
+def reptile_model(config: TwoLinkFamilyConfig, device: torch.device | str, *, init_seed: int) -> smcd_rl.AdaptiveModel:
+    """The untrained R network: initial weights from ``init_seed``, the global RNG left as it was.
 
-    Its initial weights come from ``init_seed`` and the global RNG is left as it was, so adding or
-    dropping R methods changes nothing for the others. Reptile samples by task: the data's first
-    batch dim is the arm.
+    So adding or dropping R methods changes nothing for the others.
     """
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(init_seed)
-        model = smcd_rl.AdaptiveModel(network(config, ex.device), in_keys=["q"], out_key="ee")
-    losses = ex.train(
-        "reptile",
-        smcd_rl.fit_reptile,
-        model,
-        data,
-        epochs=config.reptile_epochs,
-        batch_size=config.reptile_batch_size,
-        lr=config.reptile_lr,
-        inner_lr=config.reptile_inner_lr,
-        inner_epochs=config.reptile_inner_epochs,
-        tasks_per_batch=config.reptile_tasks_per_batch,
-        seed=config.seed,
-    )
-    return model, losses
+        return smcd_rl.AdaptiveModel(network(config, device), in_keys=["q"], out_key="ee")
+
+
+def reptile_settings(config: TwoLinkFamilyConfig) -> dict[str, Any]:
+    """The :func:`smcd_rl.fit_reptile` settings of the R network (it samples by task: the data's first dim is the arm)."""
+    return {
+        "epochs": config.reptile_epochs,
+        "batch_size": config.reptile_batch_size,
+        "lr": config.reptile_lr,
+        "inner_lr": config.reptile_inner_lr,
+        "inner_epochs": config.reptile_inner_epochs,
+        "tasks_per_batch": config.reptile_tasks_per_batch,
+        "seed": config.seed,
+    }
+
+
+def train_reptile(
+    ex: Experiment, config: TwoLinkFamilyConfig, data: TensorDictBase, *, init_seed: int
+) -> tuple[smcd_rl.AdaptiveModel, list[float]]:
+    """The R network trained (or resumed) by :func:`smcd_rl.fit_reptile`; its losses."""
+    model = reptile_model(config, ex.device, init_seed=init_seed)
+    return model, ex.train("reptile", smcd_rl.fit_reptile, model, data, **reptile_settings(config))
 
 
 def oracle(config: TwoLinkFamilyConfig, device: torch.device | str) -> OracleModel:

@@ -101,9 +101,12 @@ def map_jobs(
         for name, factory in jobs.items():
             finished(name, call(name, factory()))
         return results
-    for name, job in jobs.items():
+    # Plain pickle, not multiprocessing's: torch would otherwise move every tensor into shared
+    # memory, and a worker that trains a model in place would change the caller's model too.
+    payloads = {}
+    for name, factory in jobs.items():
         try:
-            pickle.dumps((call, job))
+            payloads[name] = pickle.dumps((call, name, factory), protocol=pickle.HIGHEST_PROTOCOL)
         except (pickle.PicklingError, AttributeError, TypeError) as err:
             raise TypeError(
                 f"job {name!r} cannot be sent to a worker process ({err}); build it from module-level "
@@ -114,10 +117,10 @@ def map_jobs(
         max_workers=min(workers, len(jobs)), mp_context=context, initializer=_start_worker, initargs=(threads,)
     )
     try:
-        futures = {pool.submit(_run_job, call, name, factory): name for name, factory in jobs.items()}
+        futures = {pool.submit(_run_job, payload): name for name, payload in payloads.items()}
         bar = tqdm(total=len(futures), desc="methods", unit="method", disable=not progress)
         for future in concurrent.futures.as_completed(futures):
-            finished(futures[future], future.result())
+            finished(futures[future], pickle.loads(future.result()))
             bar.update()
         bar.close()
     except BaseException:  # Ctrl-C or a failed job: stop the others now, keep what finished
@@ -141,5 +144,7 @@ def _start_worker(threads: int) -> None:
     os.dup2(devnull.fileno(), 2)
 
 
-def _run_job(call: Callable[[str, Any], Any], name: str, factory: Callable[[], Any]) -> Any:
-    return call(name, factory())
+def _run_job(payload: bytes) -> bytes:
+    """In a worker: unpickle the job, run it, pickle its result (each tensor a copy, not shared memory)."""
+    call, name, factory = pickle.loads(payload)
+    return pickle.dumps(call(name, factory()), protocol=pickle.HIGHEST_PROTOCOL)

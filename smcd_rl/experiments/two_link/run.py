@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDict
 
 import smcd_rl
 from smcd_rl.baselines import LatentVariableModel, fit_latent
@@ -30,7 +29,8 @@ from smcd_rl.experiments.shared.two_link_family import (
     fit_settings,
     network,
     oracle,
-    train_reptile,
+    reptile_model,
+    reptile_settings,
     tuning_episodes,
 )
 from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED, lookahead_errors, test_arms
@@ -49,9 +49,17 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         # --- seed, data, models -----------------------------------------------------------------
         data = babbling_data(config, ex)
         model = smcd_rl.AdaptiveModel(network(config, ex.device), in_keys=["q"], out_key="ee")
-        losses = {"train_loss": ex.train("train", smcd_rl.fit, model, data, **fit_settings(config))}
+        reptile, latent = _baselines(config, ex.device)
+        trainings: dict[str, Any] = {"train": (smcd_rl.fit, model, data, fit_settings(config))}
+        if reptile is not None:
+            trainings["reptile"] = (smcd_rl.fit_reptile, reptile, data, reptile_settings(config))
+        if latent is not None:
+            trainings["latent"] = (fit_latent, latent, data, _latent_settings(config))
+        trained = ex.train_all(trainings)  # independent: side by side with --workers
+        losses = {f"{'' if name == 'train' else name + '_'}train_loss": value for name, value in trained.items()}
         model.save(ex.out / "model.pt")
-        reptile, latent = _train_baselines(ex, config, data, losses)
+        if reptile is not None:
+            reptile.save(ex.out / "reptile_model.pt")
 
         # --- the fair protocol: SMCD and GD tuned on held-out babbling of fresh training arms -------
         episodes = tuning_episodes(config, ex.device, steps=max(2, *config.burn_in))  # calibration needs 2 steps
@@ -172,33 +180,26 @@ def table(rows: list[dict[str, Any]], config: TwoLinkConfig) -> str:
     return format_table(body, header)
 
 
-def _train_baselines(
-    ex: Experiment, config: TwoLinkConfig, data: TensorDict, losses: dict[str, Any]
+def _baselines(
+    config: TwoLinkConfig, device: torch.device
 ) -> tuple[smcd_rl.AdaptiveModel | None, LatentVariableModel | None]:
-    """Train (or resume) the Reptile network and the VRNN that the chosen methods need.
+    """The untrained Reptile network and VRNN that the chosen methods need (``None`` where none does).
 
     Their initial weights come from seeds of their own, and the global RNG is left as it was,
     so adding or dropping these methods changes nothing for the others.
     """
     reptile = latent = None
     if any(name.startswith("R+") for name in config.methods):
-        reptile, losses["reptile_train_loss"] = train_reptile(ex, config, data, init_seed=config.seed + 17)
-        reptile.save(ex.out / "reptile_model.pt")
+        reptile = reptile_model(config, device, init_seed=config.seed + 17)
     if "LV+N" in config.methods:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed + 19)
-            latent = LatentVariableModel(2, 2, in_keys=["q"], out_key="ee", width=config.lv_width, device=ex.device)
-        losses["latent_train_loss"] = ex.train(
-            "latent",
-            fit_latent,
-            latent,
-            data,
-            epochs=config.lv_epochs,
-            batch_size=config.lv_batch_size,
-            lr=config.lv_lr,
-            seed=config.seed,
-        )
+            latent = LatentVariableModel(2, 2, in_keys=["q"], out_key="ee", width=config.lv_width, device=device)
     return reptile, latent
+
+
+def _latent_settings(config: TwoLinkConfig) -> dict[str, Any]:
+    return {"epochs": config.lv_epochs, "batch_size": config.lv_batch_size, "lr": config.lv_lr, "seed": config.seed}
 
 
 def _method(
