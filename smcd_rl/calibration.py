@@ -1,12 +1,21 @@
-"""Calibration by evidence (empirical Bayes): the likelihood noise and flip probability of SMCD.
+"""Calibration of SMCD's likelihood noise and flip probability on held-out episodes.
 
 The likelihood noise ``Σ`` of eq. (1) and the flip probability ``d`` of the mask transition are
-parameters of the state-space model the filter assumes, and the filter already estimates that
-model's marginal likelihood as it runs, ``log p(z_1:T) = Σ_t log p(z_t | z_<t)`` (its log
-evidence, :attr:`smcd_rl.SMCDFilter.log_evidence`). :func:`calibrate` runs the filter over
-held-out episodes of the *training* tasks for a few candidate settings and keeps the one of
-highest summed log evidence: too small a noise punishes every residual the network cannot
-explain, too large a one spreads the likelihood over masks that predict nothing.
+parameters of the state-space model the filter assumes. :func:`calibrate` runs the filter over
+held-out episodes of the *training* tasks for a few candidate settings and keeps the best by one
+of two criteria:
+
+* ``"one-step"`` (the default): the lowest one-step prediction error, the RMSE of the filter's
+  prediction of each step from the steps before it (:attr:`Candidate.one_step_rmse`), which is
+  the point prediction planners and controllers use.
+* ``"evidence"`` (empirical Bayes): the highest log evidence, the model's marginal likelihood
+  ``log p(z_1:T) = Σ_t log p(z_t | z_<t)`` that the filter estimates as it runs
+  (:attr:`smcd_rl.SMCDFilter.log_evidence`): too small a noise punishes every residual the
+  network cannot explain, too large a one spreads the likelihood over masks that predict nothing.
+
+The two can disagree. The evidence scores the filter's predictive *density*; where the network's
+residuals are not the independent Gaussian noise the filter assumes (a misspecified network's are
+systematic, or heavy-tailed), the setting of best evidence can predict worse than another.
 
 Example:
     >>> import torch, smcd_rl
@@ -17,8 +26,8 @@ Example:
     >>> _ = smcd_rl.fit(model, TensorDict({"q": q, "ee": q.cos()}, [40]), epochs=2, lr=1e-2, progress=False)
     >>> episodes = TensorDict({"q": q.reshape(4, 10, 2), "ee": q.cos().reshape(4, 10, 2)}, [4, 10])
     >>> result = smcd_rl.calibrate(model, episodes, base=smcd_rl.SMCD(num_particles=20), progress=False)
-    >>> len(result.candidates) >= 15, model.calibration["flip_prob"] == result.flip_prob
-    (True, True)
+    >>> result.criterion, len(result.candidates) >= 15, model.calibration["flip_prob"] == result.flip_prob
+    ('one-step', True, True)
 """
 
 from __future__ import annotations
@@ -49,6 +58,9 @@ _LOG2 = math.log(2.0)
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 Stage = Literal["bracket", "flip", "rebracket", "refine"]
+#: What :func:`calibrate` optimises: the one-step prediction error, or the log evidence.
+Criterion = Literal["one-step", "evidence"]
+_CRITERIA: tuple[Criterion, ...] = ("one-step", "evidence")
 
 
 @dataclass(frozen=True)
@@ -77,6 +89,9 @@ class Calibration:
     strategy: SMCD = field(compare=False)
     noise_std: float | list[float]
     flip_prob: float
+    #: What chose the setting: ``"one-step"`` (the lowest one-step RMSE) or ``"evidence"`` (the
+    #: highest log evidence).
+    criterion: Criterion
     #: Every filter run, in the order run.
     candidates: list[Candidate]
     #: The residual scale per output dimension the search started from.
@@ -95,8 +110,8 @@ class Calibration:
 
     @property
     def best(self) -> Candidate:
-        """The chosen candidate: the one of highest log evidence (the first of equals)."""
-        return max(self.candidates, key=lambda c: c.log_evidence)
+        """The chosen candidate: the best by :attr:`criterion` (the first of equals)."""
+        return _best(self.candidates, self.criterion)
 
     def table(self) -> str:
         """Every candidate's setting, log evidence and one-step error; the chosen one marked ``*``."""
@@ -125,14 +140,16 @@ class Calibration:
             if isinstance(self.noise_std, float)
             else str([float(f"{v:.4g}") for v in self.noise_std])
         )
+        by = "lowest 1-step RMSE" if self.criterion == "one-step" else "highest log evidence"
         lines.append(
-            f"chosen: noise_std={noise_text}, flip_prob={self.flip_prob:g} "
+            f"chosen ({by}): noise_std={noise_text}, flip_prob={self.flip_prob:g} "
             f"({len(self.candidates)} filter runs, {self.seconds:.1f} s)"
         )
         if len(self.flip_probs) > 1 and self.flip_prob in (self.flip_probs[0], self.flip_probs[-1]):
+            better = "predict" if self.criterion == "one-step" else "explain the episodes"
             lines.append(
                 f"note: flip_prob {self.flip_prob:g} is at the end of the flip_probs tried {self.flip_probs}; "
-                "a wider range may explain the episodes better"
+                f"a wider range may {better} better"
             )
         return "\n".join(lines)
 
@@ -148,14 +165,25 @@ def calibrate(
     flip_probs: Sequence[float] = (0.001, 0.003, 0.01, 0.03),
     per_dimension: bool = True,
     refine: int = 5,
+    criterion: Criterion = "one-step",
     seed: int = 0,
     progress: bool = True,
 ) -> Calibration:
-    """Choose SMCD's ``noise_std`` and ``flip_prob`` by the filter's log evidence on held-out episodes.
+    """Choose SMCD's ``noise_std`` and ``flip_prob`` on held-out episodes, by one-step error or by evidence.
 
     The episodes must come from the *training* tasks (held out from training, never the test
     tasks): calibration is part of fitting the model, and tuning it on the tasks it is then
     scored on would leak them into the score.
+
+    The criterion is the one-step RMSE by default (lower is better): the error of the filter's
+    prediction of each step from the steps before it. ``criterion="evidence"`` maximises the
+    filter's log evidence instead (empirical Bayes). The evidence scores the filter's predictive
+    density, while planners and controllers use its point prediction, so the setting of best
+    evidence can predict worse: where the network's residuals are not the independent Gaussian
+    noise the filter assumes, the evidence may choose a small noise that makes the filter
+    over-confident (it then jumps between masks on every residual), or a large one that pays for
+    rare outliers with a filter that barely adapts. The search is the same for both; only the
+    value it maximises differs.
 
     The noise is searched as ``factor x residual scale``, starting from the model's
     :attr:`~smcd_rl.AdaptiveModel.residual_scale` (recorded by :func:`smcd_rl.fit`; without one,
@@ -177,9 +205,10 @@ def calibrate(
     extension), each over all episodes at once as one batch of independent filters, every one seeded alike from ``seed``
     (common random numbers, so candidates differ by their setting and not by their draws). The
     cost of a run is that of ``steps`` SMCD updates of batch ``episodes`` (memory: ``episodes x
-    num_particles`` masks and activations at once). The chosen setting is
-    the candidate of highest log evidence; it is stored in ``model.calibration`` (saved with the
-    model, used by ``SMCD(noise_std="auto", flip_prob="auto")``).
+    num_particles`` masks and activations at once). The chosen setting is the best candidate by
+    ``criterion`` (the lowest one-step RMSE, or the highest log evidence; the first of equals);
+    it is stored in ``model.calibration`` with the criterion that chose it (saved with the model,
+    used by ``SMCD(noise_std="auto", flip_prob="auto")``); a call that raises leaves it as it was.
 
     Args:
         model: a fitted model; its network is not changed.
@@ -190,6 +219,9 @@ def calibrate(
         flip_probs: the flip probabilities tried.
         per_dimension: one noise per output dimension in the residual's proportions (else one scalar).
         refine: golden-section runs at the end (0 for none).
+        criterion: what the search optimises and the choice is made by: ``"one-step"``, the
+            one-step RMSE (:attr:`Candidate.one_step_rmse`, lowest wins), or ``"evidence"``, the
+            log evidence (:attr:`Candidate.log_evidence`, highest wins).
         seed: seed of every filter run: two calls with the same arguments give the same result.
         progress: show a progress bar over the filter runs.
 
@@ -201,9 +233,12 @@ def calibrate(
         KeyError: a key the model needs is missing from ``episodes``.
         ValueError: shapes that do not fit the model, fewer than 2 episodes or steps, NaN or inf,
             episodes of different lengths, an unfitted model, a flip probability the transition
-            cannot take, or a filter that refused the episodes under every candidate.
+            cannot take, a ``criterion`` other than ``"one-step"`` or ``"evidence"``, or a filter
+            that refused the episodes under every candidate (no finite evidence or one-step error).
     """
     started = time.perf_counter()
+    if not isinstance(criterion, str) or criterion not in _CRITERIA:
+        raise ValueError(f"criterion must be 'one-step' or 'evidence', got {criterion!r}")
     model, base = _checked_model(model), _checked_base(base)
     grid = _checked_flips(flip_probs, model, base)
     refine = check_count(refine, "refine", minimum=0)
@@ -247,11 +282,14 @@ def calibrate(
             generator=torch.Generator(device=device).manual_seed(seed),
         )
         evidence, rmse = _run(model, strategy, x, y)
-        candidates.append(Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse))
-        scores[key] = evidence
+        candidate = Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse)
+        candidates.append(candidate)
+        scores[key] = value = _objective(candidate, criterion)
         bar.update(1)
-        bar.set_postfix(factor=f"{math.exp(log_factor):.3g}", flip=f"{flip:g}", evidence=f"{evidence:.4g}")
-        return evidence
+        bar.set_postfix(
+            factor=f"{math.exp(log_factor):.3g}", flip=f"{flip:g}", evidence=f"{evidence:.4g}", rmse=f"{rmse:.4g}"
+        )
+        return value
 
     try:
         # 1. Bracket the noise at the middle flip probability; 2. the other flip probabilities there.
@@ -266,8 +304,8 @@ def calibrate(
     finally:
         bar.close()
 
-    best = max(candidates, key=lambda c: c.log_evidence)
-    if not math.isfinite(best.log_evidence):
+    best = _best(candidates, criterion)
+    if not math.isfinite(_objective(best, criterion)):
         raise ValueError(
             "the filter refused the episodes under every candidate setting (an observation impossible under "
             "every particle); check that the episodes are in the model's units and free of outliers"
@@ -276,6 +314,7 @@ def calibrate(
     model.calibration = {
         "noise_std": chosen,
         "flip_prob": best.flip_prob,
+        "criterion": criterion,
         "log_evidence": best.log_evidence,
         "one_step_rmse": best.one_step_rmse,
         "episodes": num_episodes,
@@ -286,6 +325,7 @@ def calibrate(
         strategy=SMCD(**config, noise_std=chosen, flip_prob=best.flip_prob),
         noise_std=chosen,
         flip_prob=best.flip_prob,
+        criterion=criterion,
         candidates=candidates,
         residual_scale=start.tolist(),
         residual_source=source,
@@ -351,6 +391,19 @@ def _checked_base(base: SMCD | None) -> SMCD:
     if not isinstance(base, SMCD):
         raise TypeError(f"base must be a smcd_rl.SMCD whose other settings the runs use, got {type(base).__name__}")
     return base
+
+
+def _objective(candidate: Candidate, criterion: Criterion) -> float:
+    """What the search maximises: the log evidence, or minus the one-step RMSE (``-inf`` if not finite)."""
+    if criterion == "evidence":
+        return candidate.log_evidence
+    rmse = candidate.one_step_rmse  # NaN where the filter refused the episodes
+    return -rmse if math.isfinite(rmse) else -math.inf
+
+
+def _best(candidates: Sequence[Candidate], criterion: Criterion) -> Candidate:
+    """The candidate of highest :func:`_objective` (the first of equals)."""
+    return max(candidates, key=lambda c: _objective(c, criterion))
 
 
 def _climb(log_factors: list[float], score: Callable[[float], float]) -> float:

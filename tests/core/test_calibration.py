@@ -1,4 +1,4 @@
-"""smcd_rl.calibrate: the noise and flip probability of highest log evidence, and where they are kept."""
+"""smcd_rl.calibrate: the noise and flip probability of lowest one-step error or highest evidence, and where they are kept."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl import training
+from smcd_rl import calibration, training
 from smcd_rl.calibration import evidence
 
 SIGMA = 0.02  # the known measurement noise of the synthetic episodes
@@ -49,7 +49,9 @@ def small_base() -> smcd_rl.SMCD:
 
 def test_chosen_noise_is_the_true_noise_and_the_evidence_peaks_there() -> None:
     model, episodes, _ = known_mask_episodes()
-    result = smcd_rl.calibrate(model, episodes, base=small_base(), per_dimension=False, progress=False)
+    result = smcd_rl.calibrate(
+        model, episodes, base=small_base(), per_dimension=False, criterion="evidence", progress=False
+    )
     # The search starts at the network's residual with dropout off, which includes the mask it
     # does not know: over 5 x SIGMA in every dimension here, so a search that ignored the evidence
     # would stay far from SIGMA. Ending within 1.5x of it (a window of width log 2.25 in a search
@@ -66,6 +68,129 @@ def test_chosen_noise_is_the_true_noise_and_the_evidence_peaks_there() -> None:
     # Few filter runs: bracket 7, flips 3, re-bracket 2, refinement 5, and a few extensions at most.
     assert 15 <= len(result.candidates) <= 25
     assert model.calibration is not None and model.calibration["noise_std"] == result.noise_std
+    assert result.criterion == model.calibration["criterion"] == "evidence"
+
+
+def known_objective(model, strategy, x, y) -> tuple[float, float]:  # noqa: ANN001
+    """In place of a filter run: an evidence peaked at noise 0.03, flip 0.003 and an RMSE lowest at 0.3, 0.01.
+
+    Pure float64 arithmetic of the setting, so the search's path is the same on every CPU.
+    """
+    u, f = math.log(strategy.noise_std), math.log(strategy.flip_prob)
+    log_evidence = -((u - math.log(0.03)) ** 2) - (f - math.log(0.003)) ** 2
+    rmse = 0.1 + (u - math.log(0.3)) ** 2 + (f - math.log(0.01)) ** 2
+    return log_evidence, rmse
+
+
+#: (stage, factor, flip) of every run of the evidence search on :func:`known_objective` from a
+#: residual scale of 0.1, recorded from calibrate as it was before it took a criterion.
+EVIDENCE_PATH = [
+    *[("bracket", 2.0**k, 0.01) for k in range(-3, 4)],
+    *[("flip", 0.25, flip) for flip in (0.001, 0.003, 0.03)],
+    ("rebracket", 0.125, 0.003),
+    ("rebracket", 0.5, 0.003),
+    *[("refine", factor, 0.003) for factor in (0.21226406, 0.294444571, 0.360448249, 0.25984588, 0.3180938)],
+]
+
+
+@pytest.mark.parametrize("criterion", ["evidence", "one-step"])
+def test_the_search_finds_the_optimum_of_its_criterion(criterion: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    model, episodes, _ = known_mask_episodes(episodes=3, steps=5)
+    model.residual_scale = [0.1, 0.1]  # the search starts at noise 0.1
+    monkeypatch.setattr(calibration, "_run", known_objective)
+    result = smcd_rl.calibrate(
+        model, episodes, base=small_base(), per_dimension=False, criterion=criterion, progress=False
+    )
+    assert isinstance(result.noise_std, float)
+    if criterion == "evidence":
+        # The search and the choice are the ones calibrate made by evidence before the criterion existed.
+        assert [(c.stage, round(c.factor, 9), c.flip_prob) for c in result.candidates] == EVIDENCE_PATH
+        assert result.best.log_evidence == max(c.log_evidence for c in result.candidates)
+        target, flip = 0.03, 0.003
+    else:
+        assert result.best.one_step_rmse == min(c.one_step_rmse for c in result.candidates)
+        target, flip = 0.3, 0.01
+    # At the optimum of its own criterion: the flip exactly, the noise within the refinement's
+    # factor 1.22 (the optima are 10x and 3.3x apart, so neither criterion can land on the other's).
+    assert result.flip_prob == flip and target / 1.22 < result.noise_std < target * 1.22
+    assert (result.noise_std, result.flip_prob) == (result.best.noise_std, result.best.flip_prob)
+    assert model.calibration is not None and model.calibration["criterion"] == result.criterion == criterion
+
+
+def outlier_episodes(outlier: float = 2.0) -> tuple[smcd_rl.AdaptiveModel, TensorDict]:
+    """Episodes of ``net(q, mask=true_mask) + N(0, SIGMA^2)`` whose first step is an outlier no mask predicts.
+
+    A third input, 1 at the first step and 0 after, drives every hidden unit below zero: at the
+    first step the ReLUs output 0, so every mask predicts the output bias exactly, and the
+    observation is that plus ``outlier``.
+    """
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(3, 2, hidden=(8,), dropout=0.5)
+    with torch.no_grad():
+        net.linears[0].weight[:, 2] = -100.0
+    model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+    model.fitted = True  # a random network on purpose: the truth is its own masked output
+    model.residual_scale = [5 * SIGMA, 5 * SIGMA]  # where a fit on clean data would start the search
+    g = torch.Generator().manual_seed(1)
+    true_mask = (torch.rand(net.mask_dim, generator=g) < 0.5).float()
+    q = torch.rand(8, 20, 3, generator=g) * 4 - 2
+    q[..., 2] = 0.0
+    q[:, 0, 2] = 1.0
+    with torch.no_grad():
+        ee = net(q, mask=true_mask) + SIGMA * torch.randn(8, 20, 2, generator=g)
+        assert torch.equal(net(q[:, 0], mask=1 - true_mask), net(q[:, 0], mask=true_mask))  # no mask is told apart
+    ee[:, 0] += outlier
+    return model, TensorDict({"q": q, "ee": ee}, [8, 20])
+
+
+def test_one_step_chooses_the_lowest_error_where_the_evidence_chooses_otherwise() -> None:
+    """Heavy tails: one outlier per episode, at a step that carries no information about the mask.
+
+    Why the two criteria must disagree here. Every mask predicts the first step alike, so the
+    filter's weights, and hence its predictions, do not depend on the first step at all, and the
+    one-step error never scores the first step: the one-step choice is the noise at which the
+    filter finds the mask from the clean steps, near SIGMA. The evidence does score it, with
+    ``-outlier^2 / (2 noise^2)`` per output: at noise near SIGMA that is -5000 nats per episode
+    and output, far more than the clean steps can gain (at most log(0.5 / SIGMA) = 3.2 nats per
+    step and output over a noise of 0.5, about 120 per episode), so the evidence chooses a noise
+    near the outlier's own scale, at which the filter barely adapts.
+    """
+    model, episodes = outlier_episodes()
+    one_step = smcd_rl.calibrate(model, episodes, base=small_base(), per_dimension=False, progress=False)
+    by_evidence = smcd_rl.calibrate(
+        model, episodes, base=small_base(), per_dimension=False, criterion="evidence", progress=False
+    )
+    assert one_step.criterion == "one-step"  # the default
+    assert one_step.best.one_step_rmse == min(c.one_step_rmse for c in one_step.candidates)
+    assert by_evidence.best.log_evidence == max(c.log_evidence for c in by_evidence.candidates)
+    assert isinstance(one_step.noise_std, float) and isinstance(by_evidence.noise_std, float)
+    assert SIGMA / 2 < one_step.noise_std < 2 * SIGMA
+    assert by_evidence.noise_std > 8 * one_step.noise_std
+    # And the evidence's choice predicts worse, by the error the one-step search minimised: near the
+    # unadapted network's error (0.11 here), where the one-step choice finds the mask (0.07).
+    assert one_step.best.one_step_rmse < 0.8 * by_evidence.best.one_step_rmse
+    # Both searches run every setting alike (common random numbers): the bracket is the same runs.
+    assert one_step.candidates[:7] == by_evidence.candidates[:7]
+
+
+@pytest.mark.parametrize("criterion", ["one-step", "evidence"])
+def test_a_filter_that_refuses_the_episodes_under_every_setting_is_an_error(criterion: str) -> None:
+    model, episodes, _ = known_mask_episodes(episodes=3, steps=5)
+    model.residual_scale = [0.1, 0.1]  # the search starts at noise 0.1 (not at the outlier, as from the episodes)
+    episodes["ee"][1, 0, 0] = 1e30  # impossible under every particle and every candidate noise
+    with pytest.raises(ValueError, match="refused the episodes under every candidate"):
+        smcd_rl.calibrate(model, episodes, base=smcd_rl.SMCD(num_particles=8), criterion=criterion, progress=False)
+    assert model.calibration is None
+
+
+@pytest.mark.parametrize("criterion", ["rmse", "Evidence", "one_step", None, 1])
+def test_an_unknown_criterion_is_refused_and_changes_nothing(criterion: object) -> None:
+    model, episodes, _ = known_mask_episodes(episodes=3, steps=5)
+    model.calibration = {"noise_std": [0.03, 0.05], "flip_prob": 0.003, "criterion": "evidence"}
+    before = model.calibration
+    with pytest.raises(ValueError, match=r"criterion must be 'one-step' or 'evidence', got"):
+        smcd_rl.calibrate(model, episodes, base=smcd_rl.SMCD(num_particles=8), criterion=criterion, progress=False)  # type: ignore[arg-type]
+    assert model.calibration == before
 
 
 def test_the_table_lists_every_candidate_and_marks_the_chosen_one() -> None:
@@ -75,7 +200,10 @@ def test_the_table_lists_every_candidate_and_marks_the_chosen_one() -> None:
     rows = [line for line in table.splitlines() if line[:6].strip()[:1] in "*0123456789" and line[:6].strip()]
     assert len(rows) == len(result.candidates)
     assert sum(line.startswith("*") for line in table.splitlines()) == 1
-    assert "log evidence/ep" in table and "1-step RMSE" in table and "chosen: noise_std=" in table
+    starred = next(i for i, line in enumerate(rows) if line.startswith("*"))
+    assert result.candidates[starred].one_step_rmse == min(c.one_step_rmse for c in result.candidates)
+    assert "log evidence/ep" in table and "1-step RMSE" in table
+    assert "chosen (lowest 1-step RMSE): noise_std=" in table  # the default criterion, named
     assert ("note: flip_prob" in table) == (result.flip_prob in (0.001, 0.03))  # the grid's ends
     assert all(math.isfinite(c.one_step_rmse) and c.one_step_rmse > 0 for c in result.candidates)
 
@@ -191,7 +319,7 @@ def test_save_and_load_keep_the_residual_scale_and_calibration(tmp_path) -> None
     auto = model.with_adaptation(smcd_rl.SMCD(num_particles=32, noise_std="auto", flip_prob="auto"))
     auto.save(tmp_path / "model.pt")
     loaded = smcd_rl.load(tmp_path / "model.pt")
-    assert loaded.calibration == model.calibration
+    assert loaded.calibration == model.calibration and loaded.calibration["criterion"] == "one-step"
     assert torch.equal(loaded.residual_scale, model.residual_scale)
     assert loaded.adaptation.config() == auto.adaptation.config()
     assert loaded.adaptation.config()["noise_std"] == "auto"
@@ -203,6 +331,14 @@ def test_save_and_load_keep_the_residual_scale_and_calibration(tmp_path) -> None
     fresh = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(16,)), in_keys=["q"], out_key="ee")
     fresh.load_checkpoint(old)
     assert fresh.residual_scale is None and fresh.calibration is None
+    # A calibration written before the criterion was recorded (it was always the evidence) loads and runs.
+    old = model.checkpoint()
+    del old["calibration"]["criterion"]
+    fresh.load_checkpoint(old)
+    assert fresh.calibration == {k: v for k, v in model.calibration.items() if k != "criterion"}
+    runner = fresh.with_adaptation(smcd_rl.SMCD(num_particles=8, noise_std="auto", flip_prob="auto"))
+    runner.reset()
+    assert runner.adaptation.filter.flip_prob == model.calibration["flip_prob"]
     bad = {**model.checkpoint(), "calibration": {"noise_std": [0.1, 0.2, 0.3], "flip_prob": 0.01}}
     with pytest.raises(smcd_rl.CheckpointMismatchError, match="calibration"):
         fresh.load_checkpoint(bad)
