@@ -26,6 +26,8 @@ from smcd_rl.envs import register_all as _register_envs
 if TYPE_CHECKING:
     from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation, make_adaptation
     from smcd_rl.calibration import Calibration, calibrate
+    from smcd_rl.combination import Combination
+    from smcd_rl.episode_windows import episodes
     from smcd_rl.files import FileWriteError, UnreadableFileError
     from smcd_rl.filter import ParticleFilter, SMCDFilter
     from smcd_rl.masked_mlp import MaskedMLP
@@ -38,6 +40,7 @@ if TYPE_CHECKING:
         save,
     )
     from smcd_rl.training import fit, fit_dynamics, fit_reptile
+    from smcd_rl.tuning import TuneResult, tune
 
 _register_envs()
 
@@ -51,6 +54,7 @@ __all__ = [
     "SMCD",
     "GradientDescent",
     "NoAdaptation",
+    "Combination",
     "make_adaptation",
     "AdaptiveModel",
     "AdaptiveDynamicsModel",
@@ -65,12 +69,18 @@ __all__ = [
     "load",
     "calibrate",
     "Calibration",
+    "episodes",
+    "tune",
+    "TuneResult",
 ]
 
 #: Where each public name is defined: its module is imported on the name's first use.
 _SOURCES: dict[str, str] = {
     **dict.fromkeys(["SMCD", "Adaptation", "GradientDescent", "NoAdaptation", "make_adaptation"], "adaptation"),
     **dict.fromkeys(["Calibration", "calibrate"], "calibration"),
+    "Combination": "combination",
+    "episodes": "episode_windows",
+    **dict.fromkeys(["tune", "TuneResult"], "tuning"),
     **dict.fromkeys(["FileWriteError", "UnreadableFileError"], "files"),
     **dict.fromkeys(["ParticleFilter", "SMCDFilter"], "filter"),
     "MaskedMLP": "masked_mlp",

@@ -141,7 +141,8 @@ class SMCD(Adaptation):
     Predictions use the MMSE (weighted mean) mask, or with ``prediction="predictive"`` the mean of
     the posterior predictive (the weighted mean of every particle's prediction: N forward passes
     instead of one); :meth:`predict_particles` gives the posterior predictive of eq. (5), one
-    prediction per particle. ``keep_prob`` comes from the network.
+    prediction per particle, and :meth:`predictive` its mean and variance. ``keep_prob`` comes
+    from the network.
 
     Args:
         num_particles: masks in the particle set.
@@ -337,6 +338,45 @@ class SMCD(Adaptation):
     def predict_particles(self, inputs: Tensor) -> Tensor:
         masks = self._mask_view(self._filter.particles, inputs, trailing=2)  # type: ignore[arg-type]
         return self.net.forward_particles(inputs, masks)
+
+    def predictive(self, inputs: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean and variance of the posterior predictive for ``inputs [*B, *extra, in]``, in normalised units.
+
+        The mean is the weighted mean of the particles' predictions (what ``prediction="predictive"``
+        predicts, whatever this strategy's ``prediction``). The variance, per output, is the particles'
+        weighted spread around that mean, ``sum_i w_i (f_i - mean)^2``, plus the variance of the
+        likelihood's noise: ``noise_std**2``, or for the Student-t ``noise_std**2 * dof / (dof - 2)``
+        (``inf`` for ``dof <= 2``, where the Student-t has no variance).
+        :meth:`smcd_rl.AdaptiveModel.predictive` gives both in the target's units.
+
+        Returns:
+            ``(mean, variance)``, each ``[*B, *extra, out]``.
+
+        Example:
+            >>> import torch, smcd_rl, warnings
+            >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
+            >>> smcd = smcd_rl.SMCD(num_particles=20, noise_std=0.1)
+            >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee",
+            ...                               adaptation=smcd)
+            >>> model.reset()
+            >>> mean, variance = smcd.predictive(torch.zeros(5, 2))  # 5 inputs (planning candidates, say)
+            >>> mean.shape, bool((variance >= 0.1**2 - 1e-6).all())  # never below the noise
+            (torch.Size([5, 2]), True)
+        """
+        predictions = self.predict_particles(inputs)  # [*B, *extra, N, out]
+        weights = self._mask_view(self._filter.weights, inputs, trailing=1).unsqueeze(-1)  # [*B, *1, N, 1]
+        mean = (weights * predictions).sum(-2)  # as predict() computes it, so the two agree exactly
+        spread = (weights * (predictions - mean.unsqueeze(-2)).square()).sum(-2)
+        return mean, spread + self._noise_variance().to(spread)
+
+    def _noise_variance(self) -> Tensor:
+        """The likelihood's noise variance per output, in normalised units."""
+        variance = self._sigma.square()
+        if self.likelihood == "gaussian":
+            return variance
+        if self.dof <= 2:
+            return torch.full_like(variance, math.inf)
+        return variance * (self.dof / (self.dof - 2))
 
     @property
     def mask(self) -> Tensor:

@@ -6,7 +6,8 @@ before it and, for SMCD, the filter's effective sample size before resampling, i
 so far and the share of units the MMSE mask keeps. Where SMCD loses to another strategy, these
 say why: an ESS that collapses to one particle at every step means the likelihood is too sharp
 (or the model cannot explain the data); a kept share that drifts far from the training keep
-probability means the filter is switching units off to fit noise.
+probability means the filter is switching units off to fit noise. The one-step errors are also
+kept per episode, to find the episodes a strategy fails on.
 
 Example:
     >>> import torch, smcd_rl
@@ -17,13 +18,15 @@ Example:
     >>> result = trace(model, episodes, smcd_rl.SMCD(num_particles=10, noise_std=0.1))
     >>> len(result.one_step_rmse), len(result.ess), 0 < result.kept[0] < 1
     (4, 5, True)
+    >>> len(result.per_episode_rmse), len(result.one_step_errors[0])  # 3 episodes, 4 one-step errors each
+    (3, 4)
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from tensordict import TensorDictBase
@@ -37,7 +40,7 @@ __all__ = ["trace", "Trace"]
 
 @dataclass
 class Trace:
-    """Per-step record of one strategy over episodes (means over the episodes)."""
+    """Per-step record of one strategy over episodes: means over the episodes, and the one-step errors of each."""
 
     #: RMSE (target units, dimensions pooled) of the prediction of step ``t`` from steps ``< t``, t = 2..T.
     one_step_rmse: list[float]
@@ -49,6 +52,14 @@ class Trace:
     log_evidence: list[float]
     #: Strategies with a mask: the mean share of units the adapted (MMSE) mask keeps after step t.
     kept: list[float]
+    #: Per episode ``e``: the RMSE (target units, dimensions pooled) of its one-step predictions over
+    #: steps 2..T (``inf`` for every episode if the strategy refused a step). The episodes have equal
+    #: lengths, so ``rmse ** 2`` is the mean of ``per_episode_rmse[e] ** 2`` over the episodes.
+    per_episode_rmse: list[float] = field(default_factory=list)
+    #: ``one_step_errors[e][t - 2]``: the RMSE over the dimensions of episode ``e``'s prediction of
+    #: step ``t`` (t = 2..T; each list ends at a refused step); ``one_step_rmse[t - 2] ** 2`` is the
+    #: mean over the episodes of ``one_step_errors[e][t - 2] ** 2``.
+    one_step_errors: list[list[float]] = field(default_factory=list)
 
 
 def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBase], strategy: Adaptation) -> Trace:
@@ -77,8 +88,9 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
     num_episodes, steps = x.shape[:2]
     model.with_adaptation(strategy).reset(batch_shape=(num_episodes,))
     output_std = model.output_norm.std.to(torch.float64)
-    result = Trace([], math.inf, [], [], [])
+    result = Trace([], math.inf, [], [], [], [math.inf] * num_episodes, [[] for _ in range(num_episodes)])
     squared = 0.0
+    episode_squared = torch.zeros(num_episodes, dtype=torch.float64)
     with torch.no_grad():
         for t in range(steps):
             if t > 0:
@@ -86,6 +98,10 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
                 step_squared = float(error.square().sum())
                 squared += step_squared
                 result.one_step_rmse.append(math.sqrt(step_squared / (num_episodes * y.shape[-1])))
+                per_episode = error.square().sum(-1).cpu()  # [E]
+                episode_squared += per_episode
+                for errors, value in zip(result.one_step_errors, per_episode.tolist(), strict=True):
+                    errors.append(math.sqrt(value / y.shape[-1]))
             try:
                 strategy.observe(x[:, t], y[:, t])
             except ValueError:
@@ -97,4 +113,5 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
             if strategy.mask is not None:
                 result.kept.append(float(strategy.mask.to(torch.float64).mean()))
     result.rmse = math.sqrt(squared / (num_episodes * (steps - 1) * y.shape[-1]))
+    result.per_episode_rmse = [math.sqrt(value / ((steps - 1) * y.shape[-1])) for value in episode_squared.tolist()]
     return result

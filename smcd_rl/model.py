@@ -17,7 +17,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from smcd_rl.adaptation import ADAPTATIONS, Adaptation, NoAdaptation, _checked_noise
+from smcd_rl.adaptation import ADAPTATIONS, SMCD, Adaptation, NoAdaptation, _checked_noise
 from smcd_rl.checks import check_key, check_real, check_real_tensor, check_shape, check_tensordict, read_tensor
 from smcd_rl.files import CheckpointMismatchError, UnreadableFileError, load_file, save_file
 from smcd_rl.masked_mlp import MaskedMLP
@@ -37,13 +37,15 @@ class _FitRecord:
     """What is known about a model's trained network besides its weights, shared by its :meth:`with_adaptation` copies.
 
     Whether a user declared it trained (``model.fitted = True``), the residual scale its trainer
-    measured and the noise and flip probability :func:`smcd_rl.calibrate` chose for it.
+    measured, the noise and flip probability :func:`smcd_rl.calibrate` chose for it and the
+    result of a tuning run on it.
     """
 
     def __init__(self) -> None:
         self.fitted = False
         self.residual_scale: Tensor | None = None
         self.calibration: dict[str, Any] | None = None
+        self.tuning: dict[str, Any] | None = None
 
 
 class UnfittedModelWarning(UserWarning):
@@ -176,6 +178,35 @@ class AdaptiveModel(TensorDictModuleBase):
     def calibration(self, value: dict[str, Any] | None) -> None:
         self._declared.calibration = None if value is None else _checked_calibration(value, self.net.out_features)
 
+    @property
+    def tuning(self) -> dict[str, Any] | None:
+        """The result of a tuning run on this model (chosen settings, scores), as a JSON-ready dict, or ``None``.
+
+        What :func:`smcd_rl.tune` (or another tuning procedure, such as the experiments' fair
+        protocol) chose for this network, kept beside :attr:`calibration` and saved with the model,
+        so that a loaded model carries it. Its values must be JSON types: dicts with string keys,
+        lists or tuples, strings, numbers, booleans and ``None`` (``tensor.tolist()`` turns a tensor
+        into one). Reading it gives a copy.
+
+        Raises:
+            TypeError: on setting anything else; the model keeps its old value.
+
+        Example:
+            >>> import smcd_rl
+            >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+            >>> model.tuning is None
+            True
+            >>> model.tuning = {"gd_lr": 0.01, "one_step_rmse": [0.12, 0.08]}
+            >>> model.tuning["gd_lr"]
+            0.01
+        """
+        tuning = self._declared.tuning
+        return None if tuning is None else copy.deepcopy(tuning)
+
+    @tuning.setter
+    def tuning(self, value: dict[str, Any] | None) -> None:
+        self._declared.tuning = None if value is None else _checked_tuning(value)
+
     # ------------------------------------------------------------------ adaptation
     def reset(self, batch_shape: Sequence[int] = (), *, where: Tensor | None = None) -> None:
         """Start adapting afresh, with one independent state per element of ``batch_shape``.
@@ -280,6 +311,71 @@ class AdaptiveModel(TensorDictModuleBase):
     def batch_shape(self) -> tuple[int, ...]:
         return self._require_reset()
 
+    @property
+    def particle_weights(self) -> Tensor:
+        """The normalised weights of the SMCD filter's particles, ``[*batch_shape, N]``: each row sums to 1.
+
+        Weight ``[..., i]`` belongs to the mask :attr:`particles` ``[..., i, :]`` and to the
+        prediction :meth:`predict_particles` ``[..., i, :]``. A copy: changing it changes nothing.
+
+        Raises:
+            TypeError: the strategy is not :class:`smcd_rl.SMCD`, the only one with weighted particles.
+            RuntimeError: the model was not reset since it was built.
+
+        Example:
+            >>> import smcd_rl, warnings
+            >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
+            >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee",
+            ...                               adaptation=smcd_rl.SMCD(num_particles=4))
+            >>> model.reset(batch_shape=(3,))
+            >>> weights = model.particle_weights
+            >>> weights.shape, round(float(weights[0, 0]), 4)  # uniform until the first observation
+            (torch.Size([3, 4]), 0.25)
+        """
+        smcd = self._smcd("particle_weights")
+        self._require_reset()
+        return smcd._filter.weights.clone()
+
+    def predictive(self, td: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """Mean and variance of SMCD's posterior predictive, in the target's units, each ``[*batch, out]``.
+
+        The mean is the weighted mean of the particles' predictions (what ``forward`` predicts with
+        ``SMCD(prediction="predictive")``); the variance, per output, is their weighted spread
+        around it plus the variance of the likelihood's noise (``noise_std**2`` for the Gaussian,
+        see :meth:`smcd_rl.SMCD.predictive`). With a ``base_key`` the mean is of the target
+        (base plus predicted change), and the variance that of the change, the base being known.
+
+        Args:
+            td: inputs, as :meth:`forward` takes them; batch dims beyond the model's broadcast.
+
+        Raises:
+            TypeError: the strategy is not :class:`smcd_rl.SMCD`.
+            RuntimeError: the model was not reset since it was built.
+
+        Example:
+            >>> import torch, smcd_rl, warnings
+            >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)  # an untrained toy network
+            >>> from tensordict import TensorDict
+            >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee",
+            ...                               adaptation=smcd_rl.SMCD(num_particles=20, noise_std=0.1))
+            >>> model.reset()
+            >>> mean, variance = model.predictive(TensorDict({"q": torch.zeros(2)}, []))
+            >>> mean.shape, bool((variance >= 0.1**2 - 1e-6).all())  # never below the noise
+            (torch.Size([2]), True)
+        """
+        check_tensordict(td, "predictive")
+        smcd = self._smcd("predictive")
+        self._require_reset()
+        inputs = self._inputs(td, what="predictive", check_finite=False)
+        smcd._extra_dims(inputs)  # the batch check, before any work
+        mean, variance = smcd.predictive(inputs)
+        mean = self.output_norm.inverse(mean)
+        variance = variance * self.output_norm.std.square()
+        if self.base_key is not None:
+            base = self._read(td, self.base_key, self.net.out_features, what="predictive", check_finite=False)
+            mean = mean + base
+        return mean, variance
+
     def summary(self) -> dict[str, Tensor]:
         """Diagnostics of the adaptation (SMCD: ``ess`` and ``log_evidence``) per batch element."""
         self._require_reset()
@@ -380,6 +476,7 @@ class AdaptiveModel(TensorDictModuleBase):
             "declared_fitted": self._declared.fitted,
             "residual_scale": None if self._declared.residual_scale is None else self._declared.residual_scale.tolist(),
             "calibration": self.calibration,
+            "tuning": self.tuning,
         }
 
     def save(self, path: str | os.PathLike[str]) -> None:
@@ -413,14 +510,17 @@ class AdaptiveModel(TensorDictModuleBase):
             raise CheckpointMismatchError(
                 f"checkpoint was saved with keys {checkpoint.get('keys')} but this model uses {self._key_config()}"
             )
-        # Files written before these were recorded have neither: the model then has none.
+        # Files written before these were recorded lack them: the model then has none.
         scale, calibration = checkpoint.get("residual_scale"), checkpoint.get("calibration")
+        tuning = checkpoint.get("tuning")
         try:
             scale = None if scale is None else _checked_scale(scale, self.net.out_features)
             calibration = None if calibration is None else _checked_calibration(calibration, self.net.out_features)
+            tuning = None if tuning is None else _checked_tuning(tuning)
         except (TypeError, ValueError) as err:
             raise CheckpointMismatchError(
-                f"the checkpoint's residual scale or calibration does not fit its network ({err}); save the model again"
+                f"the checkpoint's residual scale, calibration or tuning does not fit its network ({err}); "
+                "save the model again"
             ) from err
         try:
             self.load_state_dict(checkpoint["state_dict"])
@@ -431,6 +531,7 @@ class AdaptiveModel(TensorDictModuleBase):
                 f"the checkpoint's weights do not fit its own architecture ({detail}); save the model again"
             ) from err
         self._declared.residual_scale, self._declared.calibration = scale, calibration
+        self._declared.tuning = tuning
 
     def to(self, *args: Any, **kwargs: Any) -> Self:
         """Move or cast the model as :meth:`torch.nn.Module.to` does; the meta device is refused.
@@ -467,6 +568,15 @@ class AdaptiveModel(TensorDictModuleBase):
             "target_key": list(self.target_key) if isinstance(self.target_key, tuple) else self.target_key,
             "base_key": list(self.base_key) if isinstance(self.base_key, tuple) else self.base_key,
         }
+
+    def _smcd(self, what: str) -> SMCD:
+        """The model's strategy if it is SMCD, else a TypeError naming ``what`` and the fix."""
+        if not isinstance(self.adaptation, SMCD):
+            raise TypeError(
+                f"model.{what} needs an SMCD strategy (weighted mask particles), but this model adapts with "
+                f"{type(self.adaptation).__name__}; use model.with_adaptation(smcd_rl.SMCD(...)) and reset it"
+            )
+        return self.adaptation
 
     def _require_reset(self) -> tuple[int, ...]:
         if self._batch_shape is None:
@@ -789,12 +899,45 @@ def _checked_calibration(value: Any, size: int) -> dict[str, Any]:
     return {**value, "noise_std": plain, "flip_prob": flip}
 
 
+def _checked_tuning(value: Any) -> dict[str, Any]:
+    """A deep copy of ``value`` if it is a dict of JSON types, else a TypeError naming the first value that is not."""
+    if not isinstance(value, dict):
+        raise TypeError(
+            f"tuning must be a dict of JSON types (or None), got {type(value).__name__}; the model keeps its old tuning"
+        )
+
+    def check(item: Any, where: str) -> None:
+        if item is None or isinstance(item, (str, bool, int, float)):
+            return
+        if isinstance(item, dict):
+            for key, inner in item.items():
+                if not isinstance(key, str):
+                    raise TypeError(
+                        f"tuning{where} has the key {key!r}; JSON keys are strings (use str(key)), "
+                        "the model keeps its old tuning"
+                    )
+                check(inner, f"{where}[{key!r}]")
+            return
+        if isinstance(item, (list, tuple)):
+            for i, inner in enumerate(item):
+                check(inner, f"{where}[{i}]")
+            return
+        hint = " (use tensor.tolist())" if isinstance(item, Tensor) else ""
+        raise TypeError(
+            f"tuning{where} is a {type(item).__name__}, not a JSON type (dict, list, str, number, bool, None){hint}; "
+            "the model keeps its old tuning"
+        )
+
+    check(value, "")
+    return copy.deepcopy(value)
+
+
 def _key(value: Any) -> NestedKey | None:
     return tuple(value) if isinstance(value, list) else value
 
 
 def save(model: AdaptiveModel, path: str | os.PathLike[str]) -> None:
-    """Save ``model`` to ``path``: network, normalisation, calibration and strategy settings.
+    """Save ``model`` to ``path``: network, normalisation, calibration, tuning and strategy settings.
 
     :func:`load` rebuilds it. The same as ``model.save(path)``; the file is written atomically
     and is a pickle, as :func:`torch.save` writes it (load only files you trust). The adaptation
@@ -854,6 +997,8 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
         net = MaskedMLP(**checkpoint["net"])
         if adaptation is None:
             saved = checkpoint["adaptation"]
+            if saved["name"] == "combination":
+                import smcd_rl.combination  # noqa: F401 - registers the name (it builds on this module's strategies)
             adaptation = ADAPTATIONS[saved["name"]](**saved["config"])
         cls = _CLASSES[checkpoint["class"]]
     except (TypeError, ValueError, KeyError) as err:  # a configuration this version cannot rebuild

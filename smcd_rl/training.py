@@ -66,7 +66,7 @@ def fit(
     where :func:`smcd_rl.calibrate` starts its noise search; measured on ``data`` it is optimistic
     (the network has seen those samples). This pass draws no random numbers, so the weights and
     losses are those of a run without it. A previous :attr:`~smcd_rl.AdaptiveModel.calibration`
-    is cleared: it belonged to the old weights.
+    and :attr:`~smcd_rl.AdaptiveModel.tuning` are cleared: they belonged to the old weights.
 
     Args:
         model: the model whose network is trained (its strategy is irrelevant here).
@@ -341,7 +341,7 @@ def _check_validation(validation: Any, what: str) -> None:
 
 
 def _record_residual_scale(model: AdaptiveModel, data: TensorDictBase | tuple[Tensor, Tensor]) -> None:
-    """Set ``model.residual_scale`` from the network with dropout off; clear a stale calibration.
+    """Set ``model.residual_scale`` from the network with dropout off; clear a stale calibration and tuning.
 
     ``data`` is a TensorDict of transitions or the normalised ``(inputs, targets)`` already
     computed for training. Draws no random numbers and changes no weights.
@@ -366,6 +366,7 @@ def _record_residual_scale(model: AdaptiveModel, data: TensorDictBase | tuple[Te
     floor = 1e-6 * model.output_norm.std.to(torch.float64)
     model.residual_scale = torch.maximum(rms, floor).to(torch.float32).cpu()
     model.calibration = None
+    model.tuning = None
 
 
 def _normalised_pairs(model: Any, data: TensorDictBase, device: torch.device) -> tuple[Tensor, Tensor]:

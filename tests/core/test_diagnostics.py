@@ -44,6 +44,8 @@ def test_a_strategy_that_refuses_a_step_ends_the_trace_with_an_infinite_error() 
     model, episodes, _ = known_mask_episodes(episodes=3, steps=6)
     result = trace(model, episodes, smcd_rl.GradientDescent(lr=1e30, steps=3, window=2))
     assert result.rmse == math.inf and len(result.one_step_rmse) < 5
+    assert result.per_episode_rmse == [math.inf] * 3  # which episode made it refuse is not known
+    assert [len(errors) for errors in result.one_step_errors] == [len(result.one_step_rmse)] * 3
 
 
 def test_bad_episodes_get_the_calibration_errors() -> None:
@@ -124,3 +126,27 @@ def test_trace_refuses_a_strategy_attached_to_a_model() -> None:
     assert live.batch_shape == (7,)  # untouched
     with pytest.raises(TypeError, match="strategy"):
         trace(model, episodes, None)
+
+
+def test_per_episode_errors_single_out_the_worse_episode_and_pool_to_the_rmse() -> None:
+    """Episode 2's targets are shifted by 2 (the frozen network's RMSE per episode is 0.2-0.35 here):
+    its errors are the largest by far. The episodes have equal lengths T, so with D outputs
+    ``rmse**2 = sum_e sum_t sum_d err**2 / (E (T-1) D) = mean_e per_episode_rmse[e]**2``, and per step
+    ``one_step_rmse[t]**2 = mean_e one_step_errors[e][t]**2``."""
+    model, episodes, _ = known_mask_episodes(episodes=4, steps=6)
+    episodes["ee"][2] += 2.0
+    result = trace(model, episodes, smcd_rl.NoAdaptation())
+    assert len(result.per_episode_rmse) == 4 and [len(errors) for errors in result.one_step_errors] == [5] * 4
+    assert max(range(4), key=result.per_episode_rmse.__getitem__) == 2
+    assert all(result.per_episode_rmse[2] > 2 * r for e, r in enumerate(result.per_episode_rmse) if e != 2)
+    assert result.rmse == pytest.approx(math.sqrt(sum(r**2 for r in result.per_episode_rmse) / 4), rel=1e-12)
+    for t, pooled in enumerate(result.one_step_rmse):
+        assert pooled == pytest.approx(math.sqrt(sum(e[t] ** 2 for e in result.one_step_errors) / 4), rel=1e-12)
+    # The values themselves: the frozen network (identity normalisation here) against the targets.
+    with torch.no_grad():
+        squared = (model.net.eval()(episodes["q"][:, 1:]) - episodes["ee"][:, 1:]).double().square()  # [E, T-1, D]
+    expected_steps = squared.mean(-1).sqrt()
+    for e in range(4):
+        assert result.one_step_errors[e] == pytest.approx(expected_steps[e].tolist(), rel=1e-5)
+        assert result.per_episode_rmse[e] == pytest.approx(float(squared[e].mean().sqrt()), rel=1e-5)
+    assert result.rmse == pytest.approx(float(squared.mean().sqrt()), rel=1e-5)  # the pooled field as before

@@ -374,3 +374,158 @@ def test_a_float64_network_makes_a_float64_model_without_a_cast() -> None:
     td = TensorDict({"q": torch.randn(2, dtype=torch.float64), "ee": torch.randn(2, dtype=torch.float64)}, [])
     model.observe(td)
     assert model(td.clone())["ee"].dtype == torch.float64 == model.input_norm.mean.dtype
+
+
+def _scaled_model(adaptation: smcd_rl.Adaptation) -> smcd_rl.AdaptiveModel:
+    """A random network whose outputs are de-normalised by std (2, 0.5) and mean (1, -1)."""
+    torch.manual_seed(0)
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8, 8)), in_keys=["q"], out_key="ee")
+    model.output_norm.std.copy_(torch.tensor([2.0, 0.5]))
+    model.output_norm.mean.copy_(torch.tensor([1.0, -1.0]))
+    model.fitted = True  # a random network on purpose
+    return model.with_adaptation(adaptation)
+
+
+def _weigh(model: smcd_rl.AdaptiveModel, weights: list[float]) -> None:
+    """Give every row of the filter these particle weights (zeros as -inf log weights)."""
+    filt = model.adaptation.filter
+    row = torch.tensor(weights).log()
+    filt.log_weights = row.expand_as(filt.log_weights).clone()
+
+
+def test_particle_weights_are_the_filters_normalised_weights(two_link_model: smcd_rl.AdaptiveModel) -> None:
+    never_resampled = smcd_rl.SMCD(num_particles=32, noise_std=0.2, ess_threshold=0.0)  # else uniform again
+    model = two_link_model.with_adaptation(never_resampled)
+    model.reset(batch_shape=(2,))
+    assert torch.allclose(model.particle_weights, torch.full((2, 32), 1 / 32))  # uniform before any observation
+    q, ee = _stream(torch.tensor([[0.6, 0.6], [1.5, 1.4]]), 1, seed=4)
+    model.observe(TensorDict({"q": q[0], "ee": ee[0]}, [2]))
+    weights = model.particle_weights
+    assert weights.shape == (2, 32) and torch.allclose(weights.sum(-1), torch.ones(2))
+    assert torch.equal(weights, model.adaptation.filter.weights) and weights.std() > 0
+    weights.fill_(0.0)  # a copy: the filter keeps its weights
+    assert torch.allclose(model.particle_weights.sum(-1), torch.ones(2))
+
+
+def test_particle_weights_and_predictive_say_what_is_missing() -> None:
+    net = smcd_rl.MaskedMLP(2, 2, hidden=(8,))
+    td = TensorDict({"q": torch.zeros(2)}, [])
+    plain = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+    plain.fitted = True
+    plain.reset()
+    for call in (lambda: plain.particle_weights, lambda: plain.predictive(td)):
+        with pytest.raises(TypeError, match=r"needs an SMCD strategy.*NoAdaptation.*with_adaptation\(smcd_rl.SMCD"):
+            call()
+    unreset = plain.with_adaptation(smcd_rl.SMCD(num_particles=8))
+    for call in (lambda: unreset.particle_weights, lambda: unreset.predictive(td)):
+        with pytest.raises(RuntimeError, match=r"call model.reset\(\)"):
+            call()
+
+
+def test_predictive_mean_and_variance_in_the_targets_units() -> None:
+    """Variance = weighted spread of the particles' predictions + noise_std**2, both in the target's
+    units (the outputs are de-normalised by std (2, 0.5), so a slip in units shows by 4x or 1/4)."""
+    noise = torch.tensor([0.1, 0.2])
+    model = _scaled_model(smcd_rl.SMCD(num_particles=16, noise_std=noise.tolist(), prediction="predictive"))
+    model.reset(batch_shape=(2,))
+    td = TensorDict({"q": torch.tensor([[0.5, -1.0], [1.5, 0.3]])}, [2])
+    mean, variance = model.predictive(td)
+    assert mean.shape == variance.shape == (2, 2)
+    assert torch.allclose(mean, model(td.clone())["ee"], atol=1e-6)  # forward's prediction="predictive"
+    particles = model.predict_particles(td)  # [2, 16, 2], target units
+    weights = model.particle_weights.unsqueeze(-1)
+    spread = (weights * (particles - mean.unsqueeze(-2)).square()).sum(-2)
+    assert torch.allclose(variance, spread + noise.square(), rtol=1e-5)
+
+    _weigh(model, [0.0] * 5 + [1.0] + [0.0] * 10)  # all weight on particle 5
+    mean, variance = model.predictive(td)
+    assert torch.allclose(mean, particles[:, 5], atol=1e-6)
+    assert torch.allclose(mean, model(td.clone(), mask=model.particles[:, 5])["ee"], atol=1e-5)
+    assert torch.allclose(variance, noise.square().expand(2, 2), rtol=1e-5)
+
+    filt = model.adaptation.filter
+    opposite = filt.particles.clone()
+    opposite[:, 1] = ~opposite[:, 0]  # two particles that surely predict differently
+    filt.particles = opposite
+    _weigh(model, [0.5, 0.5] + [0.0] * 14)
+    a, b = model.predict_particles(td)[:, 0], model.predict_particles(td)[:, 1]
+    assert (a - b).abs().min() > 1e-3
+    mean, variance = model.predictive(td)
+    assert torch.allclose(mean, (a + b) / 2, atol=1e-6)
+    assert torch.allclose(variance, ((a - b) / 2).square() + noise.square(), rtol=1e-5, atol=1e-7)
+
+    candidates = TensorDict({"q": td["q"].unsqueeze(1).expand(2, 3, 2)}, [2, 3])  # extra dims broadcast
+    extra_mean, extra_variance = model.predictive(candidates)
+    assert extra_mean.shape == (2, 3, 2) and torch.allclose(extra_mean, mean.unsqueeze(1).expand(2, 3, 2))
+    assert torch.allclose(extra_variance, variance.unsqueeze(1).expand(2, 3, 2))
+
+
+def test_predictive_noise_of_a_student_t_likelihood_and_of_a_dynamics_model() -> None:
+    """The Student-t of scale s and dof v has variance s**2 v / (v - 2) (none for v <= 2); a dynamics
+    model's mean is the observation plus the mean change, its variance that of the change."""
+    model = _scaled_model(smcd_rl.SMCD(num_particles=8, noise_std=0.1, likelihood="student-t", dof=4.0))
+    model.reset()
+    _weigh(model, [1.0] + [0.0] * 7)
+    td = TensorDict({"q": torch.tensor([0.2, 0.4])}, [])
+    assert torch.allclose(model.predictive(td)[1], torch.full((2,), 0.1**2 * 4 / 2), rtol=1e-5)
+    heavy = model.with_adaptation(smcd_rl.SMCD(num_particles=8, noise_std=0.1, likelihood="student-t", dof=2.0))
+    heavy.reset()
+    assert torch.isinf(heavy.predictive(td)[1]).all()
+
+    torch.manual_seed(0)
+    dynamics = smcd_rl.AdaptiveDynamicsModel(
+        smcd_rl.MaskedMLP(3 + 1, 3, hidden=(8,)), adaptation=smcd_rl.SMCD(num_particles=8, noise_std=0.3)
+    )
+    dynamics.fitted = True
+    dynamics.reset()
+    _weigh(dynamics, [1.0] + [0.0] * 7)
+    state = TensorDict({"observation": torch.tensor([1.0, 2.0, 3.0]), "action": torch.tensor([0.5])}, [])
+    mean, variance = dynamics.predictive(state)
+    expected = dynamics(state.clone(), mask=dynamics.particles[0])["next", "observation"]
+    assert torch.allclose(mean, expected, atol=1e-5) and torch.allclose(variance, torch.full((3,), 0.09), rtol=1e-5)
+
+
+def test_tuning_is_saved_and_loaded_like_the_calibration(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+    assert model.tuning is None
+    tuning = {"tuned": {"gd_lr": 0.01, "noise_std": [0.1, 0.2]}, "episodes": 8, "ok": True, "note": None}
+    model.tuning = tuning
+    tuning["episodes"] = 9  # the model kept a copy
+    model.tuning["episodes"] = 10  # and gives one
+    assert model.tuning["episodes"] == 8
+    assert model.with_adaptation(smcd_rl.SMCD(num_particles=4)).tuning == model.tuning  # shared like calibration
+    model.save(tmp_path / "m.pt")
+    expected = {"tuned": {"gd_lr": 0.01, "noise_std": [0.1, 0.2]}, "episodes": 8, "ok": True, "note": None}
+    assert smcd_rl.load(tmp_path / "m.pt").tuning == expected
+    other = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+    other.load_checkpoint(tmp_path / "m.pt")
+    assert other.tuning == expected
+    # A file written before the tuning was recorded loads without one.
+    old = model.checkpoint()
+    del old["tuning"]
+    from smcd_rl.files import save_file
+
+    save_file(old, tmp_path / "old.pt", what="model checkpoint")
+    assert smcd_rl.load(tmp_path / "old.pt").tuning is None
+    other.load_checkpoint(old)
+    assert other.tuning is None
+    with pytest.raises(smcd_rl.CheckpointMismatchError, match="tuning"):
+        other.load_checkpoint({**model.checkpoint(), "tuning": ["not", "a", "dict"]})
+    assert other.tuning is None  # the refused checkpoint changed nothing
+
+
+def test_a_tuning_that_is_not_a_json_dict_is_refused_and_the_old_one_kept() -> None:
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+    model.tuning = {"lr": 0.1}
+    bad = {
+        "a list": ([("lr", 0.1)], r"tuning must be a dict.*got list"),
+        "a tensor inside": ({"lr": torch.tensor(0.1)}, r"tuning\['lr'\] is a Tensor.*tensor.tolist\(\)"),
+        "a key that is no string": ({"grid": [{1: 0.5}]}, r"tuning\['grid'\]\[0\] has the key 1"),
+    }
+    for name, (value, pattern) in bad.items():
+        with pytest.raises(TypeError, match=pattern):
+            model.tuning = value
+        assert model.tuning == {"lr": 0.1}, name
+    model.tuning = None
+    assert model.tuning is None

@@ -1,0 +1,411 @@
+"""The fair protocol as one call: every adaptation strategy tuned by one criterion, under one budget.
+
+:func:`tune` takes a fitted model and held-out episodes of its *training* tasks (never the tasks
+it will be scored on; :func:`smcd_rl.episodes` cuts them from collected transitions) and tunes
+each requested strategy on them by the same criterion, the **one-step prediction error** (the
+error of predicting each step from the steps before it, what a planner or controller uses):
+
+* gradient descent over a grid of learning rate x steps x window that extends itself while the
+  best point lies on an edge (the result says which edges it extended);
+* SMCD by :func:`smcd_rl.calibrate` (noise and flip probability; scalar and per-dimension noise,
+  the better kept);
+* :class:`smcd_rl.Combination` of the best members, its ``eta`` and ``share`` chosen on the same
+  episodes.
+
+With ``budget_ms`` each setting's median wall time per observation (one stream, observe and
+predict) is measured first, and settings over the budget are skipped (SMCD halves its particles
+until it fits). The result lists every candidate with its score and time, the best of each kind,
+``.best`` (ready for ``model.with_adaptation``) and ``.combination``; it is stored in
+``model.tuning``, saved with the model.
+
+Example:
+    >>> import torch, smcd_rl
+    >>> from tensordict import TensorDict
+    >>> _ = torch.manual_seed(0)
+    >>> q = torch.rand(60, 2)
+    >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(16,)), in_keys=["q"], out_key="ee")
+    >>> _ = smcd_rl.fit(model, TensorDict({"q": q, "ee": q.cos()}, [60]), epochs=2, lr=1e-2, progress=False)
+    >>> episodes = TensorDict({"q": q.reshape(6, 10, 2), "ee": q.cos().reshape(6, 10, 2) + 0.1}, [6, 10])
+    >>> result = smcd_rl.tune(model, episodes, num_particles=20, progress=False)
+    >>> sorted(result.best_of), isinstance(result.best, smcd_rl.Adaptation)
+    (['combination', 'gradient_descent', 'none', 'smcd'], True)
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from itertools import product
+from typing import Any, Literal
+
+import torch
+from tensordict import TensorDictBase
+from tqdm.auto import tqdm
+
+from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation
+from smcd_rl.calibration import _checked_model, _pairs, _stacked, calibrate
+from smcd_rl.checks import check_count, check_real
+from smcd_rl.combination import Combination
+from smcd_rl.diagnostics import trace
+from smcd_rl.model import AdaptiveModel
+
+__all__ = ["tune", "TuneResult", "TuneCandidate", "KINDS"]
+
+#: The strategies :func:`tune` knows, in the order it tunes them (a combination needs the others).
+KINDS = ("none", "gradient_descent", "smcd", "combination")
+#: Gradient descent's starting grid: learning rate x steps per observation x window.
+GD_GRID = {"lr": (1e-3, 1e-2, 1e-1), "steps": (1, 5), "window": (1, 10)}
+#: At most this many extensions past each edge of the GD grid.
+MAX_EXTENSIONS = 3
+#: The combination's grid: the weights' learning rate and the fixed share.
+COMBINATION_GRID = {"eta": (0.1, 1.0, 10.0, 100.0), "share": (0.0, 0.02)}
+#: SMCD never halves its particles below this to meet a budget.
+MIN_PARTICLES = 8
+
+
+@dataclass(frozen=True)
+class TuneCandidate:
+    """One setting :func:`tune` tried: what it is, how well it predicted, how long a step took."""
+
+    #: One of :data:`KINDS`.
+    kind: str
+    #: The strategy's settings (its ``config()``; a combination's members by name).
+    settings: dict[str, Any]
+    #: The one-step RMSE (target units) on the episodes; ``inf`` if skipped or refused.
+    one_step_rmse: float
+    #: Median wall milliseconds of one observation (observe and predict, one stream).
+    ms_per_step: float
+    #: Why it was not scored (``"over budget"``), or empty.
+    skipped: str = ""
+
+
+@dataclass
+class TuneResult:
+    """What :func:`tune` chose and every candidate it chose from (``print`` it for a table)."""
+
+    #: ``"one-step"`` or ``"evidence"`` (SMCD's calibration; kinds are always compared by one-step error).
+    criterion: str
+    #: The per-observation budget in milliseconds, or ``None``.
+    budget_ms: float | None
+    candidates: list[TuneCandidate]
+    #: Kind -> its best candidate.
+    best_of: dict[str, TuneCandidate]
+    #: What the search did beyond its first grid (extended GD edges, halved particles).
+    notes: list[str] = field(default_factory=list)
+    episodes: int = 0
+    steps: int = 0
+    seconds: float = 0.0
+
+    @property
+    def best_kind(self) -> str:
+        """The kind of lowest one-step error (the first of :data:`KINDS` among equals)."""
+        return min(self.best_of, key=lambda kind: (self.best_of[kind].one_step_rmse, KINDS.index(kind)))
+
+    @property
+    def best(self) -> Adaptation:
+        """A fresh instance of the overall best strategy, ready for ``model.with_adaptation``."""
+        return self.strategy(self.best_kind)
+
+    @property
+    def combination(self) -> Combination | None:
+        """A fresh instance of the tuned combination, or ``None`` if none was tuned."""
+        strategy = self.strategy("combination") if "combination" in self.best_of else None
+        return strategy if isinstance(strategy, Combination) else None
+
+    def strategy(self, kind: str) -> Adaptation:
+        """A fresh instance of the best strategy of ``kind``."""
+        if kind not in self.best_of:
+            raise KeyError(f"no {kind!r} was tuned; tuned: {sorted(self.best_of)}")
+        return _build(kind, self.best_of[kind].settings)
+
+    def table(self) -> str:
+        """The best of each kind: settings, one-step RMSE and time per observation."""
+        lines = [
+            f"tuned by {self.criterion} on {self.episodes} episodes x {self.steps} steps"
+            + (f", budget {self.budget_ms:g} ms per observation" if self.budget_ms is not None else ""),
+            "",
+            "| strategy | settings | one-step RMSE | ms / observation |",
+            "|---|---|---|---|",
+        ]
+        for kind in KINDS:
+            if kind in self.best_of:
+                c = self.best_of[kind]
+                mark = " (best)" if kind == self.best_kind else ""
+                lines.append(
+                    f"| {kind}{mark} | {_describe(c.settings)} | {c.one_step_rmse:.4g} | {c.ms_per_step:.3g} |"
+                )
+        return "\n".join(lines + ["", *self.notes])
+
+    def __str__(self) -> str:
+        return self.table()
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready record (what ``model.tuning`` holds)."""
+        return {
+            "criterion": self.criterion,
+            "budget_ms": self.budget_ms,
+            "best_kind": self.best_kind,
+            "best_of": {kind: asdict(c) for kind, c in self.best_of.items()},
+            "candidates": [asdict(c) for c in self.candidates],
+            "notes": list(self.notes),
+            "episodes": self.episodes,
+            "steps": self.steps,
+            "seconds": self.seconds,
+        }
+
+
+def tune(
+    model: AdaptiveModel,
+    episodes: TensorDictBase | Sequence[TensorDictBase],
+    *,
+    strategies: Sequence[str] = KINDS,
+    criterion: Literal["one-step", "evidence"] = "one-step",
+    budget_ms: float | None = None,
+    num_particles: int = 1000,
+    gd_grid: dict[str, Sequence[float]] | None = None,
+    seed: int = 0,
+    progress: bool = True,
+) -> TuneResult:
+    """Tune each of ``strategies`` on held-out training-task ``episodes`` by one criterion (see the module doc).
+
+    Args:
+        model: a fitted model; its network is not changed.
+        episodes: batch ``[E, T]`` in the model's keys (or a list of ``[T]``): held-out episodes
+            of the *training* tasks, at least 2 of 2 steps.
+        strategies: which of :data:`KINDS` to tune; ``"combination"`` mixes the others tuned.
+        criterion: how SMCD's noise and flip are chosen: ``"one-step"`` (default) or the
+            filter's ``"evidence"``. The kinds are compared by one-step error either way.
+        budget_ms: skip settings whose median time per observation exceeds this (``None``: no budget).
+        num_particles: SMCD's particles (halved while over budget, down to 8).
+        gd_grid: gradient descent's starting grid, ``{"lr": ..., "steps": ..., "window": ...}``
+            (default :data:`GD_GRID`).
+        seed: seed of every SMCD run: two calls with the same arguments give the same choice.
+        progress: show a progress bar.
+
+    Returns:
+        The :class:`TuneResult`, also stored as ``model.tuning`` (its :meth:`~TuneResult.to_dict`).
+
+    Raises:
+        ValueError: an unknown strategy or criterion, a budget that is not positive, no strategy
+            within the budget, or episodes :func:`smcd_rl.calibrate` refuses.
+    """
+    started = time.perf_counter()
+    model = _checked_model(model)
+    unknown = [s for s in strategies if s not in KINDS]
+    if unknown or not strategies:
+        raise ValueError(f"strategies: unknown {unknown}; choose one or more of {list(KINDS)}")
+    if criterion not in ("one-step", "evidence"):
+        raise ValueError(f"criterion must be 'one-step' or 'evidence', got {criterion!r}")
+    if budget_ms is not None:
+        budget_ms = check_real(budget_ms, "budget_ms", low=0.0, open_low=True)
+    num_particles = check_count(num_particles, "num_particles")
+    grid = {k: tuple(v) for k, v in {**GD_GRID, **(gd_grid or {})}.items()}
+    if set(grid) != set(GD_GRID) or not all(grid.values()):
+        raise ValueError(f"gd_grid takes non-empty 'lr', 'steps' and 'window' values, got {gd_grid!r}")
+    td = _stacked(episodes)
+    x, y = _pairs(model, td)  # checks keys, shapes and values before any run
+    timing = _Timing(model, x[0], y[0], budget_ms)
+    search = _Search(model, td, timing, progress)
+    kinds = [k for k in KINDS if k in strategies]
+    try:
+        if "none" in kinds:
+            search.score("none", {})
+        if "gradient_descent" in kinds:
+            _tune_gd(search, grid)
+        if "smcd" in kinds:
+            _tune_smcd(search, model, td, num_particles, criterion, seed, progress)
+        if "combination" in kinds:
+            _tune_combination(search, [k for k in ("none", "gradient_descent", "smcd") if k in search.best_of])
+    finally:
+        search.bar.close()
+    if not search.best_of:
+        raise ValueError(f"no strategy fits a budget of {budget_ms:g} ms per observation; raise budget_ms")
+    result = TuneResult(
+        criterion=criterion,
+        budget_ms=budget_ms,
+        candidates=search.candidates,
+        best_of=search.best_of,
+        notes=search.notes,
+        episodes=int(td.batch_size[0]),
+        steps=int(td.batch_size[1]),
+        seconds=time.perf_counter() - started,
+    )
+    model.tuning = result.to_dict()
+    return result
+
+
+class _Timing:
+    """Median wall milliseconds per observation of a strategy on one stream (one held-out episode)."""
+
+    def __init__(self, model: AdaptiveModel, x: torch.Tensor, y: torch.Tensor, budget_ms: float | None) -> None:
+        self.model, self.x, self.y, self.budget_ms = model, x, y, budget_ms
+
+    def ms_per_step(self, strategy: Adaptation) -> float:
+        self.model.with_adaptation(strategy).reset(batch_shape=(1,))
+        times = []
+        with torch.no_grad():
+            for t in range(self.x.shape[0]):
+                started = time.perf_counter()
+                strategy.predict(self.x[t : t + 1])
+                try:
+                    strategy.observe(self.x[t : t + 1], self.y[t : t + 1])
+                except ValueError:
+                    break
+                times.append(time.perf_counter() - started)
+        return 1000 * statistics.median(times) if times else math.inf
+
+    def over(self, ms: float) -> bool:
+        return self.budget_ms is not None and ms > self.budget_ms
+
+
+class _Search:
+    """The candidates so far and the best of each kind."""
+
+    def __init__(self, model: AdaptiveModel, td: TensorDictBase, timing: _Timing, progress: bool) -> None:
+        self.model, self.td, self.timing = model, td, timing
+        self.candidates: list[TuneCandidate] = []
+        self.best_of: dict[str, TuneCandidate] = {}
+        self.notes: list[str] = []
+        self.bar = tqdm(desc="tune", unit="setting", disable=not progress)
+
+    def score(self, kind: str, settings: dict[str, Any], *, ms: float | None = None) -> float:
+        """Measure one setting (time first, then one-step error unless over budget); returns its RMSE."""
+        ms = self.timing.ms_per_step(_build(kind, settings)) if ms is None else ms
+        if self.timing.over(ms):
+            self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, "over budget"))
+            return math.inf
+        rmse = trace(self.model, self.td, _build(kind, settings)).rmse
+        candidate = TuneCandidate(kind, settings, rmse, ms)
+        self.candidates.append(candidate)
+        if math.isfinite(rmse) and (kind not in self.best_of or rmse < self.best_of[kind].one_step_rmse):
+            self.best_of[kind] = candidate
+        self.bar.update(1)
+        self.bar.set_postfix(kind=kind, rmse=f"{rmse:.4g}")
+        return rmse
+
+
+def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]]) -> None:
+    """Score the grid; while the best point lies on an edge, extend the grid past that edge."""
+    grid = {k: tuple(sorted(v)) for k, v in grid.items()}
+    scored: dict[tuple[Any, ...], float] = {}
+    extensions = {("lr", "low"): 0, ("lr", "high"): 0, ("steps", "high"): 0, ("window", "high"): 0}
+    while True:
+        for lr, steps, window in product(grid["lr"], grid["steps"], grid["window"]):
+            if (lr, steps, window) not in scored:
+                scored[(lr, steps, window)] = search.score(
+                    "gradient_descent", {"lr": lr, "steps": int(steps), "window": int(window)}
+                )
+        finite = {k: v for k, v in scored.items() if math.isfinite(v)}
+        if not finite:
+            return
+        point = min(finite.items(), key=lambda item: item[1])[0]
+        best = dict(zip(("lr", "steps", "window"), point, strict=True))
+        edge = _edge(grid, best, extensions)
+        if edge is None:
+            return
+        name, side = edge
+        extensions[edge] += 1
+        values = grid[name]
+        # The learning rate continues the grid's own ratio; steps and window double, since each
+        # multiplies the cost of an observation.
+        ratio = values[1] / values[0] if name == "lr" else 2.0
+        new = values[0] / ratio if side == "low" else values[-1] * ratio
+        grid[name] = tuple(sorted({*values, int(round(new)) if name != "lr" else new}))
+        search.notes.append(f"gradient descent: best {name} {best[name]:g} on the grid's {side} edge; tried {new:g}")
+
+
+def _edge(
+    grid: dict[str, tuple[Any, ...]], best: dict[str, Any], extensions: dict[tuple[str, str], int]
+) -> tuple[str, str] | None:
+    for name, side in extensions:
+        values = grid[name]
+        at_edge = best[name] == (values[0] if side == "low" else values[-1])
+        if at_edge and len(values) > 1 and extensions[(name, side)] < MAX_EXTENSIONS:
+            return name, side
+    return None
+
+
+def _tune_smcd(
+    search: _Search,
+    model: AdaptiveModel,
+    td: TensorDictBase,
+    num_particles: int,
+    criterion: Literal["one-step", "evidence"],
+    seed: int,
+    progress: bool,
+) -> None:
+    """Halve the particles until a step fits the budget, then calibrate (both noise forms) by ``criterion``."""
+    particles = num_particles
+    while True:
+        ms = search.timing.ms_per_step(SMCD(num_particles=particles, noise_std=1.0, flip_prob=0.01))
+        if not search.timing.over(ms) or particles // 2 < MIN_PARTICLES:
+            break
+        particles //= 2
+    if particles != num_particles:
+        search.notes.append(f"SMCD: {particles} particles instead of {num_particles}, to fit the budget")
+    if search.timing.over(ms):
+        search.candidates.append(TuneCandidate("smcd", {"num_particles": particles}, math.inf, ms, "over budget"))
+        return
+    saved = model.calibration
+    try:
+        for per_dimension in (True, False):
+            result = calibrate(
+                model,
+                td,
+                base=SMCD(num_particles=particles),
+                per_dimension=per_dimension,
+                criterion=criterion,
+                seed=seed,
+                progress=progress,
+            )
+            settings = {**result.strategy.config(), "seed": seed, "device": str(_device(model))}
+            search.score("smcd", settings, ms=ms)
+    finally:
+        model.calibration = saved  # tune's record is model.tuning; calibrate's own stays as it was
+
+
+def _tune_combination(search: _Search, kinds: list[str]) -> None:
+    if len(kinds) < 2:
+        return
+    members = [{"name": kind, "settings": search.best_of[kind].settings} for kind in kinds]
+    ms = sum(search.best_of[kind].ms_per_step for kind in kinds)
+    for eta, share in product(COMBINATION_GRID["eta"], COMBINATION_GRID["share"]):
+        search.score("combination", {"members": members, "eta": eta, "share": share}, ms=ms)
+
+
+def _build(kind: str, settings: dict[str, Any]) -> Adaptation:
+    """A fresh strategy of ``kind`` with ``settings`` (SMCD's ``seed`` becomes its generator)."""
+    builders: dict[str, Callable[..., Adaptation]] = {
+        "none": NoAdaptation,
+        "gradient_descent": GradientDescent,
+        "smcd": _smcd,
+        "combination": _combination,
+    }
+    return builders[kind](**settings)
+
+
+def _smcd(seed: int = 0, device: str = "cpu", **settings: Any) -> SMCD:
+    return SMCD(**settings, generator=torch.Generator(device=device).manual_seed(seed))
+
+
+def _device(model: AdaptiveModel) -> torch.device:
+    return next(model.net.parameters()).device
+
+
+def _combination(members: list[dict[str, Any]], eta: float, share: float) -> Combination:
+    return Combination([_build(m["name"], m["settings"]) for m in members], eta=eta, share=share)
+
+
+def _describe(settings: dict[str, Any]) -> str:
+    if "members" in settings:
+        return f"{' + '.join(m['name'] for m in settings['members'])}, eta {settings['eta']:g}, share {settings['share']:g}"
+    shown = {k: v for k, v in settings.items() if k not in ("seed", "device")}
+    parts = []
+    for k, v in shown.items():
+        if isinstance(v, (list, tuple)) and len(v) > 3:
+            v = f"rms {math.sqrt(sum(float(u) ** 2 for u in v) / len(v)):.3g} ({len(v)} dims)"
+        parts.append(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}")
+    return ", ".join(parts) or "-"

@@ -1,0 +1,117 @@
+"""smcd_rl.tune: one criterion for every strategy, a grid that extends itself, a per-step budget."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+import smcd_rl
+
+# Small and fast: a few particles and a small GD grid; each test runs in seconds.
+FAST = {"num_particles": 16, "gd_grid": {"lr": (1e-3, 1e-2), "steps": (1,), "window": (1, 5)}, "progress": False}
+
+
+@pytest.fixture(scope="module")
+def model() -> smcd_rl.AdaptiveModel:
+    torch.manual_seed(0)
+    q = torch.rand(400, 2) * 2 - 1
+    m = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(32,), dropout=0.2), in_keys=["q"], out_key="ee")
+    smcd_rl.fit(m, TensorDict({"q": q, "ee": torch.sin(q)}, [400]), epochs=20, lr=1e-2, progress=False)
+    return m
+
+
+def shifted_episodes(shift: float, count: int = 6, steps: int = 12) -> TensorDict:
+    """Episodes of a task the network never saw: its targets moved by ``shift`` in every output."""
+    generator = torch.Generator().manual_seed(1)
+    q = torch.rand(count, steps, 2, generator=generator) * 2 - 1
+    return TensorDict({"q": q, "ee": torch.sin(q) + shift}, [count, steps])
+
+
+@pytest.fixture(scope="module")
+def result(model) -> smcd_rl.TuneResult:
+    return smcd_rl.tune(model, shifted_episodes(0.5), **FAST)
+
+
+def test_every_kind_is_scored_by_one_step_error_and_the_best_is_the_lowest(model, result) -> None:
+    assert set(result.best_of) == {"none", "gradient_descent", "smcd", "combination"}
+    lowest = min(c.one_step_rmse for c in result.best_of.values())
+    assert result.best_of[result.best_kind].one_step_rmse == lowest
+    # A shift of 0.5 in every output is what gradient descent can learn and the frozen network
+    # cannot: no adaptation's error is at least the shift's size, GD's must be well below it.
+    assert result.best_of["none"].one_step_rmse > 0.4
+    assert result.best_of["gradient_descent"].one_step_rmse < 0.8 * result.best_of["none"].one_step_rmse
+    assert isinstance(result.best, smcd_rl.Adaptation) and isinstance(result.combination, smcd_rl.Combination)
+    assert model.tuning["best_kind"] == result.best_kind
+    assert "one-step RMSE" in str(result)
+
+
+def test_the_gd_grid_extends_past_an_edge_where_its_best_point_lies(model) -> None:
+    """With learning rates far too small for the shift, the best is the largest: the grid must go on."""
+    grid = {"lr": (1e-5, 1e-4), "steps": (1,), "window": (5,)}
+    result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["gradient_descent"], gd_grid=grid, progress=False)
+    lrs = sorted({c.settings["lr"] for c in result.candidates})
+    assert lrs[-1] > 1e-4, lrs
+    assert any("lr" in note and "high edge" in note for note in result.notes)
+    assert result.best_of["gradient_descent"].settings["lr"] > 1e-4
+
+
+def test_a_budget_skips_what_does_not_fit(model) -> None:
+    """No strategy takes less than a nanosecond per observation; every one takes less than an hour."""
+    with pytest.raises(ValueError, match="no strategy fits"):
+        smcd_rl.tune(model, shifted_episodes(0.5), budget_ms=1e-6, **FAST)
+    result = smcd_rl.tune(
+        model, shifted_episodes(0.5), strategies=["none", "gradient_descent"], budget_ms=3.6e6, **FAST
+    )
+    assert not [c for c in result.candidates if c.skipped] and len(result.candidates) >= 5
+    assert all(c.ms_per_step > 0 for c in result.candidates)
+
+
+def test_the_same_call_chooses_the_same(model) -> None:
+    a = smcd_rl.tune(model, shifted_episodes(0.2), strategies=["smcd"], **FAST)
+    b = smcd_rl.tune(model, shifted_episodes(0.2), strategies=["smcd"], **FAST)
+    assert {k: c.settings for k, c in a.best_of.items()} == {k: c.settings for k, c in b.best_of.items()}
+    assert [c.one_step_rmse for c in a.candidates] == [c.one_step_rmse for c in b.candidates]
+
+
+def test_tune_leaves_the_calibration_and_the_network_as_they_were(model) -> None:
+    before = {k: v.clone() for k, v in model.net.state_dict().items()}
+    calibration = model.calibration
+    smcd_rl.tune(model, shifted_episodes(0.3), strategies=["gradient_descent", "smcd"], **FAST)
+    assert model.calibration == calibration
+    assert all(torch.equal(before[k], v) for k, v in model.net.state_dict().items())
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"strategies": ["adam"]}, "unknown"),
+        ({"strategies": []}, "unknown"),
+        ({"criterion": "rmse"}, "criterion"),
+        ({"budget_ms": 0.0}, "budget_ms"),
+        ({"gd_grid": {"lr": ()}}, "gd_grid"),
+    ],
+)
+def test_bad_options_are_refused_and_change_nothing(model, options, message) -> None:
+    before = model.tuning
+    with pytest.raises(ValueError, match=message):
+        smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, **options})
+    assert model.tuning == before
+
+
+def test_the_strategies_it_returns_adapt(model, result) -> None:
+    """The returned strategies work as they are: tuned GD predicts a shifted test episode better than none."""
+    test = shifted_episodes(0.5, count=1, steps=20)[0]
+    errors = {}
+    for kind in ("none", "gradient_descent"):
+        adaptive = model.with_adaptation(result.strategy(kind))
+        adaptive.reset()
+        squared = 0.0
+        for t in range(test.shape[0]):
+            with torch.no_grad():
+                squared += float((adaptive(test[t].clone())["ee"] - test[t]["ee"]).square().sum())
+            adaptive.observe(test[t])
+        errors[kind] = math.sqrt(squared)
+    assert errors["gradient_descent"] < errors["none"]
