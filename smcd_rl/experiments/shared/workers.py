@@ -116,18 +116,19 @@ def map_jobs(
     pool = concurrent.futures.ProcessPoolExecutor(
         max_workers=min(workers, len(jobs)), mp_context=context, initializer=_start_worker, initargs=(threads,)
     )
+    bar = tqdm(total=len(jobs), desc="jobs", unit="job", disable=not progress)
     try:
         futures = {pool.submit(_run_job, payload): name for name, payload in payloads.items()}
-        bar = tqdm(total=len(futures), desc="methods", unit="method", disable=not progress)
         for future in concurrent.futures.as_completed(futures):
             finished(futures[future], pickle.loads(future.result()))
             bar.update()
-        bar.close()
     except BaseException:  # Ctrl-C or a failed job: stop the others now, keep what finished
+        bar.close()  # ends its line, so the message that follows stands on its own
         pool.shutdown(wait=False, cancel_futures=True)
         for child in multiprocessing.active_children():
             child.terminate()
         raise
+    bar.close()
     pool.shutdown()
     return {name: results[name] for name in jobs}
 
