@@ -7,11 +7,9 @@ another. :func:`episodes` turns the one into the other.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from tensordict import TensorDictBase
-    from torch import Tensor
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
 
 __all__ = ["episodes", "DONE_KEYS"]
 
@@ -64,8 +62,6 @@ def episodes(td: TensorDictBase, length: int) -> TensorDictBase:
                 [3., 4.],
                 [5., 6.]])
     """
-    import torch
-
     from smcd_rl.checks import check_count, check_tensordict
 
     check_tensordict(td, "episodes")
@@ -115,8 +111,6 @@ def episodes(td: TensorDictBase, length: int) -> TensorDictBase:
 
 def _flag(td: TensorDictBase, key: tuple[str, str], batch: tuple[int, ...]) -> Tensor:
     """The bool flag ``td[key]`` of shape ``[*batch]``, or an error naming the key and the shape it needs."""
-    import torch
-
     value = td.get(key)
     if not isinstance(value, torch.Tensor) or value.dtype != torch.bool:
         kind = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
