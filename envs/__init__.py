@@ -20,6 +20,7 @@ TASKS: tuple[tuple[str, str, int], ...] = (
     ("smcd_rl/PandaReach-v0", "smcd_rl.envs.panda_reach:PandaReachEnv", 200),
     ("smcd_rl/TwoLinkTelescoping-v0", "smcd_rl.envs.two_link_telescoping:TwoLinkTelescopingEnv", 100),
     ("smcd_rl/DroneLanding-v0", "smcd_rl.envs.drone_landing:DroneLandingEnv", 300),
+    ("smcd_rl/PendulumFamily-v0", "smcd_rl.envs.pendulum_family:PendulumFamilyEnv", 200),
 )
 
 #: (id, entry point, max_episode_steps) of the task families on gymnasium-robotics; see
