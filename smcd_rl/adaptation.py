@@ -8,6 +8,7 @@ by name (:func:`make_adaptation`).
 from __future__ import annotations
 
 import math
+import sys
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Literal
@@ -412,32 +413,74 @@ class SMCD(Adaptation):
 class GradientDescent(Adaptation):
     """Online gradient descent on the most recent transitions (the M+G baseline).
 
-    After each observation, ``steps`` SGD steps on the mean squared error (normalised units)
-    over the last ``window`` transitions update a private copy of the weights, one copy per
-    batch element. :meth:`reset` restores the trained weights; the network itself never changes.
-    An observation after which the weights, or their predictions for the window's inputs, are
-    inf or NaN (an outlier target, a learning rate far too large) is refused with a ValueError
-    and leaves the weights and the window as they were.
+    After each observation, ``steps`` SGD steps on the loss (normalised units) over the last
+    ``window`` transitions update a private copy of the weights, one copy per batch element.
+    :meth:`reset` restores the trained weights; the network itself never changes. An observation
+    after which the weights, or their predictions for the window's inputs, are inf or NaN (an
+    outlier target, a learning rate far too large) is refused with a ValueError and leaves the
+    weights and the window as they were.
+
+    The loss is the mean over the window of the mean over output dimensions of a per-residual
+    loss ``rho(r)``, where ``r`` is the prediction error in normalised units (a unit is one
+    standard deviation of that output in the training targets):
+
+    * ``"mse"``: ``rho(r) = r**2``.
+    * ``"huber"``: ``rho(r) = r**2`` while ``|r| <= huber_delta``, beyond it
+      ``2 * huber_delta * |r| - huber_delta**2`` (twice
+      :func:`torch.nn.functional.huber_loss`, so that it equals ``"mse"`` on residuals within
+      ``huber_delta`` and a learning rate means the same for both losses). Its gradient is
+      bounded: one corrupted observation, which stays in the window for ``window`` steps, pulls
+      the weights with at most the force of a residual of ``huber_delta`` instead of a force
+      that grows with its error.
 
     Args:
         lr: learning rate.
         steps: gradient steps per observation.
         window: how many recent transitions the loss uses.
+        loss: ``"mse"`` (squared error) or ``"huber"`` (squared, then linear beyond ``huber_delta``).
+        huber_delta: where the Huber loss turns linear, in normalised units: ``1.0`` is one
+            standard deviation of the training targets (of each output). Positive and finite;
+            unused with ``loss="mse"``.
 
     Example:
         >>> import smcd_rl
         >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(8, 8))
         >>> model = smcd_rl.AdaptiveModel(
         ...     net, in_keys=["q"], out_key="ee", adaptation=smcd_rl.GradientDescent(lr=0.01, steps=1, window=10))
+        >>> smcd_rl.GradientDescent(lr=0.01, window=10, loss="huber", huber_delta=2.0)
+        GradientDescent(lr=0.01, steps=1, window=10, loss='huber', huber_delta=2.0)
     """
 
     name = "gradient_descent"
 
-    def __init__(self, lr: float = 1e-2, steps: int = 1, window: int = 10) -> None:
+    #: The losses ``loss`` takes.
+    LOSSES: ClassVar[tuple[str, ...]] = ("mse", "huber")
+
+    def __init__(
+        self,
+        lr: float = 1e-2,
+        steps: int = 1,
+        window: int = 10,
+        loss: Literal["mse", "huber"] = "mse",
+        huber_delta: float = 1.0,
+    ) -> None:
         super().__init__()
         self.lr = check_real(lr, "lr", low=0.0, open_low=True)
         self.steps = check_count(steps, "steps")
         self.window = check_count(window, "window")
+        if not isinstance(loss, str) or loss not in self.LOSSES:
+            raise ValueError(f"loss must be one of {list(self.LOSSES)}, got {loss!r}")
+        self.loss: Literal["mse", "huber"] = loss
+        # Checked even with loss="mse": config() records it, and a bad value should fail here,
+        # not when someone later switches the loss.
+        try:
+            # Finite too: inf - inf in the linear branch would make NaN gradients (loss="mse" is the squared loss).
+            self.huber_delta = check_real(huber_delta, "huber_delta", low=0.0, high=sys.float_info.max, open_low=True)
+        except ValueError:
+            raise ValueError(
+                f"huber_delta must be positive and finite (normalised units: 1.0 is one standard deviation "
+                f"of the training targets), got {huber_delta}"
+            ) from None
         self._params: dict[str, Tensor] = {}
         self._inputs: Tensor | None = None
         self._targets: Tensor | None = None
@@ -445,7 +488,15 @@ class GradientDescent(Adaptation):
         self._output_scale = torch.tensor(1.0)
 
     def config(self) -> dict[str, Any]:
-        return {"lr": self.lr, "steps": self.steps, "window": self.window}
+        # Always every argument, so that type(s)(**s.config()) is the same strategy; configs saved
+        # before ``loss`` existed lack it and rebuild with its default, "mse", which they used.
+        return {
+            "lr": self.lr,
+            "steps": self.steps,
+            "window": self.window,
+            "loss": self.loss,
+            "huber_delta": self.huber_delta,
+        }
 
     def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
         super().bind(net, output_scale, calibration=calibration)
@@ -474,8 +525,16 @@ class GradientDescent(Adaptation):
         filled = (torch.arange(self.window, device=rows.device) < self._count.unsqueeze(-1)).to(self._inputs.dtype)
         net = self.net
 
+        huber, delta = self.loss == "huber", self.huber_delta
+
         def loss(params: dict[str, Tensor], x: Tensor, z: Tensor, weight: Tensor) -> Tensor:
-            error = (functional_call(net, params, (x,)) - z).square().mean(-1)
+            residual = functional_call(net, params, (x,)) - z
+            if huber:
+                size = residual.abs()
+                # Squared within delta, linear beyond: the gradient is capped at 2 * delta.
+                error = torch.where(size <= delta, residual.square(), 2 * delta * size - delta**2).mean(-1)
+            else:
+                error = residual.square().mean(-1)
             return (error * weight).sum() / weight.sum()
 
         gradient = vmap(grad(loss))

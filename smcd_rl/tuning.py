@@ -5,8 +5,9 @@ it will be scored on; :func:`smcd_rl.episodes` cuts them from collected transiti
 each requested strategy on them by the same criterion, the **one-step prediction error** (the
 error of predicting each step from the steps before it, what a planner or controller uses):
 
-* gradient descent over a grid of learning rate x steps x window that extends itself while the
-  best point lies on an edge (the result says which edges it extended);
+* gradient descent over a grid of learning rate x steps x window x loss (squared error and
+  Huber, which bounds the pull of an outlier) that extends itself while the best point lies on
+  an edge of the learning rate, steps or window (the result says which edges it extended);
 * SMCD by :func:`smcd_rl.calibrate` (noise and flip probability; scalar and per-dimension noise,
   the better kept);
 * :class:`smcd_rl.Combination` of the best members, its ``eta`` and ``share`` chosen on the same
@@ -36,7 +37,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from itertools import product
 from typing import Any, Literal
@@ -52,12 +53,18 @@ from smcd_rl.combination import Combination
 from smcd_rl.diagnostics import trace
 from smcd_rl.model import AdaptiveModel
 
-__all__ = ["tune", "TuneResult", "TuneCandidate", "KINDS"]
+__all__ = ["tune", "TuneResult", "TuneCandidate", "KINDS", "build_strategy", "ms_per_observation"]
 
 #: The strategies :func:`tune` knows, in the order it tunes them (a combination needs the others).
 KINDS = ("none", "gradient_descent", "smcd", "combination")
-#: Gradient descent's starting grid: learning rate x steps per observation x window.
-GD_GRID = {"lr": (1e-3, 1e-2, 1e-1), "steps": (1, 5), "window": (1, 10)}
+#: Gradient descent's starting grid: learning rate x steps per observation x window x loss
+#: (:class:`smcd_rl.GradientDescent`'s ``loss``; this dimension is never extended).
+GD_GRID: dict[str, tuple[Any, ...]] = {
+    "lr": (1e-3, 1e-2, 1e-1),
+    "steps": (1, 5),
+    "window": (1, 10),
+    "loss": ("mse", "huber"),
+}
 #: At most this many extensions past each edge of the GD grid.
 MAX_EXTENSIONS = 3
 #: The combination's grid: the weights' learning rate and the fixed share.
@@ -119,7 +126,7 @@ class TuneResult:
         """A fresh instance of the best strategy of ``kind``."""
         if kind not in self.best_of:
             raise KeyError(f"no {kind!r} was tuned; tuned: {sorted(self.best_of)}")
-        return _build(kind, self.best_of[kind].settings)
+        return build_strategy(kind, self.best_of[kind].settings)
 
     def table(self) -> str:
         """The best of each kind: settings, one-step RMSE and time per observation."""
@@ -165,7 +172,7 @@ def tune(
     criterion: Literal["one-step", "evidence"] = "one-step",
     budget_ms: float | None = None,
     num_particles: int = 1000,
-    gd_grid: dict[str, Sequence[float]] | None = None,
+    gd_grid: dict[str, Sequence[Any]] | None = None,
     seed: int = 0,
     progress: bool = True,
 ) -> TuneResult:
@@ -180,8 +187,10 @@ def tune(
             filter's ``"evidence"``. The kinds are compared by one-step error either way.
         budget_ms: skip settings whose median time per observation exceeds this (``None``: no budget).
         num_particles: SMCD's particles (halved while over budget, down to 8).
-        gd_grid: gradient descent's starting grid, ``{"lr": ..., "steps": ..., "window": ...}``
-            (default :data:`GD_GRID`).
+        gd_grid: gradient descent's starting grid, ``{"lr": ..., "steps": ..., "window": ...,
+            "loss": ...}``; a key left out takes its values from :data:`GD_GRID` (so a grid
+            without ``"loss"`` tries both losses; ``"loss": ("mse",)`` tries the squared error
+            only).
         seed: seed of every SMCD run: two calls with the same arguments give the same choice.
         progress: show a progress bar.
 
@@ -202,9 +211,7 @@ def tune(
     if budget_ms is not None:
         budget_ms = check_real(budget_ms, "budget_ms", low=0.0, open_low=True)
     num_particles = check_count(num_particles, "num_particles")
-    grid = {k: tuple(v) for k, v in {**GD_GRID, **(gd_grid or {})}.items()}
-    if set(grid) != set(GD_GRID) or not all(grid.values()):
-        raise ValueError(f"gd_grid takes non-empty 'lr', 'steps' and 'window' values, got {gd_grid!r}")
+    grid = _checked_gd_grid(gd_grid)
     td = _stacked(episodes)
     x, y = _pairs(model, td)  # checks keys, shapes and values before any run
     timing = _Timing(model, x[0], y[0], budget_ms)
@@ -235,6 +242,32 @@ def tune(
     )
     model.tuning = result.to_dict()
     return result
+
+
+def ms_per_observation(model: AdaptiveModel, strategy: Adaptation, episode: TensorDictBase) -> float:
+    """Median wall milliseconds of one observation (predict, then observe) of ``strategy`` on one stream.
+
+    ``episode`` is one episode ``[T]`` in the model's keys; the strategy is reset for one stream
+    and run over it with the current torch threads. A step the strategy refuses ends the
+    measurement (``inf`` if none was timed). Wall times depend on the machine and its load:
+    compare strategies measured side by side, on a quiet machine.
+
+    Example:
+        >>> import torch, smcd_rl, warnings
+        >>> from tensordict import TensorDict
+        >>> warnings.simplefilter("ignore", smcd_rl.UnfittedModelWarning)
+        >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+        >>> episode = TensorDict({"q": torch.rand(5, 2), "ee": torch.rand(5, 2)}, [5])
+        >>> ms_per_observation(model, smcd_rl.SMCD(num_particles=10), episode) > 0
+        True
+    """
+    model = _checked_model(model)
+    if not isinstance(strategy, Adaptation):
+        raise TypeError(f"strategy must be an smcd_rl.Adaptation, got {type(strategy).__name__}")
+    if not isinstance(episode, TensorDictBase) or episode.batch_dims != 1:
+        raise ValueError("episode must be one episode: a TensorDict of batch [T] in the model's keys")
+    x, y = _pairs(model, episode.unsqueeze(0))
+    return _Timing(model, x[0], y[0], None).ms_per_step(strategy)
 
 
 class _Timing:
@@ -273,11 +306,11 @@ class _Search:
 
     def score(self, kind: str, settings: dict[str, Any], *, ms: float | None = None) -> float:
         """Measure one setting (time first, then one-step error unless over budget); returns its RMSE."""
-        ms = self.timing.ms_per_step(_build(kind, settings)) if ms is None else ms
+        ms = self.timing.ms_per_step(build_strategy(kind, settings)) if ms is None else ms
         if self.timing.over(ms):
             self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, "over budget"))
             return math.inf
-        rmse = trace(self.model, self.td, _build(kind, settings)).rmse
+        rmse = trace(self.model, self.td, build_strategy(kind, settings)).rmse
         candidate = TuneCandidate(kind, settings, rmse, ms)
         self.candidates.append(candidate)
         if math.isfinite(rmse) and (kind not in self.best_of or rmse < self.best_of[kind].one_step_rmse):
@@ -287,22 +320,46 @@ class _Search:
         return rmse
 
 
+def _checked_gd_grid(gd_grid: Mapping[str, Sequence[Any]] | None) -> dict[str, tuple[Any, ...]]:
+    """``gd_grid`` filled in from :data:`GD_GRID`, or an error before any run."""
+    if gd_grid is not None and not isinstance(gd_grid, Mapping):
+        raise TypeError(f"gd_grid must be a dict such as {GD_GRID}, got {type(gd_grid).__name__}")
+    given = dict(gd_grid or {})
+    grid = {k: tuple(v) for k, v in {**GD_GRID, **given}.items()}
+    # A bare string is iterable too: "mse" would become the losses "m", "s", "e".
+    if set(grid) != set(GD_GRID) or not all(grid.values()) or any(isinstance(v, str) for v in given.values()):
+        raise ValueError(
+            f"gd_grid takes non-empty sequences of 'lr', 'steps', 'window' and 'loss' values, such as "
+            f"{{'lr': (0.01, 0.1), 'loss': ('huber',)}} (a key left out keeps GD_GRID's values), got {gd_grid!r}"
+        )
+    unknown = [loss for loss in grid["loss"] if loss not in GradientDescent.LOSSES]
+    if unknown:
+        raise ValueError(f"gd_grid['loss'] takes losses from {list(GradientDescent.LOSSES)}, got {unknown}")
+    return grid
+
+
 def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]]) -> None:
-    """Score the grid; while the best point lies on an edge, extend the grid past that edge."""
-    grid = {k: tuple(sorted(v)) for k, v in grid.items()}
+    """Score the grid; while the best point lies on an edge, extend the grid past that edge.
+
+    The loss is a dimension of the grid but has no edge: the search tries each loss given and
+    extends only the learning rate, steps and window.
+    """
+    # The losses keep GradientDescent.LOSSES' order, so that among equal errors the squared one wins.
+    grid = {k: tuple(sorted(v)) for k, v in grid.items() if k != "loss"} | {
+        "loss": tuple(loss for loss in GradientDescent.LOSSES if loss in grid["loss"])
+    }
     scored: dict[tuple[Any, ...], float] = {}
     extensions = {("lr", "low"): 0, ("lr", "high"): 0, ("steps", "high"): 0, ("window", "high"): 0}
     while True:
-        for lr, steps, window in product(grid["lr"], grid["steps"], grid["window"]):
-            if (lr, steps, window) not in scored:
-                scored[(lr, steps, window)] = search.score(
-                    "gradient_descent", {"lr": lr, "steps": int(steps), "window": int(window)}
-                )
+        for lr, steps, window, loss in product(grid["lr"], grid["steps"], grid["window"], grid["loss"]):
+            if (lr, steps, window, loss) not in scored:
+                strategy = GradientDescent(lr=lr, steps=int(steps), window=int(window), loss=loss)
+                scored[(lr, steps, window, loss)] = search.score("gradient_descent", strategy.config())
         finite = {k: v for k, v in scored.items() if math.isfinite(v)}
         if not finite:
             return
         point = min(finite.items(), key=lambda item: item[1])[0]
-        best = dict(zip(("lr", "steps", "window"), point, strict=True))
+        best = dict(zip(("lr", "steps", "window", "loss"), point, strict=True))
         edge = _edge(grid, best, extensions)
         if edge is None:
             return
@@ -376,8 +433,17 @@ def _tune_combination(search: _Search, kinds: list[str]) -> None:
         search.score("combination", {"members": members, "eta": eta, "share": share}, ms=ms)
 
 
-def _build(kind: str, settings: dict[str, Any]) -> Adaptation:
-    """A fresh strategy of ``kind`` with ``settings`` (SMCD's ``seed`` becomes its generator)."""
+def build_strategy(kind: str, settings: dict[str, Any]) -> Adaptation:
+    """A fresh strategy of ``kind`` (one of :data:`KINDS`) with a candidate's ``settings``.
+
+    SMCD's ``seed`` becomes its generator, so the strategy repeats the tuned run's filter.
+
+    Example:
+        >>> build_strategy("gradient_descent", {"lr": 0.1, "steps": 2, "window": 5}).config()["lr"]
+        0.1
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown strategy kind {kind!r}; choose one of {list(KINDS)}")
     builders: dict[str, Callable[..., Adaptation]] = {
         "none": NoAdaptation,
         "gradient_descent": GradientDescent,
@@ -396,13 +462,16 @@ def _device(model: AdaptiveModel) -> torch.device:
 
 
 def _combination(members: list[dict[str, Any]], eta: float, share: float) -> Combination:
-    return Combination([_build(m["name"], m["settings"]) for m in members], eta=eta, share=share)
+    return Combination([build_strategy(m["name"], m["settings"]) for m in members], eta=eta, share=share)
 
 
 def _describe(settings: dict[str, Any]) -> str:
     if "members" in settings:
         return f"{' + '.join(m['name'] for m in settings['members'])}, eta {settings['eta']:g}, share {settings['share']:g}"
     shown = {k: v for k, v in settings.items() if k not in ("seed", "device")}
+    if shown.get("loss") == "mse":
+        # Gradient descent's default loss: shown by its absence, and its Huber delta is unused.
+        shown = {k: v for k, v in shown.items() if k not in ("loss", "huber_delta")}
     parts = []
     for k, v in shown.items():
         if isinstance(v, (list, tuple)) and len(v) > 3:
