@@ -6,8 +6,9 @@ each requested strategy on them by the same criterion, the **one-step prediction
 error of predicting each step from the steps before it, what a planner or controller uses):
 
 * gradient descent over a grid of learning rate x steps x window x loss (squared error and
-  Huber, which bounds the pull of an outlier) that extends itself while the best point lies on
-  an edge of the learning rate, steps or window (the result says which edges it extended);
+  Huber, which bounds the pull of an outlier) that goes on past an edge of the learning rate,
+  steps or window, along that dimension through the best point, while the best point lies there
+  (the result says which edges it extended);
 * SMCD by :func:`smcd_rl.calibrate` (noise and flip probability; scalar and per-dimension noise,
   the better kept);
 * :class:`smcd_rl.Combination` of the best members, its ``eta`` and ``share`` chosen on the same
@@ -34,6 +35,7 @@ Example:
 
 from __future__ import annotations
 
+import json
 import math
 import statistics
 import time
@@ -51,6 +53,7 @@ from smcd_rl.calibration import _checked_model, _pairs, _stacked, calibrate
 from smcd_rl.checks import check_count, check_real
 from smcd_rl.combination import Combination
 from smcd_rl.diagnostics import trace
+from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.model import AdaptiveModel
 
 __all__ = ["tune", "TuneResult", "TuneCandidate", "KINDS", "build_strategy", "ms_per_observation"]
@@ -105,6 +108,8 @@ class TuneResult:
     episodes: int = 0
     steps: int = 0
     seconds: float = 0.0
+    #: A digest of the model, the episodes and the seed: which results ``tune(..., reuse=...)`` may reuse.
+    data: str = ""
 
     @property
     def best_kind(self) -> str:
@@ -161,6 +166,7 @@ class TuneResult:
             "episodes": self.episodes,
             "steps": self.steps,
             "seconds": self.seconds,
+            "data": self.data,
         }
 
 
@@ -175,6 +181,7 @@ def tune(
     gd_grid: dict[str, Sequence[Any]] | None = None,
     seed: int = 0,
     progress: bool = True,
+    reuse: TuneResult | None = None,
 ) -> TuneResult:
     """Tune each of ``strategies`` on held-out training-task ``episodes`` by one criterion (see the module doc).
 
@@ -193,13 +200,17 @@ def tune(
             only).
         seed: seed of every SMCD run: two calls with the same arguments give the same choice.
         progress: show a progress bar.
+        reuse: an earlier result of this function on the same model, episodes, seed and
+            criterion (e.g. the unbudgeted one, before a call with ``budget_ms``): each setting
+            it scored takes its score and time from there instead of running again.
 
     Returns:
         The :class:`TuneResult`, also stored as ``model.tuning`` (its :meth:`~TuneResult.to_dict`).
 
     Raises:
         ValueError: an unknown strategy or criterion, a budget that is not positive, no strategy
-            within the budget, or episodes :func:`smcd_rl.calibrate` refuses.
+            within the budget, episodes :func:`smcd_rl.calibrate` refuses, or a ``reuse`` of
+            another model, other episodes, another seed or another criterion.
     """
     started = time.perf_counter()
     model = _checked_model(model)
@@ -214,8 +225,10 @@ def tune(
     grid = _checked_gd_grid(gd_grid)
     td = _stacked(episodes)
     x, y = _pairs(model, td)  # checks keys, shapes and values before any run
+    data = content_digest({"model": model_digest(model), "episodes": content_digest(td), "seed": seed})
+    known = _reusable(reuse, data, criterion)
     timing = _Timing(model, x[0], y[0], budget_ms)
-    search = _Search(model, td, timing, progress)
+    search = _Search(model, td, timing, progress, known)
     kinds = [k for k in KINDS if k in strategies]
     try:
         if "none" in kinds:
@@ -239,9 +252,28 @@ def tune(
         episodes=int(td.batch_size[0]),
         steps=int(td.batch_size[1]),
         seconds=time.perf_counter() - started,
+        data=data,
     )
     model.tuning = result.to_dict()
     return result
+
+
+def _reusable(reuse: TuneResult | None, data: str, criterion: str) -> dict[str, TuneCandidate]:
+    """The scored candidates of ``reuse`` by :func:`_key`, after checking it was tuned on the same data."""
+    if reuse is None:
+        return {}
+    if not isinstance(reuse, TuneResult):
+        raise TypeError(f"reuse must be a TuneResult of an earlier tune call, got {type(reuse).__name__}")
+    if reuse.data != data or reuse.criterion != criterion:
+        raise ValueError(
+            "reuse holds a result for another model, other episodes, another seed or another criterion; "
+            "pass the result of a tune call on the same ones, or none"
+        )
+    return {_key(c.kind, c.settings): c for c in reuse.candidates if not c.skipped}
+
+
+def _key(kind: str, settings: dict[str, Any]) -> str:
+    return json.dumps([kind, settings], sort_keys=True, default=str)
 
 
 def ms_per_observation(model: AdaptiveModel, strategy: Adaptation, episode: TensorDictBase) -> float:
@@ -261,7 +293,8 @@ def ms_per_observation(model: AdaptiveModel, strategy: Adaptation, episode: Tens
         >>> ms_per_observation(model, smcd_rl.SMCD(num_particles=10), episode) > 0
         True
     """
-    model = _checked_model(model)
+    if not isinstance(model, AdaptiveModel):  # timing needs no fitted weights, unlike tune's scores
+        raise TypeError(f"model must be an smcd_rl.AdaptiveModel, got {type(model).__name__}")
     if not isinstance(strategy, Adaptation):
         raise TypeError(f"strategy must be an smcd_rl.Adaptation, got {type(strategy).__name__}")
     if not isinstance(episode, TensorDictBase) or episode.batch_dims != 1:
@@ -297,8 +330,16 @@ class _Timing:
 class _Search:
     """The candidates so far and the best of each kind."""
 
-    def __init__(self, model: AdaptiveModel, td: TensorDictBase, timing: _Timing, progress: bool) -> None:
+    def __init__(
+        self,
+        model: AdaptiveModel,
+        td: TensorDictBase,
+        timing: _Timing,
+        progress: bool,
+        known: dict[str, TuneCandidate] | None = None,
+    ) -> None:
         self.model, self.td, self.timing = model, td, timing
+        self.known = known or {}  # scored by an earlier call on the same data: not run again
         self.candidates: list[TuneCandidate] = []
         self.best_of: dict[str, TuneCandidate] = {}
         self.notes: list[str] = []
@@ -306,11 +347,18 @@ class _Search:
 
     def score(self, kind: str, settings: dict[str, Any], *, ms: float | None = None) -> float:
         """Measure one setting (time first, then one-step error unless over budget); returns its RMSE."""
+        earlier = self.known.get(_key(kind, settings))
+        if earlier is not None:
+            ms = earlier.ms_per_step
         ms = self.timing.ms_per_step(build_strategy(kind, settings)) if ms is None else ms
         if self.timing.over(ms):
             self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, "over budget"))
             return math.inf
-        rmse = trace(self.model, self.td, build_strategy(kind, settings)).rmse
+        rmse = (
+            earlier.one_step_rmse
+            if earlier is not None
+            else trace(self.model, self.td, build_strategy(kind, settings)).rmse
+        )
         candidate = TuneCandidate(kind, settings, rmse, ms)
         self.candidates.append(candidate)
         if math.isfinite(rmse) and (kind not in self.best_of or rmse < self.best_of[kind].one_step_rmse):
@@ -339,22 +387,29 @@ def _checked_gd_grid(gd_grid: Mapping[str, Sequence[Any]] | None) -> dict[str, t
 
 
 def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]]) -> None:
-    """Score the grid; while the best point lies on an edge, extend the grid past that edge.
+    """Score the grid; while the best point lies on an edge, go on past that edge along that dimension.
 
-    The loss is a dimension of the grid but has no edge: the search tries each loss given and
-    extends only the learning rate, steps and window.
+    Past an edge only the line through the best point is scored (the new value with the other
+    settings at their best), not the whole grid again: each extension costs one setting per loss
+    at most, and steps and window double the cost of a setting with each extension. The loss is
+    a dimension of the grid but has no edge: the search tries each loss given and extends only the
+    learning rate, steps and window.
     """
     # The losses keep GradientDescent.LOSSES' order, so that among equal errors the squared one wins.
     grid = {k: tuple(sorted(v)) for k, v in grid.items() if k != "loss"} | {
         "loss": tuple(loss for loss in GradientDescent.LOSSES if loss in grid["loss"])
     }
     scored: dict[tuple[Any, ...], float] = {}
+
+    def score(lr: float, steps: int, window: int, loss: Any) -> None:  # loss: one of GradientDescent.LOSSES
+        if (lr, steps, window, loss) not in scored:
+            strategy = GradientDescent(lr=lr, steps=int(steps), window=int(window), loss=loss)
+            scored[(lr, steps, window, loss)] = search.score("gradient_descent", strategy.config())
+
+    for point in product(grid["lr"], grid["steps"], grid["window"], grid["loss"]):
+        score(*point)
     extensions = {("lr", "low"): 0, ("lr", "high"): 0, ("steps", "high"): 0, ("window", "high"): 0}
     while True:
-        for lr, steps, window, loss in product(grid["lr"], grid["steps"], grid["window"], grid["loss"]):
-            if (lr, steps, window, loss) not in scored:
-                strategy = GradientDescent(lr=lr, steps=int(steps), window=int(window), loss=loss)
-                scored[(lr, steps, window, loss)] = search.score("gradient_descent", strategy.config())
         finite = {k: v for k, v in scored.items() if math.isfinite(v)}
         if not finite:
             return
@@ -370,7 +425,10 @@ def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]]) -> None:
         # multiplies the cost of an observation.
         ratio = values[1] / values[0] if name == "lr" else 2.0
         new = values[0] / ratio if side == "low" else values[-1] * ratio
-        grid[name] = tuple(sorted({*values, int(round(new)) if name != "lr" else new}))
+        new = new if name == "lr" else int(round(new))
+        grid[name] = tuple(sorted({*values, new}))
+        for loss in grid["loss"]:
+            score(**{**best, name: new, "loss": loss})
         search.notes.append(f"gradient descent: best {name} {best[name]:g} on the grid's {side} edge; tried {new:g}")
 
 
@@ -405,6 +463,11 @@ def _tune_smcd(
         search.notes.append(f"SMCD: {particles} particles instead of {num_particles}, to fit the budget")
     if search.timing.over(ms):
         search.candidates.append(TuneCandidate("smcd", {"num_particles": particles}, math.inf, ms, "over budget"))
+        return
+    known = [c for c in search.known.values() if c.kind == "smcd" and c.settings.get("num_particles") == particles]
+    if known:  # an earlier call calibrated these particles on the same data: its two choices stand
+        for candidate in known:
+            search.score("smcd", candidate.settings)
         return
     saved = model.calibration
     try:

@@ -166,3 +166,40 @@ def test_a_grid_of_one_loss_tries_only_that_loss(model) -> None:
     result = smcd_rl.tune(model, outlier_episodes(), strategies=["gradient_descent"], gd_grid=grid, progress=False)
     assert {c.settings["loss"] for c in result.candidates} == {"mse"}
     assert "loss" not in str(result)  # the squared error is the default: the table leaves it out
+
+
+def test_reuse_takes_an_earlier_calls_scores_without_running_anything(model, result, monkeypatch) -> None:
+    """A budgeted call after an unbudgeted one: the same settings, not one filter or GD run again."""
+    import smcd_rl.tuning as tuning
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a setting the earlier call scored was run again")
+
+    monkeypatch.setattr(tuning, "trace", refuse)
+    monkeypatch.setattr(tuning, "calibrate", refuse)
+    again = smcd_rl.tune(model, shifted_episodes(0.5), **FAST, reuse=result)
+    assert {k: c.settings for k, c in again.best_of.items()} == {k: c.settings for k, c in result.best_of.items()}
+    assert {k: c.one_step_rmse for k, c in again.best_of.items()} == {
+        k: c.one_step_rmse for k, c in result.best_of.items()
+    }
+    # under a budget below the slowest GD setting's time, that setting is skipped, the rest reused
+    # (reused times, so no timing noise decides; SMCD left out: its particle count is timed afresh)
+    slowest = max((c for c in result.candidates if c.kind == "gradient_descent"), key=lambda c: c.ms_per_step)
+    budgeted = smcd_rl.tune(
+        model,
+        shifted_episodes(0.5),
+        **FAST,
+        strategies=["none", "gradient_descent"],
+        reuse=result,
+        budget_ms=0.999 * slowest.ms_per_step,
+    )
+    assert any(c.skipped == "over budget" and c.settings == slowest.settings for c in budgeted.candidates)
+
+
+def test_reuse_of_other_episodes_is_refused_and_changes_nothing(model, result) -> None:
+    before = dict(model.tuning)
+    with pytest.raises(ValueError, match="another model, other episodes"):
+        smcd_rl.tune(model, shifted_episodes(0.3), **FAST, reuse=result)
+    with pytest.raises(TypeError, match="TuneResult"):
+        smcd_rl.tune(model, shifted_episodes(0.5), **FAST, reuse=result.to_dict())
+    assert model.tuning == before
