@@ -3,10 +3,12 @@
 Each experiment writes into its ``results.json`` the cell of its table that stands for the task
 (e.g. two-link at burn-in T = 10, horizon H = 1): the estimates of its methods for "none", "GD",
 "SMCD (paper)" and "SMCD (calibrated)" and their paired verdicts (:func:`~smcd_rl.experiments.shared.scoreboard_entry.scoreboard_entry`). The
-scoreboard reads those entries from the given run directories and writes three tables of one row
+scoreboard reads those entries from the given run directories and writes tables of one row
 per task, narrow enough for a docs page: its metric and cell, each strategy's mean with its 95 % CI, and the verdicts
 of both SMCD variants against none and GD (the experiment's own comparisons, over the same
-trials); ``results.csv`` holds every number of all three. A task that several runs have is labelled
+trials); where a run has them (``smcd-rl regimes``), SMCD calibrated by one-step error, the
+combination and each strategy's time per observation in tables of their own. ``results.csv``
+holds every number. A task that several runs have is labelled
 with each run's directory. The plot has a panel per task in its own metric, two to a row. The
 entries are kept in ``scoreboard.json``, from which :func:`render` draws the scoreboard again.
 """
@@ -23,7 +25,13 @@ from typing import Any
 from smcd_rl.experiments.scoreboard.config import ScoreboardConfig
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.outputs import format_table, save_figure, write_json
-from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, VERDICT_LABELS, VERDICTS
+from smcd_rl.experiments.shared.scoreboard_entry import (
+    COLUMNS,
+    CORE_COLUMNS,
+    CORE_VERDICTS,
+    VERDICT_LABELS,
+    VERDICTS,
+)
 from smcd_rl.experiments.shared.stats import Estimate
 
 __all__ = ["ScoreboardConfig", "run", "render", "read_entries"]
@@ -109,8 +117,14 @@ def _write(
             [row["task"], row["metric"] + ("" if row["lower_is_better"] else ", higher is better"), row["cell"]]
             for row in rows
         ]
-        means = [[row["task"], *(row[f"{c} text"] for c in COLUMNS)] for row in rows]
-        verdicts = [[row["task"], *(row[f"{m} vs {a}"] for m, a in VERDICTS)] for row in rows]
+        means = [[row["task"], *(row[f"{c} text"] for c in CORE_COLUMNS)] for row in rows]
+        verdicts = [[row["task"], *(row[f"{m} vs {a}"] for m, a in CORE_VERDICTS)] for row in rows]
+        # Experiments tuned by smcd_rl.tune add SMCD by one-step error, the combination and the
+        # time per observation: tables of their own, of the tasks that have them.
+        extra_columns = [c for c in COLUMNS if c not in CORE_COLUMNS]
+        tuned = [row for row in rows if any(math.isfinite(row[c]) for c in extra_columns)]
+        extra_verdicts = [v for v in VERDICTS if v not in CORE_VERDICTS]
+        timed = [row for row in rows if row["ms"]]
         write_json(
             ex.out / "scoreboard.json",
             {
@@ -122,17 +136,36 @@ def _write(
         )
         ex.write(
             experiment="scoreboard: every task, none / GD / SMCD (paper settings) / SMCD (calibrated)",
-            # Three narrow tables, not one wide one: each fits the width of a docs page.
+            # Narrow tables, not one wide one: each fits the width of a docs page.
             tables={
                 "Each task's headline metric and cell (every number of the tables below: results.csv)": format_table(
                     tasks, ["task", "metric", "cell"]
                 ),
-                "Mean [95% CI]": format_table(means, ["task", *COLUMNS]),
+                "Mean [95% CI]": format_table(means, ["task", *CORE_COLUMNS]),
                 "Paired verdicts, over the same trials (difference [95% CI], method minus against)": format_table(
-                    verdicts, ["task", *(VERDICT_LABELS[v] for v in VERDICTS)]
+                    verdicts, ["task", *(VERDICT_LABELS[v] for v in CORE_VERDICTS)]
                 ),
+                "SMCD calibrated by one-step error and the combination, where they ran: mean [95% CI] and "
+                "paired verdict against GD": format_table(
+                    [
+                        [
+                            row["task"],
+                            *(row[f"{c} text"] for c in extra_columns),
+                            *(row[f"{m} vs {a}"] for m, a in extra_verdicts),
+                        ]
+                        for row in tuned
+                    ],
+                    ["task", *extra_columns, *(VERDICT_LABELS[v] for v in extra_verdicts)],
+                )
+                if tuned
+                else "",
+                "Median time per observation (ms; one stream, one thread), where the experiment measured it": format_table(
+                    [[row["task"], *(_ms(row["ms"].get(c)) for c in COLUMNS)] for row in timed], ["task", *COLUMNS]
+                )
+                if timed
+                else "",
             },
-            rows=[{k: v for k, v in row.items() if not k.endswith(" text")} for row in rows],
+            rows=[_csv_row(row) for row in rows],
             payload={"runs": list(config.runs)},
             plots={"scoreboard.png": lambda path: _plot(rows, path)},
             files=["scoreboard.json"],
@@ -239,6 +272,11 @@ def _check_entry(entry: Any, where: str) -> None:
         numbers = [estimate.get(k) if isinstance(estimate, dict) else None for k in ("mean", "low", "high")]
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
             raise ValueError(f"{where}: the estimate of {column!r} needs numbers mean, low and high; {fix}")
+    ms = entry.get("ms_per_observation", {})
+    if not isinstance(ms, dict) or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in ms.values()
+    ):
+        raise ValueError(f"{where}: 'ms_per_observation' is not a mapping of strategy -> milliseconds; {fix}")
 
 
 def _row(entry: Mapping[str, Any]) -> dict[str, Any]:
@@ -256,11 +294,29 @@ def _row(entry: Mapping[str, Any]) -> dict[str, Any]:
         row[f"{column} text"] = str(Estimate(mean, low, high, 0)) if e else "not run"
     for method, against in VERDICTS:
         row[f"{method} vs {against}"] = entry["verdicts"].get(f"{method} vs {against}", "not compared")
+    row["ms"] = dict(entry.get("ms_per_observation", {}))
     return row
 
 
+def _csv_row(row: Mapping[str, Any]) -> dict[str, Any]:
+    """A row of results.csv: the numbers and verdicts, each time per observation a column of its own."""
+    flat = {k: v for k, v in row.items() if not k.endswith(" text") and k != "ms"}
+    return {**flat, **{f"{column} ms": row["ms"].get(column) for column in COLUMNS}}
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3g}"
+
+
 #: The strategies' names under the bars.
-_BAR_LABELS = {"none": "none", "GD": "GD", "SMCD (paper)": "SMCD\n(paper)", "SMCD (calibrated)": "SMCD\n(calibrated)"}
+_BAR_LABELS = {
+    "none": "none",
+    "GD": "GD",
+    "SMCD (paper)": "SMCD\n(paper)",
+    "SMCD (calibrated)": "SMCD\n(calibrated)",
+    "SMCD (one-step)": "SMCD\n(one-step)",
+    "combination": "combi-\nnation",
+}
 
 
 def _plot(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
@@ -280,14 +336,13 @@ def _plot(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
     lines = math.ceil(len(rows) / columns)
     fig, axes = plt.subplots(lines, columns, figsize=(4.2 * columns, 2.9 * lines + 0.6), squeeze=False)
     for ax, row in zip(axes.flat, rows, strict=False):
-        for j, column in enumerate(COLUMNS):
+        present = [c for c in COLUMNS if math.isfinite(row[c])]  # the strategies this task ran
+        for j, column in enumerate(present):
             mean = row[column]
-            if not math.isfinite(mean):
-                continue  # not run
             error = [[mean - row[f"{column} low"]], [row[f"{column} high"] - mean]]
-            ax.bar(j, mean, 0.7, yerr=error, capsize=3, color=f"C{j}")
-        ax.set_xticks(range(len(COLUMNS)), [_BAR_LABELS[c] for c in COLUMNS], fontsize=10)
-        ax.set_xlim(-0.6, len(COLUMNS) - 0.4)
+            ax.bar(j, mean, 0.7, yerr=error, capsize=3, color=f"C{COLUMNS.index(column)}")
+        ax.set_xticks(range(len(present)), [_BAR_LABELS[c] for c in present], fontsize=10 if len(present) <= 4 else 8)
+        ax.set_xlim(-0.6, max(len(present), 1) - 0.4)
         ax.set_title("\n".join(textwrap.wrap(row["task"], 40)), fontsize=12)
         better = "lower" if row["lower_is_better"] else "higher"
         ax.set_ylabel("\n".join(textwrap.wrap(f"{row['metric']}, {better} is better", 28)), fontsize=10)

@@ -1,7 +1,8 @@
 """The scoreboard's entry of one experiment: the cell of its table that stands for its task.
 
 Each experiment writes it into its ``results.json`` (:func:`scoreboard_entry`): the estimates of
-its methods for "none", "GD", "SMCD (paper)" and "SMCD (calibrated)" and their paired verdicts;
+its methods for "none", "GD", "SMCD (paper)" and "SMCD (calibrated)" (and, where it ran them,
+"SMCD (one-step)" and "combination") and their paired verdicts;
 ``smcd-rl scoreboard`` reads the entries of many runs into one table.
 
 Example:
@@ -18,21 +19,29 @@ from typing import Any
 
 from smcd_rl.experiments.shared.stats import Estimate
 
-__all__ = ["scoreboard_entry", "COLUMNS", "HEADLINE", "VERDICTS", "VERDICT_LABELS"]
+__all__ = ["scoreboard_entry", "COLUMNS", "CORE_COLUMNS", "HEADLINE", "VERDICTS", "CORE_VERDICTS", "VERDICT_LABELS"]
 
-#: The scoreboard's strategies, in order.
-COLUMNS = ("none", "GD", "SMCD (paper)", "SMCD (calibrated)")
+#: The scoreboard's strategies, in order: every experiment reports the first four; SMCD calibrated by
+#: one-step error and the combination of none, GD and SMCD come from experiments tuned by
+#: :func:`smcd_rl.tune` (``regimes``) and read "not run" elsewhere.
+COLUMNS = ("none", "GD", "SMCD (paper)", "SMCD (calibrated)", "SMCD (one-step)", "combination")
+#: The columns every experiment's entry has.
+CORE_COLUMNS = COLUMNS[:4]
 #: Strategy -> the method suffix most experiments use for it (after ``M+``).
 HEADLINE = {"none": "N", "GD": "G", "SMCD (paper)": "S(paper)", "SMCD (calibrated)": "S"}
-#: The paired verdicts shown: (method, against).
+#: The paired verdicts shown: (method, against); the last two where those strategies ran.
 VERDICTS = (
     ("SMCD (calibrated)", "none"),
     ("SMCD (calibrated)", "GD"),
     ("SMCD (paper)", "none"),
     ("SMCD (paper)", "GD"),
+    ("SMCD (one-step)", "GD"),
+    ("combination", "GD"),
 )
+#: The verdicts every experiment's entry has.
+CORE_VERDICTS = VERDICTS[:4]
 #: The verdicts' column headers.
-VERDICT_LABELS = {(m, a): f"{m.split(' ')[1][1:-1]} vs {a}" for m, a in VERDICTS}
+VERDICT_LABELS = {(m, a): f"{m.split(' ')[1][1:-1] if ' ' in m else m} vs {a}" for m, a in VERDICTS}
 
 
 def scoreboard_entry(
