@@ -86,6 +86,13 @@ COMMANDS: dict[str, Command] = {
         "smcd_rl.experiments.fetch.run",
         "Fetch task families (rotated reach, heavy push): MPC with CEM/MPPI on a learnt model, N/G/S/S(paper)",
     ),
+    "regimes": Command(
+        "smcd_rl.experiments.regimes.config",
+        "RegimesConfig",
+        "smcd_rl.experiments.regimes.run",
+        "every method tuned by one criterion on two-link, telescoping and pendulum tasks: few and many "
+        "observations, a task switch, an outlier, sparse measurements; time per step and a budgeted view",
+    ),
     "scoreboard": Command(
         "smcd_rl.experiments.scoreboard.config",
         "ScoreboardConfig",

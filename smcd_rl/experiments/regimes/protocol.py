@@ -1,0 +1,130 @@
+"""Every method's settings from :func:`smcd_rl.tune` on one network's held-out training-task episodes.
+
+One call of :func:`smcd_rl.tune` per network chooses gradient descent (its grid, MSE or Huber
+loss), SMCD (noise and flips by one-step error) and their combination by the same criterion;
+a second call under ``--budget-ms`` per observation, reusing the first call's scores, gives the
+budgeted view; SMCD calibrated by
+evidence and SMCD at the paper's settings are the two references every other experiment reports.
+Each method's median time per observation (one stream, the run's threads) is measured here, in
+the main process, while no worker runs. The result is cached in the run's store, keyed by the
+model, the episodes and the settings.
+
+Example:
+    >>> spec = {"kind": "smcd", "settings": {"num_particles": 10, "noise_std": 0.1, "flip_prob": 0.01, "seed": 0}}
+    >>> type(strategy_of(spec)).__name__
+    'SMCD'
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+
+import smcd_rl
+from smcd_rl.digests import content_digest, model_digest
+from smcd_rl.experiments.regimes.config import BUDGETED, RegimesConfig
+from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.tuning import build_strategy, ms_per_observation
+
+__all__ = ["tune_network", "strategy_of", "residual_of", "budgeted_label"]
+
+#: Method -> the kind of :func:`smcd_rl.tune`'s result it takes.
+TUNED = {"N": "none", "G": "gradient_descent", "S": "smcd", "C": "combination"}
+
+
+def budgeted_label(method: str, config: RegimesConfig) -> str:
+    """The label of ``method`` tuned under the per-observation budget, e.g. ``"G@10ms"``."""
+    return f"{method}@{config.budget_ms:g}ms"
+
+
+def strategy_of(spec: dict[str, Any]) -> smcd_rl.Adaptation:
+    """A fresh strategy from ``{"kind": ..., "settings": ...}`` (what :func:`tune_network` returns per method)."""
+    return build_strategy(spec["kind"], spec["settings"])
+
+
+def residual_of(model: smcd_rl.AdaptiveModel, episodes: TensorDictBase) -> torch.Tensor:
+    """Per output dimension, the RMS error of the unadapted model on the episodes (target units)."""
+    plain = model.with_adaptation(smcd_rl.NoAdaptation())
+    plain.reset(batch_shape=tuple(episodes.batch_size[:1]))
+    with torch.no_grad():
+        predicted = plain(episodes.exclude(model.target_key))[model.target_key]
+    return (predicted - episodes.get(model.target_key)).square().mean((0, 1)).sqrt().cpu()
+
+
+def tune_network(
+    ex: Experiment,
+    model: smcd_rl.AdaptiveModel,
+    episodes: TensorDictBase,
+    config: RegimesConfig,
+    *,
+    name: str,
+    methods: Sequence[str],
+) -> dict[str, Any]:
+    """Each method's spec, time per observation and the tuning tables of one network (or a rerun's).
+
+    Returns:
+        ``{"specs": method -> {"kind", "settings"}, "ms": method -> ms per observation,
+        "tables": caption -> Markdown, "residual": [per dimension], "seconds": float}``.
+    """
+    key = {
+        "model": model_digest(model),
+        "episodes": content_digest(episodes),
+        "settings": config.settings(exclude=("methods", "families", "trials")),
+    }
+    with ex.stage(f"tune {name}"):
+        found = ex.store.get(f"tuning-{name}", key)
+        if found is None:
+            found = _tune(ex, model, episodes, config, name=name)
+            ex.store.put(f"tuning-{name}", key, found)
+    ex.timings[f"tune {name}"] = found["seconds"]
+    wanted = {*methods, *(budgeted_label(m, config) for m in BUDGETED if m in methods)}
+    return {**found, "specs": {m: s for m, s in found["specs"].items() if m in wanted}}
+
+
+def _tune(
+    ex: Experiment, model: smcd_rl.AdaptiveModel, episodes: TensorDictBase, config: RegimesConfig, *, name: str
+) -> dict[str, Any]:
+    seed = config.seed + 23
+    device = str(ex.device)
+    grid = {"lr": config.gd_lr, "steps": config.gd_steps, "window": config.gd_window}
+    common: dict[str, Any] = {"num_particles": config.particles, "gd_grid": grid, "seed": seed, "progress": ex.progress}
+    free = smcd_rl.tune(model, episodes, **common)
+    budgeted = smcd_rl.tune(model, episodes, budget_ms=config.budget_ms, reuse=free, **common)
+    specs: dict[str, dict[str, Any]] = {}
+    ms: dict[str, float] = {}
+    for method, kind in TUNED.items():
+        for label, result in ((method, free), (budgeted_label(method, config), budgeted)):
+            if kind in result.best_of:
+                specs[label] = {"kind": kind, "settings": result.best_of[kind].settings}
+                ms[label] = result.best_of[kind].ms_per_step
+        if method in specs and specs.get(budgeted_label(method, config)) == specs[method]:
+            ms[budgeted_label(method, config)] = ms[method]  # the same strategy: one time, not two noisy ones
+    evidence = smcd_rl.calibrate(
+        model,
+        episodes,
+        base=smcd_rl.SMCD(num_particles=config.particles),
+        flip_probs=config.calibrate_flips,
+        criterion="evidence",
+        seed=seed,
+        progress=ex.progress,
+    )
+    specs["S(evidence)"] = {"kind": "smcd", "settings": {**evidence.strategy.config(), "seed": seed, "device": device}}
+    paper = {"num_particles": config.particles, "noise_std": config.noise_std, "flip_prob": config.flip_prob}
+    specs["S(paper)"] = {"kind": "smcd", "settings": {**paper, "seed": seed, "device": device}}
+    for method in ("S(evidence)", "S(paper)"):
+        ms[method] = ms_per_observation(model, strategy_of(specs[method]), episodes[0])
+    model.tuning = free.to_dict()  # the unbudgeted choice is the model's own
+    return {
+        "specs": specs,
+        "ms": ms,
+        "tables": {
+            f"{name}: tuned on {free.episodes} held-out training-task episodes x {free.steps} steps": free.table(),
+            f"{name}: tuned under {config.budget_ms:g} ms per observation": budgeted.table(),
+        },
+        "residual": residual_of(model, episodes).tolist(),
+        "seconds": free.seconds + budgeted.seconds,
+        "candidates": len(free.candidates) + len(budgeted.candidates),
+    }

@@ -1,0 +1,181 @@
+"""The tables, plot and scoreboard entries of ``smcd-rl regimes``.
+
+Example:
+    >>> rows = [{"family": "pendulum", "regime": "T=1", "method": m, "rmse_mean": v} for m, v in (("N", 0.2), ("G", 0.1))]
+    >>> best_single(rows, "pendulum", "T=1")
+    'G'
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from smcd_rl.experiments.regimes.config import RegimesConfig, regime_names
+from smcd_rl.experiments.regimes.families import FAMILIES, network_of
+from smcd_rl.experiments.regimes.protocol import budgeted_label
+from smcd_rl.experiments.shared.outputs import format_table, save_figure
+from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
+from smcd_rl.experiments.shared.stats import Estimate
+
+__all__ = ["tables", "plot", "scoreboard_entries", "best_single", "SCOREBOARD_REGIMES"]
+
+#: The regimes each family puts on the scoreboard: few and many observations, a switch, an outlier.
+SCOREBOARD_REGIMES = ("T=3", "T=30", "switch: new task", "outlier")
+#: The verdict of a difference whose 95 % interval holds 0 (the tables' word for "no significant difference").
+TIE = "tie"
+#: The single methods the combination is held against (afterwards, on the test tasks).
+SINGLES = ("N", "G", "S")
+
+
+def best_single(rows: Sequence[Mapping[str, Any]], family: str, regime: str) -> str:
+    """The single method (of N, G, S) of lowest mean error in a cell: what the combination is held against."""
+    found = {r["method"]: r["rmse_mean"] for r in rows if r["family"] == family and r["regime"] == regime}
+    present = [m for m in SINGLES if m in found]
+    return min(present, key=lambda m: found[m]) if present else ""
+
+
+def tables(
+    rows: Sequence[Mapping[str, Any]],
+    comparisons: Sequence[Mapping[str, Any]],
+    config: RegimesConfig,
+    ms: Mapping[str, Mapping[str, float]],
+    refused: Mapping[str, int],
+) -> dict[str, str]:
+    """Caption -> Markdown: per family the means, the paired verdicts, then the time per observation."""
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    pairs = {(c["family"], c["regime"], c["method"], c["against"]): c for c in comparisons}
+    out: dict[str, str] = {}
+    for family in config.families:
+        body = []
+        for regime in regime_names(config.burn_in, family):
+            found = {r["method"]: r for r in rows if r["family"] == family and r["regime"] == regime}
+            best = min(found, key=lambda m: found[m]["rmse_mean"]) if found else ""
+            body.append([regime, *(_mean(found.get(m)) + (" *" if m == best else "") for m in methods)])
+        unit = FAMILIES[family].unit
+        out[f"{family}: RMSE ({unit}), mean over {config.trials} test tasks (* lowest; CIs in results.csv)"] = (
+            format_table(body, ["regime", *methods])
+        )
+        verdicts = []
+        for regime in regime_names(config.burn_in, family):
+            best = best_single(rows, family, regime)
+            cells = [
+                _verdict(pairs, family, regime, "S", "G"),
+                _verdict(pairs, family, regime, "S", "S(evidence)"),
+                _verdict(pairs, family, regime, "C", best) + f" ({best})" if best and best != "C" else "-",
+                _verdict(pairs, family, regime, budgeted_label("S", config), budgeted_label("G", config)),
+            ]
+            verdicts.append([regime, *cells])
+        budget = f"{config.budget_ms:g} ms"
+        out[
+            f"{family}: paired over the same tasks, difference [95% CI] (negative: the first has the lower error; "
+            f"{TIE}: the interval holds 0; C against the single method of lowest mean error, picked afterwards)"
+        ] = format_table(
+            verdicts, ["regime", "S vs G", "S vs S(evidence)", "C vs best single", f"S vs G within {budget}"]
+        )
+    networks = list(ms)
+    timing = [[m, *(_ms(ms[net].get(m)) for net in networks)] for m in methods]
+    note = f"; observations refused by diverging GD: {dict(refused)}" if refused else ""
+    caption = (
+        f"Median time per observation (ms; one stream, {config.threads} torch thread(s)), per network; "
+        f"C: the sum of its members' times{note}"
+    )
+    out[caption] = format_table(timing, ["method", *networks])
+    return out
+
+
+def _mean(row: Mapping[str, Any] | None) -> str:
+    return "-" if row is None else f"{row['rmse_mean']:.4g}"
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3g}"
+
+
+def _verdict(pairs: Mapping[tuple[Any, ...], Mapping[str, Any]], family: str, regime: str, a: str, b: str) -> str:
+    """``a`` minus ``b`` with its interval and verdict, whichever way round the pair was compared."""
+    flip = {"better": "worse", "worse": "better"}
+    if (family, regime, a, b) in pairs:
+        c = pairs[(family, regime, a, b)]
+        verdict, estimate = c["verdict"], Estimate(c["difference"], c["low"], c["high"], 0)
+    elif (family, regime, b, a) in pairs:
+        c = pairs[(family, regime, b, a)]
+        verdict, estimate = flip.get(c["verdict"], c["verdict"]), Estimate(-c["difference"], -c["high"], -c["low"], 0)
+    else:
+        return "-"
+    return f"{TIE if verdict == 'no significant difference' else verdict} {estimate}"
+
+
+def scoreboard_entries(
+    rows: Sequence[Mapping[str, Any]], comparisons: Sequence[Mapping[str, Any]], config: RegimesConfig
+) -> list[dict[str, Any]]:
+    """One scoreboard entry per family and regime of :data:`SCOREBOARD_REGIMES` that ran."""
+    methods = {
+        "none": "N",
+        "GD": "G",
+        "SMCD (paper)": "S(paper)",
+        "SMCD (calibrated)": "S(evidence)",
+        "SMCD (one-step)": "S",
+        "combination": "C",
+    }
+    entries = []
+    for family in config.families:
+        for regime in SCOREBOARD_REGIMES:
+            if not any(r["family"] == family and r["regime"] == regime for r in rows):
+                continue
+            entry = scoreboard_entry(
+                f"{family} {regime}",
+                rows,
+                comparisons,
+                cell={"family": family, "regime": regime},
+                metric="rmse",
+                unit=FAMILIES[family].unit,
+                methods=methods,
+                prefix="",
+            )
+            entry["ms_per_observation"] = {
+                column: row["ms_per_observation"]
+                for column, method in methods.items()
+                for row in rows
+                if row["family"] == family
+                and row["regime"] == regime
+                and row["method"] == method
+                and row.get("ms_per_observation") is not None
+            }
+            entries.append(entry)
+    return entries
+
+
+def plot(rows: Sequence[Mapping[str, Any]], config: RegimesConfig, path: Path) -> None:
+    """``regimes.png``: per family, each method's mean error with its 95 % CI in every regime (log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    regimes = regime_names(config.burn_in)
+    fig, axes = plt.subplots(len(config.families), 1, figsize=(11, 3.3 * len(config.families)), squeeze=False)
+    width = 0.8 / len(methods)
+    for ax, family in zip(axes[:, 0], config.families, strict=True):
+        for j, method in enumerate(methods):
+            found = {r["regime"]: r for r in rows if r["family"] == family and r["method"] == method}
+            xs = [i + (j - (len(methods) - 1) / 2) * width for i, regime in enumerate(regimes) if regime in found]
+            cells = [found[regime] for regime in regimes if regime in found]
+            means = [c["rmse_mean"] for c in cells]
+            errors = [[c["rmse_mean"] - c["rmse_low"] for c in cells], [c["rmse_high"] - c["rmse_mean"] for c in cells]]
+            budgeted = "@" in method
+            ax.bar(
+                xs, means, width, yerr=errors, capsize=1.5, color=f"C{j}", label=method, hatch="//" if budgeted else ""
+            )
+        ax.set_xticks(range(len(regimes)), regimes, fontsize=9)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"RMSE ({FAMILIES[family].unit})", fontsize=9)
+        ax.set_title(f"{family} (network: {network_of(family)})", fontsize=10)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0, 0].legend(fontsize=8, ncol=len(methods), loc="lower center", bbox_to_anchor=(0.5, 1.12))
+    fig.suptitle(f"Mean error and 95% CI over {config.trials} test tasks per regime", fontsize=11, y=1.0)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,179 @@
+"""Where each adaptation method wins: ``smcd-rl regimes``.
+
+Reads top to bottom: train the arm network and the pendulum network (each a multi-task dropout
+network, as every experiment trains its M), tune every method on held-out episodes of the
+training tasks with :func:`smcd_rl.tune` (one criterion, the one-step error; again under a
+per-observation budget), then run every method over the same regimes of the same test tasks of
+each family (few and many observations, a task switch and back, one corrupted observation,
+measurements every n-th step) and compare them paired over the tasks. Writes ``results.csv``,
+``trials.csv``, ``comparisons.csv``, ``results.json``, ``regimes.png`` and ``report.md``.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import smcd_rl
+from smcd_rl.digests import model_digest
+from smcd_rl.experiments.regimes.config import BUDGETED, FULL, RegimesConfig, regime_names
+from smcd_rl.experiments.regimes.families import (
+    FAMILIES,
+    build_model,
+    network_of,
+    training_data,
+    tuning_episodes,
+)
+from smcd_rl.experiments.regimes.protocol import budgeted_label, strategy_of, tune_network
+from smcd_rl.experiments.regimes.report import plot, scoreboard_entries, tables
+from smcd_rl.experiments.regimes.streams import make_plan, regime_errors
+from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.experiments.shared.stats import cell_statistics
+
+__all__ = ["RegimesConfig", "FULL", "run", "stage_costs"]
+
+
+def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Run the experiment and write its files; returns the JSON payload."""
+    with Experiment(config, progress=progress) as ex:
+        ex.plan(stage_costs(config))
+        # --- one network per kind of task, trained on many tasks ------------------------------------
+        networks = sorted({network_of(f) for f in config.families})
+        models = {net: build_model(net, config, ex.device) for net in networks}
+        settings = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
+        losses = ex.train_all(
+            {net: (smcd_rl.fit, models[net], training_data(net, config, ex.generator), settings) for net in networks}
+        )
+        for net, model in models.items():
+            model.save(ex.out / f"model-{net}.pt")
+
+        # --- the fair protocol: every method tuned on held-out training-task episodes --------------
+        # Alone in the main process, so that the measured time per observation is a quiet one.
+        tunings = {
+            net: tune_network(ex, model, tuning_episodes(net, config), config, name=net, methods=config.methods)
+            for net, model in models.items()
+        }
+
+        # --- every method over the same regimes of the same test tasks ----------------------------
+        plans = {
+            family: make_plan(family, config, residual=_tensor(tunings[network_of(family)]["residual"]))
+            for family in config.families
+        }
+        methods = {
+            f"{family} {method}": functools.partial(
+                _built, models[network_of(family)], spec, plans[family], FAMILIES[family].target
+            )
+            for family in config.families
+            for method, spec in tunings[network_of(family)]["specs"].items()
+        }
+        done = ex.evaluate(
+            methods,
+            _evaluate,
+            content=lambda name: {
+                "model": model_digest(models[network_of(name.split(" ")[0])]),
+                "spec": tunings[network_of(name.split(" ")[0])]["specs"][name.split(" ", 1)[1]],
+            },
+        )
+
+        # --- results: per-task RMSE per (family, regime), CIs, paired verdicts ---------------------
+        labels = _labels(config)
+        scores = {
+            (family, regime): {
+                method: done[f"{family} {method}"]["errors"][regime]
+                for method in labels
+                if f"{family} {method}" in done
+            }
+            for family in config.families
+            for regime in regime_names(config.burn_in, family)
+        }
+        rows, comparisons = cell_statistics(
+            scores,
+            cell=("family", "regime"),
+            baseline="N" if "N" in labels else None,
+            adaptive=[m for m in labels if m != "N"],
+            metric="rmse",
+            seed=config.seed,
+        )
+        ms = {net: t["ms"] for net, t in tunings.items()}
+        for row in rows:
+            row["ms_per_observation"] = ms[network_of(row["family"])].get(row["method"])
+        refused = {name: r["refused"] for name, r in done.items() if r["refused"]}
+        trial_rows = [
+            {"family": family, "regime": regime, "method": method, "task": k, "rmse": float(v)}
+            for (family, regime), by_method in scores.items()
+            for method, values in by_method.items()
+            for k, v in enumerate(values)
+        ]
+        ex.write(
+            experiment="adaptation regimes: every method tuned by one criterion",
+            tables={
+                **tables(rows, comparisons, config, ms, refused),
+                **{caption: text for t in tunings.values() for caption, text in t["tables"].items()},
+            },
+            rows=rows,
+            trials=trial_rows,
+            comparisons=comparisons,
+            payload={
+                "train_loss": losses,
+                "tuning": {net: {k: v for k, v in t.items() if k != "tables"} for net, t in tunings.items()},
+                "refused_observations": refused,
+                "scoreboard": scoreboard_entries(rows, comparisons, config),
+            },
+            plots={"regimes.png": lambda path: plot(rows, config, path)},
+        )
+    return ex.result
+
+
+def _labels(config: RegimesConfig) -> list[str]:
+    """The methods in table order: each tuned one, then the budgeted ones."""
+    return [*config.methods, *(budgeted_label(m, config) for m in BUDGETED if m in config.methods)]
+
+
+def _built(model: smcd_rl.AdaptiveModel, spec: dict[str, Any], plan: Any, target: Any) -> tuple[Any, ...]:
+    return model.with_adaptation(strategy_of(spec)), plan, target
+
+
+def _evaluate(name: str, built: tuple[Any, ...]) -> dict[str, Any]:
+    model, plan, target = built
+    return regime_errors(model, plan, target)
+
+
+def _tensor(values: list[float]) -> Any:
+    import torch
+
+    return torch.tensor(values)
+
+
+#: Seconds of each stage at the defaults on a 2-core AMD EPYC (one thread; evaluations two at a
+#: time): the overall progress line scales these by this run's measured speed to say how long is left.
+_REFERENCE_SECONDS = {
+    "train arm": 60.0,
+    "train pendulum": 30.0,
+    "tune": 510.0,  # per network: the GD grid, its extensions, two calibrations, the combination
+    "evaluate N": 0.05,  # per family, 50 tasks; the methods' tuned settings set their cost
+    "evaluate G": 70.0,
+    "evaluate G@": 4.0,
+    "evaluate S": 25.0,
+    "evaluate C": 100.0,
+    "evaluate C@": 30.0,
+}
+
+
+def stage_costs(config: RegimesConfig) -> dict[str, float]:
+    """Each stage's expected relative cost at ``config``, in the order the stages run.
+
+    Example:
+        >>> costs = stage_costs(RegimesConfig())
+        >>> costs["evaluate pendulum S"] > costs["evaluate pendulum N"]
+        True
+    """
+    scale = config.trials / 50 * config.particles / 1000
+    networks = sorted({network_of(f) for f in config.families})
+    costs = {f"train {net}": _REFERENCE_SECONDS[f"train {net}"] * config.epochs / 20 for net in networks}
+    tuning = config.tuning_episodes / 20 * config.tuning_steps / 30
+    costs.update({f"tune {net}": _REFERENCE_SECONDS["tune"] * tuning for net in networks})
+    for family in config.families:
+        for method in _labels(config):
+            kind = method[0] + ("@" if "@" in method and method[0] != "S" else "")
+            costs[f"evaluate {family} {method}"] = _REFERENCE_SECONDS[f"evaluate {kind}"] * scale
+    return costs
