@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any, Literal
 
@@ -22,7 +23,7 @@ _ACTIVATIONS: dict[str, type[nn.Module]] = {
 
 
 class MaskedMLP(nn.Module):
-    """MLP with one dropout-mask bit per hidden unit of its masked layers.
+    """MLP with one dropout-mask bit per hidden unit (or per group of units) of its masked layers.
 
     Dropout sits after each masked hidden layer's activation. A kept unit is scaled by
     ``1 / keep_prob`` exactly as in training, so a mask of ones times ``keep_prob`` (the mean
@@ -38,6 +39,13 @@ class MaskedMLP(nn.Module):
     Mask bits are laid out layer after layer: bits ``0 .. hidden[i0]-1`` belong to the first
     masked layer, the next ``hidden[i1]`` bits to the second, and so on.
 
+    With ``mask_groups=G`` each masked layer carries ``G`` bits instead, bit ``j`` switching its
+    ``j``-th block of ``width / G`` consecutive units on or off together, so ``mask_dim`` is
+    ``G`` times the number of masked layers. A small mask space lets a particle filter of a few
+    hundred masks cover it, at the price of coarser sub-networks. A kept unit is still scaled
+    by ``1 / keep_prob``. (The incremental particle forward pass of :class:`smcd_rl.SMCD` needs
+    one bit per unit; a grouped network always takes the dense pass.)
+
     Args:
         in_features: input size.
         out_features: output size.
@@ -47,6 +55,9 @@ class MaskedMLP(nn.Module):
         masked_layers: indices of the hidden layers that carry mask bits (default: all).
         device: where the parameters live.
         dtype: parameter dtype.
+        mask_groups: bits per masked layer, each for ``width / mask_groups`` consecutive units;
+            every masked layer's width must be divisible by it. ``None`` (default): one bit per
+            unit.
 
     Example:
         >>> import torch, smcd_rl
@@ -56,6 +67,8 @@ class MaskedMLP(nn.Module):
         >>> masks = torch.rand(10, net.mask_dim) < 0.5
         >>> net.forward_particles(torch.zeros(2), masks).shape
         torch.Size([10, 2])
+        >>> smcd_rl.MaskedMLP(2, 2, hidden=(16, 16), mask_groups=4).mask_dim  # 4 bits per layer
+        8
     """
 
     def __init__(
@@ -68,6 +81,7 @@ class MaskedMLP(nn.Module):
         masked_layers: Sequence[int] | None = None,
         device: torch.device | str | None = None,
         dtype: torch.dtype | None = None,
+        mask_groups: int | None = None,
     ) -> None:
         super().__init__()
         in_features = check_count(in_features, "in_features")
@@ -91,6 +105,18 @@ class MaskedMLP(nn.Module):
         layers = tuple(sorted({check_count(i, "masked_layers entry", minimum=0) for i in chosen}))
         if not layers or not all(0 <= i < len(hidden) for i in layers):
             raise ValueError(f"masked_layers must index hidden layers 0..{len(hidden) - 1}, got {masked_layers}")
+        if mask_groups is not None:
+            mask_groups = check_count(mask_groups, "mask_groups")
+            widths_masked = [hidden[i] for i in layers]
+            uneven = [f"hidden[{i}]={hidden[i]}" for i in layers if hidden[i] % mask_groups]
+            if uneven:
+                common = math.gcd(*widths_masked)
+                divisors = [g for g in range(1, common + 1) if common % g == 0]
+                verb = "is" if len(uneven) == 1 else "are"
+                raise ValueError(
+                    f"mask_groups={mask_groups} must divide the width of every masked layer, but "
+                    f"{', '.join(uneven)} {verb} not divisible by it; choose one of {divisors}, or change the widths"
+                )
 
         self.in_features = in_features
         self.out_features = out_features
@@ -99,26 +125,35 @@ class MaskedMLP(nn.Module):
         self.keep_prob = 1.0 - self.dropout
         self.activation = activation
         self.masked_layers = layers
+        #: Bits per masked layer, each for a block of consecutive units (``None``: one bit per unit).
+        self.mask_groups = mask_groups
         widths = (self.in_features, *hidden, self.out_features)
         self.linears = nn.ModuleList(
             nn.Linear(a, b, device=device, dtype=dtype) for a, b in zip(widths[:-1], widths[1:], strict=True)
         )
         self.act = _ACTIVATIONS[activation]()
-        # Where each hidden layer's bits sit in the flat mask (None: the layer is not masked).
+        # Where each hidden layer's bits sit in the flat mask (None: the layer is not masked); a
+        # layer has one bit per unit, or mask_groups bits with grouped masks.
         self.mask_slices: list[slice | None] = []
         start = 0
         for i, width in enumerate(hidden):
             if i in layers:
-                self.mask_slices.append(slice(start, start + width))
-                start += width
+                bits = width if mask_groups is None else mask_groups
+                self.mask_slices.append(slice(start, start + bits))
+                start += bits
             else:
                 self.mask_slices.append(None)
         self.mask_dim = start
 
     @property
     def config(self) -> dict[str, Any]:
-        """The constructor arguments; ``MaskedMLP(**net.config)`` rebuilds the architecture."""
-        return {
+        """The constructor arguments; ``MaskedMLP(**net.config)`` rebuilds the architecture.
+
+        ``mask_groups`` is listed only when set: a network with one bit per unit has the six
+        entries above and no more, the config its saved models and training checkpoints (which
+        compare configs) record.
+        """
+        config: dict[str, Any] = {
             "in_features": self.in_features,
             "out_features": self.out_features,
             "hidden": list(self.hidden),
@@ -126,9 +161,14 @@ class MaskedMLP(nn.Module):
             "activation": self.activation,
             "masked_layers": list(self.masked_layers),
         }
+        if self.mask_groups is not None:
+            config["mask_groups"] = self.mask_groups
+        return config
 
     def extra_repr(self) -> str:
-        return f"mask_dim={self.mask_dim}, keep_prob={self.keep_prob}, masked_layers={self.masked_layers}"
+        text = f"mask_dim={self.mask_dim}, keep_prob={self.keep_prob}, masked_layers={self.masked_layers}"
+        # Only when set: model digests hash the repr, and an ungrouped network's stays as it is.
+        return text if self.mask_groups is None else f"{text}, mask_groups={self.mask_groups}"
 
     def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
         """Predict with one mask per batch element (or ordinary dropout, see the class docstring)."""
@@ -171,7 +211,7 @@ class MaskedMLP(nn.Module):
             if sl is not None:
                 # One layer's bits at a time: a float copy of the whole mask set would be the
                 # largest temporary of the pass.
-                h = (h * _as_multiplier(masks[..., sl], h.dtype)).mul_(1.0 / self.keep_prob)
+                h = self._masked(h, _as_multiplier(masks[..., sl], h.dtype)).mul_(1.0 / self.keep_prob)
         return self.linears[-1](h)
 
     # ------------------------------------------------------------------ helpers
@@ -189,8 +229,16 @@ class MaskedMLP(nn.Module):
             h = self.act(linear(h))
             sl = self.mask_slices[i]
             if scaled is not None and sl is not None:
-                h = h * scaled[..., sl]
+                h = self._masked(h, scaled[..., sl])
         return self.linears[-1](h)
+
+    def _masked(self, h: Tensor, multiplier: Tensor) -> Tensor:
+        """``h [..., width]`` times one layer's mask values ``[..., bits]`` (bits = width, or one per group)."""
+        if self.mask_groups is None:
+            return h * multiplier
+        # [..., G, width / G] * [..., G, 1]: every unit of a group takes its group's bit, with no
+        # per-unit copy of the mask.
+        return (h.unflatten(-1, (self.mask_groups, -1)) * multiplier.unsqueeze(-1)).flatten(-2)
 
     def _check_input(self, x: Tensor) -> None:
         check_real_tensor(x, "input")

@@ -29,6 +29,7 @@ weights so flat that (almost) every particle is distinct               dense
 masks on the last hidden layer only (the next linear is the small      dense
 output layer: nothing worth saving)
 one input per particle (``x`` has a particle dim)                      dense
+grouped masks (``MaskedMLP(mask_groups=...)``: a bit is many columns)  dense
 a float (MMSE) mask                                                    one ordinary forward, no particles
 =====================================================================  ===========
 
@@ -104,6 +105,14 @@ class ParticleForward:
     def __init__(self, net: MaskedMLP, path: ParticlePath = "auto") -> None:
         self.net = net
         self.path = check_path(path)
+        # The incremental sums add one weight column per flipped bit: a grouped bit would be a
+        # block of columns, which the gain table below does not model.
+        self._grouped = net.mask_groups is not None
+        if self._grouped and self.path == "incremental":
+            raise ValueError(
+                f"the incremental path needs one mask bit per unit, but this network has mask_groups="
+                f"{net.mask_groups}; use path='auto' or 'dense' (a grouped network always runs dense)"
+            )
         #: The path the last call took: ``"incremental"`` or ``"dense"``.
         self.last_path: str | None = None
         #: Distinct parents of the last call's particle set (``None`` after a dense call without lineage).
@@ -119,7 +128,7 @@ class ParticleForward:
 
     def _forward(self, x: Tensor, masks: Tensor, lineage: Lineage | None) -> Tensor:
         self.last_path, self.last_distinct_parents = "dense", None
-        valid = lineage is not None and masks.dtype == torch.bool and x.dim() == masks.dim() - 1
+        valid = lineage is not None and masks.dtype == torch.bool and x.dim() == masks.dim() - 1 and not self._grouped
         if self.path == "incremental" and not valid:
             raise ValueError("the incremental path needs a lineage, bool masks and one input [*B, in] per particle set")
         if self.path == "dense" or not valid:

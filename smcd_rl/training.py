@@ -7,23 +7,37 @@ import math
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from smcd_rl.checks import check_tensordict
+from smcd_rl.adaptation import SMCD
+from smcd_rl.checks import check_count, check_key, check_real, check_real_tensor, check_tensordict
 from smcd_rl.digests import content_digest
 from smcd_rl.files import CheckpointMismatchError, load_file, save_file
+from smcd_rl.filter import SMCDFilter
+from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel
 
-__all__ = ["fit", "fit_dynamics", "fit_reptile"]
+__all__ = ["fit", "fit_dynamics", "fit_reptile", "MaskTraining"]
+
+#: How :func:`fit` draws the dropout masks of its gradient steps, see its docstring.
+MaskTraining = Literal["random", "task"]
 
 _FORMAT = "smcd_rl.fit/1"
 #: Rows per forward pass when measuring the residual scale (bounds its memory, not its result much).
 _RESIDUAL_CHUNK = 65536
+#: Particles (over all tasks) per filter batch of ``mask_training="task"``: the tasks' filters run
+#: in batches of ``max(1, _TASK_PARTICLES // mask_particles)`` tasks, which bounds the memory of a
+#: particle forward pass. Fixed, so a run repeats; changing it changes the random stream.
+_TASK_PARTICLES = 32768
+#: The smallest likelihood noise of the task inference, in normalised units: a network that fits
+#: its samples exactly would otherwise give every particle but the best zero weight.
+_MIN_MASK_NOISE = 1e-3
 
 
 class _Checkpointable(Protocol):
@@ -47,12 +61,44 @@ def fit(
     progress: bool = True,
     callback: Callable[[int, float], None] | None = None,
     validation: TensorDictBase | None = None,
+    mask_training: MaskTraining = "random",
+    task_key: NestedKey = "task",
+    task_share: float = 0.5,
+    mask_particles: int = 100,
+    mask_observations: int = 16,
+    mask_flip_prob: float = 0.01,
+    mask_noise_scale: float = 1.0,
+    mask_callback: Callable[[int, dict[str, Tensor]], None] | None = None,
 ) -> list[float]:
     """Train ``model.net`` with dropout on ``data`` (multi-task training: samples drawn at random).
 
     Inputs and targets are standardised with statistics computed from ``data`` the first time a
     model is fitted; they are stored in the model. Each step draws one Bernoulli(``keep_prob``)
     mask per sample from the run's own generator, so a run is repeatable from ``seed``.
+
+    ``mask_training`` chooses those masks:
+
+    * ``"random"`` (default): every mask is an independent Bernoulli(``keep_prob``) draw, the
+      paper's multi-task training. Nothing ties a mask to a task.
+    * ``"task"``: masks that carry the task. ``data[task_key]`` holds an integer task id per
+      sample (any integers; they are mapped to ``0 .. K-1``). Every epoch after the first
+      starts by inferring each task's mask posterior with the SMCD filter itself
+      (:class:`smcd_rl.SMCD` on the current weights, all tasks as one batch of independent
+      filters): ``mask_particles`` particles, moved by ``mask_flip_prob`` bit flips, observe
+      ``mask_observations`` random samples of their task one after the other, under a Gaussian
+      likelihood whose noise is ``mask_noise_scale`` times the RMS residual, per output, of the
+      network with dropout off on those samples (normalised units, at least 1e-3). In that
+      epoch's gradient steps each sample then takes, with probability ``task_share``, a particle
+      of its task's posterior (drawn by weight), else a Bernoulli(``keep_prob``) mask, so the
+      ensemble of all masks stays trained. The first epoch of a run (epoch 0), before any
+      posterior exists, is plain random dropout, exactly as with ``"random"``. Posteriors are
+      inferred afresh every epoch from the current weights and the epoch's seed, so they need no
+      checkpoint and a resumed run still equals an uninterrupted one. The inference costs about
+      ``K * mask_observations * mask_particles`` forward passes (no backward) per epoch, against
+      about three per sample for the epoch's gradient steps, and holds ``K * mask_particles *
+      mask_dim`` bytes of masks. ``task_share=0`` trains as ``"random"`` does (with another
+      random stream) but still reports the posteriors to ``mask_callback``: what the filter
+      finds in a randomly trained network.
 
     With ``checkpoint``, the model, optimiser and loss history are saved after every epoch, and a
     later call with the same path resumes after the last finished epoch: the result is identical
@@ -81,9 +127,40 @@ def fit(
         callback: called as ``callback(epoch, mean_loss)`` after each epoch.
         validation: held-out transitions (the model's keys, any batch shape) for the residual
             scale; never trained on.
+        mask_training: ``"random"`` or ``"task"``, see above.
+        task_key: key of the integer task ids in ``data`` (``"task"``: what
+            :func:`smcd_rl.envs.two_link_arm.motor_babbling` writes), shape ``data.batch_size``
+            or ``[*data.batch_size, 1]``; read with ``mask_training="task"`` only.
+        task_share: probability, in ``[0, 1]``, that a sample of a ``"task"`` epoch trains
+            through a mask of its task's posterior rather than a random one.
+        mask_particles: particles per task of the posterior inference.
+        mask_observations: samples of a task each of its filters observes, one per filter
+            step (a task with fewer samples repeats them).
+        mask_flip_prob: per-bit flip probability of the inference filters' ``"keep_rate"``
+            transition (see :class:`smcd_rl.SMCDFilter`).
+        mask_noise_scale: factor on the inference likelihood's noise (positive): below 1 the
+            posteriors concentrate on fewer masks, above 1 they stay closer to the prior.
+        mask_callback: with ``"task"``, called as ``mask_callback(epoch, posteriors)`` after each
+            epoch's inference (every epoch but the first), before its gradient steps.
+            ``posteriors`` holds CPU tensors, one row per task in the order of ``"tasks"``:
+            ``"tasks"`` the task ids ``[K]``; ``"mean_masks"`` the MMSE masks ``[K, mask_dim]``;
+            ``"ess_share"`` the ESS of the last update over ``mask_particles`` ``[K]`` (1: the
+            last observation told the particles nothing apart, ``1 / N``: one particle took all
+            weight); ``"distinct_share"`` the share of distinct particles after the last
+            resampling ``[K]``; ``"mask_entropy"`` the mean binary entropy of the MMSE mask's
+            bits in bits ``[K]`` (``"prior_entropy"``, a 0-d tensor, is the value before any
+            observation: lower means a more concentrated posterior); ``"log_likelihood"``
+            the log evidence per observation ``[K]``; ``"noise"`` the likelihood noise
+            ``[out_features]``.
 
     Returns:
         Mean training loss (MSE in normalised units) of every epoch, resumed ones included.
+
+    Raises:
+        ValueError: a setting out of range; with ``"task"``, task ids of the wrong shape or a
+            single task. Raised before any training: the model is unchanged.
+        TypeError: with ``"task"``, task ids that are not integers.
+        KeyError: with ``"task"``, ``data`` has no ``task_key``.
 
     Example:
         >>> import torch, smcd_rl
@@ -94,16 +171,45 @@ def fit(
         >>> losses = smcd_rl.fit(model, data, epochs=2, batch_size=32, lr=1e-3, progress=False)
         >>> len(losses)
         2
+
+        Task-tied masks, with the posteriors' spread reported every epoch:
+
+        >>> data["task"] = torch.arange(256) % 4  # four tasks
+        >>> seen = []
+        >>> losses = smcd_rl.fit(model, data, epochs=3, batch_size=32, lr=1e-3, progress=False,
+        ...                      mask_training="task", mask_particles=20, mask_observations=4,
+        ...                      mask_callback=lambda epoch, posteriors: seen.append(epoch))
+        >>> seen  # epoch 0 has no posteriors yet
+        [1, 2]
     """
     if epochs < 0 or batch_size < 1 or lr <= 0:
         raise ValueError(f"need epochs >= 0, batch_size >= 1 and lr > 0, got {epochs}, {batch_size}, {lr}")
     _require_samples(data, "fit")
     _check_validation(validation, "fit")
     net = model.net
+    if mask_training not in ("random", "task"):
+        raise ValueError(f"mask_training must be 'random' or 'task', got {mask_training!r}")
+    # Every setting is checked whatever mask_training is: a typo fails now, not when it is switched.
+    check_key(task_key, "task_key")
+    task_share = check_real(task_share, "task_share", low=0.0, high=1.0)
+    mask_particles = check_count(mask_particles, "mask_particles")
+    mask_observations = check_count(mask_observations, "mask_observations")
+    mask_flip_prob = check_real(mask_flip_prob, "mask_flip_prob", low=0.0, high=1.0)
+    mask_noise_scale = check_real(mask_noise_scale, "mask_noise_scale", low=0.0, high=1e6, open_low=True)
+    # The filter's own check of the flip probability against keep_prob (its own generator: the
+    # check must not draw from torch's global one).
+    SMCDFilter(net.mask_dim, 1, mask_flip_prob, net.keep_prob, generator=torch.Generator())
+    if mask_callback is not None and mask_training != "task":
+        raise ValueError(
+            "mask_callback reports the task posteriors of mask_training='task'; random training infers none: "
+            "pass mask_training='task' (task_share=0 keeps the training random) or drop mask_callback"
+        )
     device = next(net.parameters()).device
+    # Read before the normalisation is fitted below: bad task ids leave the model untouched.
+    tasks = _task_index(data, task_key, device) if mask_training == "task" else None
     x, y = _normalised_pairs(model, data.reshape(-1), device)
     optimizer = torch.optim.Adam(net.parameters(), lr=lr, weight_decay=weight_decay)
-    settings = {"batch_size": batch_size, "lr": lr, "weight_decay": weight_decay, "seed": seed}
+    settings: dict[str, Any] = {"batch_size": batch_size, "lr": lr, "weight_decay": weight_decay, "seed": seed}
     n = x.shape[0]
 
     def one_epoch(generator: torch.Generator) -> float:
@@ -113,9 +219,39 @@ def fit(
 
         return _shuffled_epoch(n, batch_size, optimizer, generator, batch_loss)
 
+    train_epoch, before_epoch = one_epoch, None
+    if tasks is not None:
+        # Only a "task" run records its mask settings: a "random" run records the four settings
+        # above and nothing else, so its checkpoints match those of every random run.
+        settings.update(
+            mask_training=mask_training,
+            task_key=task_key,
+            task_share=task_share,
+            mask_particles=mask_particles,
+            mask_observations=mask_observations,
+            mask_flip_prob=mask_flip_prob,
+            mask_noise_scale=mask_noise_scale,
+        )
+        task_epoch = _TaskEpochs(
+            net,
+            x,
+            y,
+            tasks,
+            optimizer=optimizer,
+            batch_size=batch_size,
+            task_share=task_share,
+            particles=mask_particles,
+            observations=mask_observations,
+            flip_prob=mask_flip_prob,
+            noise_scale=mask_noise_scale,
+            random_epoch=one_epoch,
+            report=mask_callback,
+        )
+        train_epoch, before_epoch = task_epoch, task_epoch.start
+
     history = _train(
         model,
-        one_epoch,
+        train_epoch,
         data,
         trained=net,
         epochs=epochs,
@@ -126,9 +262,184 @@ def fit(
         desc="fit",
         progress=progress,
         callback=callback,
+        before_epoch=before_epoch,
     )
     _record_residual_scale(model, (x, y) if validation is None else validation)
     return history
+
+
+class _TaskIndex:
+    """Task ids of a flattened dataset: ``ids [K]`` (sorted), ``index [n]`` in ``0 .. K-1``, and
+    per task its sample ``counts [K]`` and the ``starts [K]`` of its block once samples are sorted
+    by task."""
+
+    def __init__(self, ids: Tensor, index: Tensor) -> None:
+        self.ids, self.index = ids, index
+        self.counts = torch.bincount(index, minlength=ids.numel())
+        self.starts = self.counts.cumsum(0) - self.counts
+
+
+def _task_index(data: TensorDictBase, task_key: NestedKey, device: torch.device) -> _TaskIndex:
+    """The checked task ids of ``data`` (one per sample, in ``data.reshape(-1)``'s order)."""
+    what = "fit(mask_training='task')"
+    value = data.get(task_key, None)
+    if value is None:
+        raise KeyError(
+            f"{what} needs an integer task id per sample under task_key={task_key!r}, but the data has no such "
+            f"key; it has {sorted(map(str, data.keys(True, True)))}: pass the key that holds the ids as task_key"
+        )
+    value = check_real_tensor(value, f"{what}: {task_key!r}")
+    batch = tuple(data.batch_size)
+    if tuple(value.shape) not in (batch, (*batch, 1)):
+        raise ValueError(
+            f"{what}: {task_key!r} must hold one task id per sample, shape {list(batch)} (the data's batch) "
+            f"or {[*batch, 1]}, got {list(value.shape)}"
+        )
+    if value.is_floating_point() or value.dtype == torch.bool:
+        nan = " (some are NaN)" if value.is_floating_point() and bool(torch.isnan(value).any()) else ""
+        raise TypeError(
+            f"{what}: task ids are labels and must be an integer tensor, got {value.dtype}{nan}; "
+            f"store whole-number ids as integers (e.g. data[{task_key!r}] = ids.long())"
+        )
+    ids, index = torch.unique(value.reshape(-1).to(device=device, dtype=torch.long), sorted=True, return_inverse=True)
+    if ids.numel() < 2:
+        raise ValueError(
+            f"{what}: {task_key!r} holds a single task (id {int(ids[0])}); tying masks to tasks needs at least "
+            "two of them: train single-task data with mask_training='random'"
+        )
+    return _TaskIndex(ids, index)
+
+
+class _TaskEpochs:
+    """The epochs of ``fit(mask_training="task")``: infer every task's mask posterior, then train.
+
+    ``start(epoch)`` is told the epoch before each call; epoch 0 runs ``random_epoch`` (no
+    posterior exists yet), every later one infers the posteriors from the current weights and
+    trains through them (see :func:`fit`). Everything is drawn from the epoch's generator.
+    """
+
+    def __init__(
+        self,
+        net: MaskedMLP,
+        x: Tensor,
+        y: Tensor,
+        tasks: _TaskIndex,
+        *,
+        optimizer: torch.optim.Optimizer,
+        batch_size: int,
+        task_share: float,
+        particles: int,
+        observations: int,
+        flip_prob: float,
+        noise_scale: float,
+        random_epoch: Callable[[torch.Generator], float],
+        report: Callable[[int, dict[str, Tensor]], None] | None,
+    ) -> None:
+        self.net, self.x, self.y, self.tasks = net, x, y, tasks
+        self.optimizer, self.batch_size, self.task_share = optimizer, batch_size, task_share
+        self.particles, self.observations, self.flip_prob = particles, observations, flip_prob
+        self.noise_scale = noise_scale
+        self.random_epoch, self.report = random_epoch, report
+        self.epoch = 0
+
+    def start(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __call__(self, generator: torch.Generator) -> float:
+        if self.epoch == 0:
+            return self.random_epoch(generator)
+        net, x, y, device = self.net, self.x, self.y, self.x.device
+        particles, weights, posteriors = self.infer(generator)
+        if self.report is not None:
+            self.report(self.epoch, posteriors)
+        task_of = self.tasks.index
+
+        def batch_loss(idx: Tensor) -> Tensor:
+            mask = torch.rand(idx.shape[0], net.mask_dim, generator=generator, device=device) < net.keep_prob
+            # Which samples train through their task's posterior; the rest keep the random mask,
+            # so every sub-network of the ensemble stays trained.
+            chosen = (torch.rand(idx.shape[0], generator=generator, device=device) < self.task_share).nonzero()
+            chosen = chosen.squeeze(-1)
+            if chosen.numel() > 0:
+                task = task_of[idx[chosen]]
+                pick = torch.multinomial(weights[task], 1, generator=generator).squeeze(-1)  # a particle by weight
+                mask[chosen] = particles[task, pick]
+            return (net(x[idx], mask=mask) - y[idx]).square().mean()
+
+        return _shuffled_epoch(x.shape[0], self.batch_size, self.optimizer, generator, batch_loss)
+
+    def infer(self, generator: torch.Generator) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+        """Every task's posterior on the current weights: particles ``[K, N, D]``, weights ``[K, N]``, diagnostics."""
+        net, tasks, steps = self.net, self.tasks, self.observations
+        x, y, device = self.x, self.y, self.x.device
+        num_tasks, n = tasks.ids.numel(), x.shape[0]
+        # A random order within each task: sort by task id plus a uniform key in [0, 1). Each
+        # task's filters observe the first `steps` samples of its block, cycling if it is shorter.
+        keys = torch.rand(n, generator=generator, device=device, dtype=torch.float64)
+        order = torch.argsort(tasks.index.to(torch.float64) + keys)
+        offsets = torch.arange(steps, device=device)
+        chosen = order[tasks.starts.unsqueeze(-1) + offsets % tasks.counts.unsqueeze(-1)]  # [K, steps]
+        with torch.no_grad():
+            xs, ys = x[chosen], y[chosen]
+            mean_mask = torch.full((net.mask_dim,), net.keep_prob, dtype=x.dtype, device=device)
+            # The likelihood noise: how far the network with dropout off is from these samples (times
+            # the scale), so the likelihood sharpens as the network's fit improves.
+            noise = (net(xs, mask=mean_mask) - ys).square().mean(dim=(0, 1)).sqrt()
+            if not bool(torch.isfinite(noise).all()):
+                raise ValueError(
+                    f"fit(mask_training='task'): at epoch {self.epoch} the network predicts inf or NaN (training "
+                    "diverged); lower lr"
+                )
+            noise = (noise * self.noise_scale).clamp_min(_MIN_MASK_NOISE)
+            per_batch = max(1, _TASK_PARTICLES // self.particles)
+            names = ("particles", "weights", "mean_masks", "ess", "evidence", "distinct")
+            parts: dict[str, list[Tensor]] = {name: [] for name in names}
+            for first in range(0, num_tasks, per_batch):
+                rows = slice(first, min(first + per_batch, num_tasks))
+                smcd = SMCD(
+                    num_particles=self.particles,
+                    flip_prob=self.flip_prob,
+                    noise_std=noise.tolist(),
+                    generator=generator,
+                )
+                smcd.bind(net, torch.ones_like(noise))  # the noise is already in normalised units
+                smcd.reset((rows.stop - rows.start,))
+                for step in range(steps):
+                    smcd.observe(xs[rows, step], ys[rows, step])
+                filt = smcd.filter
+                assert filt is not None and filt.particles is not None
+                assert filt.log_evidence is not None and filt.last_ess is not None  # set by reset()
+                parts["particles"].append(filt.particles)
+                parts["weights"].append(filt.weights)
+                parts["mean_masks"].append(filt.mean_mask)
+                parts["ess"].append(filt.last_ess)
+                parts["evidence"].append(filt.log_evidence)
+                ancestors = filt.ancestors
+                if ancestors is None:  # no resampling at the last update: every particle its own
+                    distinct = torch.full(filt.log_evidence.shape, float(self.particles), device=device)
+                else:  # resampling returns sorted ancestors: count the changes along each row
+                    distinct = 1.0 + (ancestors[..., 1:] != ancestors[..., :-1]).sum(-1).to(torch.float32)
+                parts["distinct"].append(distinct)
+            particles, weights = torch.cat(parts["particles"]), torch.cat(parts["weights"])
+            mean_masks = torch.cat(parts["mean_masks"])
+            posteriors = {
+                "tasks": tasks.ids.cpu(),
+                "mean_masks": mean_masks.cpu(),
+                "ess_share": (torch.cat(parts["ess"]) / self.particles).cpu(),
+                "distinct_share": (torch.cat(parts["distinct"]) / self.particles).cpu(),
+                "mask_entropy": _bit_entropy(mean_masks).mean(-1).cpu(),
+                "prior_entropy": _bit_entropy(torch.tensor(net.keep_prob, dtype=torch.float64)).float(),
+                "log_likelihood": (torch.cat(parts["evidence"]) / steps).cpu(),
+                "noise": noise.cpu(),
+            }
+        return particles, weights, posteriors
+
+
+def _bit_entropy(p: Tensor) -> Tensor:
+    """Entropy in bits of Bernoulli(``p``), elementwise (0 at p = 0 or 1)."""
+    p = p.clamp(0.0, 1.0)
+    q = 1.0 - p
+    return -(torch.special.xlogy(p, p) + torch.special.xlogy(q, q)) / math.log(2.0)
 
 
 def fit_dynamics(model: AdaptiveDynamicsModel, data: TensorDictBase, **kwargs: Any) -> list[float]:
@@ -396,16 +707,19 @@ def _train(
     desc: str,
     progress: bool,
     callback: Callable[[int, float], None] | None,
+    before_epoch: Callable[[int], None] | None = None,
 ) -> list[float]:
     """The epoch loop shared by the trainers: resume, seeding, progress bar, checkpoints, callback.
 
     ``one_epoch(generator)`` trains one epoch and returns its mean loss; the generator is
     reseeded from (seed, epoch) before each epoch, which is what makes a resumed run identical
-    to an uninterrupted one. ``trained`` is the module put in train mode meanwhile (and in
-    eval mode after); ``model`` is what the checkpoint saves and restores. The checkpoint records
-    a digest of ``data``, so that a run on other data never resumes it, and its finished epochs:
-    a run of more epochs trains on from there (no setting depends on the planned number of
-    epochs), one of fewer is refused, since the checkpoint's model is trained further than asked.
+    to an uninterrupted one. ``before_epoch(epoch)``, if given, is told each epoch's number
+    right before its ``one_epoch`` call (for an epoch that trains differently by its number).
+    ``trained`` is the module put in train mode meanwhile (and in eval mode after); ``model`` is
+    what the checkpoint saves and restores. The checkpoint records a digest of ``data``, so that a
+    run on other data never resumes it, and its finished epochs: a run of more epochs trains on
+    from there (no setting depends on the planned number of epochs), one of fewer is refused,
+    since the checkpoint's model is trained further than asked.
     """
     net = trained
     device = next(net.parameters()).device
@@ -420,6 +734,8 @@ def _train(
     for epoch in bar:
         net.train()
         generator.manual_seed(seed * 1_000_003 + epoch)
+        if before_epoch is not None:
+            before_epoch(epoch)
         history.append(one_epoch(generator))
         bar.set_postfix(loss=f"{history[-1]:.4g}")
         if path is not None:
