@@ -14,13 +14,8 @@ import smcd_rl
 
 
 @pytest.fixture(scope="module")
-def model() -> smcd_rl.AdaptiveModel:
-    """A small network fitted to ``sin(q)`` (under a second); its targets' std is about 0.53 per output."""
-    torch.manual_seed(0)
-    q = torch.rand(400, 2) * 2 - 1
-    m = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(32,), dropout=0.2), in_keys=["q"], out_key="ee")
-    smcd_rl.fit(m, TensorDict({"q": q, "ee": torch.sin(q)}, [400]), epochs=20, lr=1e-2, progress=False)
-    return m
+def model(sine_model) -> smcd_rl.AdaptiveModel:
+    return sine_model
 
 
 def shifted_task(steps: int, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor]:

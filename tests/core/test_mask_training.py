@@ -9,7 +9,6 @@ to tasks.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 
 import pytest
 import torch
@@ -17,15 +16,7 @@ from tensordict import TensorDict
 
 import smcd_rl
 
-
-@pytest.fixture(autouse=True)
-def one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    # Tiny networks: on a shared 2-core machine a second thread only waits for the first, and
-    # under load the waits made these tests 20 to 35 times slower.
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _data(n: int = 512) -> TensorDict:

@@ -1,7 +1,5 @@
 """MaskedMLP(mask_groups=G): one mask bit per block of units, in every place that takes masks."""
 
-from collections.abc import Iterator
-
 import pytest
 import torch
 from tensordict import TensorDict
@@ -9,15 +7,7 @@ from tensordict import TensorDict
 import smcd_rl
 from smcd_rl.particle_forward import ParticleForward
 
-
-@pytest.fixture(autouse=True)
-def one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    # Tiny networks: on a shared 2-core machine a second thread only waits for the first, and
-    # under load the waits made these tests 20 to 35 times slower.
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _pair(groups: int = 4) -> tuple[smcd_rl.MaskedMLP, smcd_rl.MaskedMLP]:

@@ -15,12 +15,8 @@ FAST = {"num_particles": 16, "gd_grid": {"lr": (1e-3, 1e-2), "steps": (1,), "win
 
 
 @pytest.fixture(scope="module")
-def model() -> smcd_rl.AdaptiveModel:
-    torch.manual_seed(0)
-    q = torch.rand(400, 2) * 2 - 1
-    m = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(32,), dropout=0.2), in_keys=["q"], out_key="ee")
-    smcd_rl.fit(m, TensorDict({"q": q, "ee": torch.sin(q)}, [400]), epochs=20, lr=1e-2, progress=False)
-    return m
+def model(sine_model) -> smcd_rl.AdaptiveModel:
+    return sine_model
 
 
 def shifted_episodes(shift: float, count: int = 6, steps: int = 12) -> TensorDict:
