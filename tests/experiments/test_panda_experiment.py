@@ -13,7 +13,7 @@ from smcd_rl.envs.panda_reach import panda_fk, sample_goals, sample_tool_lengths
 from smcd_rl.experiments.panda import run as panda
 from smcd_rl.experiments.shared import stages, tuning
 from smcd_rl.experiments.shared.runtime import torch_threads
-from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS
+from smcd_rl.experiments.shared.scoreboard_entry import CORE_COLUMNS
 from tests.experiments.test_stages import planned_stages
 
 TINY = [
@@ -158,8 +158,8 @@ def test_results_json_has_the_tuning_and_the_scoreboard_entry(tmp_path, capsys) 
     board = payload["scoreboard"]
     assert board["task"] == "Panda reaching" and board["cell"] == {"interval": panda.HEADLINE_INTERVAL}
     assert board["metric"] == "success" and board["lower_is_better"] is False
-    assert set(board["estimates"]) == set(COLUMNS)
-    assert [board["estimates"][c]["method"] for c in COLUMNS] == ["M+N", "M+G", "M+S(paper)", "M+S"]
+    assert set(board["estimates"]) == set(CORE_COLUMNS)
+    assert [board["estimates"][c]["method"] for c in CORE_COLUMNS] == ["M+N", "M+G", "M+S(paper)", "M+S"]
     assert all(e["trials"] == 2 * 4 and 0.0 <= e["mean"] <= 1.0 for e in board["estimates"].values())
     assert "not compared" not in board["verdicts"].values()
     # --gd-lr with one value is a one-point grid.

@@ -87,9 +87,10 @@ def scoreboard_entry(
         if label in found
     }
     pairs = {(c["method"], c["against"]): c for c in comparisons if _in_cell(c, chosen)}
-    verdicts = {
+    verdicts = {  # the pairs of strategies this experiment has (the core four always)
         f"{method} vs {against}": _verdict(pairs, labels.get(method, ""), labels.get(against, ""))
         for method, against in VERDICTS
+        if (method, against) in CORE_VERDICTS or (method in labels and against in labels)
     }
     return {
         "task": task,
