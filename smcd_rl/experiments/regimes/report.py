@@ -16,8 +16,7 @@ from smcd_rl.experiments.regimes.config import RegimesConfig, regime_names
 from smcd_rl.experiments.regimes.families import FAMILIES, network_of
 from smcd_rl.experiments.regimes.protocol import budgeted_label
 from smcd_rl.experiments.shared.outputs import format_table, save_figure
-from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
-from smcd_rl.experiments.shared.stats import Estimate
+from smcd_rl.experiments.shared.scoreboard_entry import paired_verdict, scoreboard_entry
 
 __all__ = ["tables", "plot", "scoreboard_entries", "best_single", "SCOREBOARD_REGIMES"]
 
@@ -45,7 +44,9 @@ def tables(
 ) -> dict[str, str]:
     """Caption -> Markdown: per family the means, the paired verdicts, then the time per observation."""
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    pairs = {(c["family"], c["regime"], c["method"], c["against"]): c for c in comparisons}
+    pairs: dict[tuple[str, str], dict[tuple[str, str], Mapping[str, Any]]] = {}  # cell -> (method, against) -> row
+    for c in comparisons:
+        pairs.setdefault((c["family"], c["regime"]), {})[(c["method"], c["against"])] = c
     out: dict[str, str] = {}
     for family in config.families:
         body = []
@@ -93,18 +94,18 @@ def _ms(value: float | None) -> str:
     return "-" if value is None else f"{value:.3g}"
 
 
-def _verdict(pairs: Mapping[tuple[Any, ...], Mapping[str, Any]], family: str, regime: str, a: str, b: str) -> str:
-    """``a`` minus ``b`` with its interval and verdict, whichever way round the pair was compared."""
-    flip = {"better": "worse", "worse": "better"}
-    if (family, regime, a, b) in pairs:
-        c = pairs[(family, regime, a, b)]
-        verdict, estimate = c["verdict"], Estimate(c["difference"], c["low"], c["high"], 0)
-    elif (family, regime, b, a) in pairs:
-        c = pairs[(family, regime, b, a)]
-        verdict, estimate = flip.get(c["verdict"], c["verdict"]), Estimate(-c["difference"], -c["high"], -c["low"], 0)
-    else:
+def _verdict(
+    pairs: Mapping[tuple[str, str], Mapping[tuple[str, str], Mapping[str, Any]]],
+    family: str,
+    regime: str,
+    a: str,
+    b: str,
+) -> str:
+    """``a`` minus ``b`` in one cell with its interval and verdict (``tie`` for no significant difference)."""
+    text = paired_verdict(pairs.get((family, regime), {}), a, b)
+    if text == "not compared":
         return "-"
-    return f"{TIE if verdict == 'no significant difference' else verdict} {estimate}"
+    return text.replace("no significant difference", TIE, 1)
 
 
 def scoreboard_entries(

@@ -14,6 +14,8 @@ from __future__ import annotations
 import functools
 from typing import Any
 
+import torch
+
 import smcd_rl
 from smcd_rl.digests import model_digest
 from smcd_rl.experiments.regimes.config import BUDGETED, FULL, RegimesConfig, regime_names
@@ -56,7 +58,7 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
 
         # --- every method over the same regimes of the same test tasks ----------------------------
         plans = {
-            family: make_plan(family, config, residual=_tensor(tunings[network_of(family)]["residual"]))
+            family: make_plan(family, config, residual=torch.tensor(tunings[network_of(family)]["residual"]))
             for family in config.families
         }
         methods = {
@@ -136,12 +138,6 @@ def _built(model: smcd_rl.AdaptiveModel, spec: dict[str, Any], plan: Any, target
 def _evaluate(name: str, built: tuple[Any, ...]) -> dict[str, Any]:
     model, plan, target = built
     return regime_errors(model, plan, target)
-
-
-def _tensor(values: list[float]) -> Any:
-    import torch
-
-    return torch.tensor(values)
 
 
 #: Seconds of each stage at the defaults on a 2-core AMD EPYC (one thread; evaluations two at a

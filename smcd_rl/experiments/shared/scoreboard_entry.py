@@ -19,7 +19,16 @@ from typing import Any
 
 from smcd_rl.experiments.shared.stats import Estimate
 
-__all__ = ["scoreboard_entry", "COLUMNS", "CORE_COLUMNS", "HEADLINE", "VERDICTS", "CORE_VERDICTS", "VERDICT_LABELS"]
+__all__ = [
+    "scoreboard_entry",
+    "COLUMNS",
+    "CORE_COLUMNS",
+    "HEADLINE",
+    "VERDICTS",
+    "CORE_VERDICTS",
+    "VERDICT_LABELS",
+    "paired_verdict",
+]
 
 #: The scoreboard's strategies, in order: every experiment reports the first four; SMCD calibrated by
 #: one-step error and the combination of none, GD and SMCD come from experiments tuned by
@@ -88,7 +97,7 @@ def scoreboard_entry(
     }
     pairs = {(c["method"], c["against"]): c for c in comparisons if _in_cell(c, chosen)}
     verdicts = {  # the pairs of strategies this experiment has (the core four always)
-        f"{method} vs {against}": _verdict(pairs, labels.get(method, ""), labels.get(against, ""))
+        f"{method} vs {against}": paired_verdict(pairs, labels.get(method, ""), labels.get(against, ""))
         for method, against in VERDICTS
         if (method, against) in CORE_VERDICTS or (method in labels and against in labels)
     }
@@ -107,8 +116,12 @@ def _in_cell(row: Mapping[str, Any], cell: Mapping[str, Any]) -> bool:
     return all(row.get(k) == v for k, v in cell.items())
 
 
-def _verdict(pairs: Mapping[tuple[str, str], Mapping[str, Any]], a: str, b: str) -> str:
-    """``a`` against ``b``: "better -0.02 [-0.03, -0.01]", from either orientation of the stored pair."""
+def paired_verdict(pairs: Mapping[tuple[str, str], Mapping[str, Any]], a: str, b: str) -> str:
+    """``a`` against ``b``: "better -0.020 [-0.030, -0.010]", from either orientation of the stored pair.
+
+    ``pairs`` maps (method, against) to a comparison row of one cell; "not compared" if neither
+    orientation is there.
+    """
     flip = {"better": "worse", "worse": "better"}
     if (a, b) in pairs:
         c = pairs[(a, b)]
