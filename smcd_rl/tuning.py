@@ -56,7 +56,7 @@ from smcd_rl.diagnostics import trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.model import AdaptiveModel
 
-__all__ = ["tune", "TuneResult", "TuneCandidate", "KINDS", "build_strategy", "ms_per_observation"]
+__all__ = ["tune", "TuneResult", "TuneCandidate", "KINDS", "build_strategy", "ms_per_observation", "describe_settings"]
 
 #: The strategies :func:`tune` knows, in the order it tunes them (a combination needs the others).
 KINDS = ("none", "gradient_descent", "smcd", "combination")
@@ -147,7 +147,7 @@ class TuneResult:
                 c = self.best_of[kind]
                 mark = " (best)" if kind == self.best_kind else ""
                 lines.append(
-                    f"| {kind}{mark} | {_describe(c.settings)} | {c.one_step_rmse:.4g} | {c.ms_per_step:.3g} |"
+                    f"| {kind}{mark} | {describe_settings(c.settings)} | {c.one_step_rmse:.4g} | {c.ms_per_step:.3g} |"
                 )
         return "\n".join(lines + ["", *self.notes])
 
@@ -179,6 +179,7 @@ def tune(
     budget_ms: float | None = None,
     num_particles: int = 1000,
     gd_grid: dict[str, Sequence[Any]] | None = None,
+    flip_probs: Sequence[float] = (0.001, 0.003, 0.01, 0.03),
     seed: int = 0,
     progress: bool = True,
     reuse: TuneResult | None = None,
@@ -198,10 +199,11 @@ def tune(
             "loss": ...}``; a key left out takes its values from :data:`GD_GRID` (so a grid
             without ``"loss"`` tries both losses; ``"loss": ("mse",)`` tries the squared error
             only).
+        flip_probs: the flip probabilities SMCD's calibration tries (:func:`smcd_rl.calibrate`'s).
         seed: seed of every SMCD run: two calls with the same arguments give the same choice.
         progress: show a progress bar.
-        reuse: an earlier result of this function on the same model, episodes, seed and
-            criterion (e.g. the unbudgeted one, before a call with ``budget_ms``): each setting
+        reuse: an earlier result of this function on the same model, episodes, seed, flip
+            probabilities and criterion (e.g. the unbudgeted one, before a call with ``budget_ms``): each setting
             it scored takes its score and time from there instead of running again.
 
     Returns:
@@ -225,7 +227,10 @@ def tune(
     grid = _checked_gd_grid(gd_grid)
     td = _stacked(episodes)
     x, y = _pairs(model, td)  # checks keys, shapes and values before any run
-    data = content_digest({"model": model_digest(model), "episodes": content_digest(td), "seed": seed})
+    flip_probs = tuple(float(f) for f in flip_probs)  # calibrate checks each value
+    data = content_digest(
+        {"model": model_digest(model), "episodes": content_digest(td), "seed": seed, "flips": list(flip_probs)}
+    )
     known = _reusable(reuse, data, criterion)
     timing = _Timing(model, x[0], y[0], budget_ms)
     search = _Search(model, td, timing, progress, known)
@@ -236,7 +241,7 @@ def tune(
         if "gradient_descent" in kinds:
             _tune_gd(search, grid)
         if "smcd" in kinds:
-            _tune_smcd(search, model, td, num_particles, criterion, seed, progress)
+            _tune_smcd(search, model, td, num_particles, criterion, flip_probs, seed, progress)
         if "combination" in kinds:
             _tune_combination(search, [k for k in ("none", "gradient_descent", "smcd") if k in search.best_of])
     finally:
@@ -449,6 +454,7 @@ def _tune_smcd(
     td: TensorDictBase,
     num_particles: int,
     criterion: Literal["one-step", "evidence"],
+    flip_probs: tuple[float, ...],
     seed: int,
     progress: bool,
 ) -> None:
@@ -476,6 +482,7 @@ def _tune_smcd(
                 model,
                 td,
                 base=SMCD(num_particles=particles),
+                flip_probs=flip_probs,
                 per_dimension=per_dimension,
                 criterion=criterion,
                 seed=seed,
@@ -528,7 +535,13 @@ def _combination(members: list[dict[str, Any]], eta: float, share: float) -> Com
     return Combination([build_strategy(m["name"], m["settings"]) for m in members], eta=eta, share=share)
 
 
-def _describe(settings: dict[str, Any]) -> str:
+def describe_settings(settings: dict[str, Any]) -> str:
+    """A candidate's settings in a few words, as :meth:`TuneResult.table` shows them.
+
+    Example:
+        >>> describe_settings({"lr": 0.1, "steps": 5, "window": 10, "loss": "mse", "huber_delta": 1.0})
+        'lr 0.1, steps 5, window 10'
+    """
     if "members" in settings:
         return f"{' + '.join(m['name'] for m in settings['members'])}, eta {settings['eta']:g}, share {settings['share']:g}"
     shown = {k: v for k, v in settings.items() if k not in ("seed", "device")}
