@@ -21,7 +21,7 @@ from torch import Tensor
 from smcd_rl.adaptation import ADAPTATIONS, Adaptation, make_adaptation
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["Combination"]
+__all__ = ["Combination", "mixed_log_weights"]
 
 
 class Combination(Adaptation):
@@ -205,20 +205,30 @@ class Combination(Adaptation):
 
     # -------------------------------------------------------------- internals
     def _mixed(self, log_scores: Tensor) -> Tensor:
-        """Normalised log weights from unnormalised ones, with ``share`` of the weight spread evenly."""
-        log_posterior = torch.log_softmax(log_scores, dim=-1)
-        if self.share == 0.0:
-            return log_posterior
-        count = len(self._members)
-        # log((1 - share) v + share / K), without the underflow of exp(log v) for a far-behind member.
-        return torch.logaddexp(
-            log_posterior + math.log1p(-self.share), torch.full_like(log_posterior, math.log(self.share / count))
-        )
+        return mixed_log_weights(log_scores, self.share)
 
     def _state(self) -> tuple[Tensor, Tensor]:
         if self._log_weights is None or self._losses is None:
             raise RuntimeError("Combination has no weights yet; call model.reset() first")
         return self._log_weights, self._losses
+
+
+def mixed_log_weights(log_scores: Tensor, share: float) -> Tensor:
+    """Normalised log weights from unnormalised ones (last dim), with ``share`` of the weight spread evenly.
+
+    What :class:`Combination` does after each observation; :func:`smcd_rl.tune` scores its grid
+    with it from the members' recorded predictions.
+
+    Example:
+        >>> mixed_log_weights(torch.tensor([0.0, -100.0]), 0.02).exp()
+        tensor([0.9900, 0.0100])
+    """
+    log_posterior = torch.log_softmax(log_scores, dim=-1)
+    if share == 0.0:
+        return log_posterior
+    count = log_scores.shape[-1]
+    # log((1 - share) v + share / K), without the underflow of exp(log v) for a far-behind member.
+    return torch.logaddexp(log_posterior + math.log1p(-share), torch.full_like(log_posterior, math.log(share / count)))
 
 
 def _checked_eta(eta: Any) -> float:

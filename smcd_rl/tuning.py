@@ -46,12 +46,13 @@ from typing import Any, Literal
 
 import torch
 from tensordict import TensorDictBase
+from torch import Tensor
 from tqdm.auto import tqdm
 
 from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation
 from smcd_rl.calibration import _checked_model, _pairs, _stacked, calibrate
 from smcd_rl.checks import check_count, check_real
-from smcd_rl.combination import Combination
+from smcd_rl.combination import Combination, mixed_log_weights
 from smcd_rl.diagnostics import trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.model import AdaptiveModel
@@ -350,8 +351,10 @@ class _Search:
         self.notes: list[str] = []
         self.bar = tqdm(desc="tune", unit="setting", disable=not progress)
 
-    def score(self, kind: str, settings: dict[str, Any], *, ms: float | None = None) -> float:
-        """Measure one setting (time first, then one-step error unless over budget); returns its RMSE."""
+    def score(
+        self, kind: str, settings: dict[str, Any], *, ms: float | None = None, rmse: float | None = None
+    ) -> float:
+        """Measure one setting (time first, then one-step error unless over budget, or ``rmse`` if given)."""
         earlier = self.known.get(_key(kind, settings))
         if earlier is not None:
             ms = earlier.ms_per_step
@@ -359,11 +362,10 @@ class _Search:
         if self.timing.over(ms):
             self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, "over budget"))
             return math.inf
-        rmse = (
-            earlier.one_step_rmse
-            if earlier is not None
-            else trace(self.model, self.td, build_strategy(kind, settings)).rmse
-        )
+        if earlier is not None:
+            rmse = earlier.one_step_rmse
+        elif rmse is None:
+            rmse = trace(self.model, self.td, build_strategy(kind, settings)).rmse
         candidate = TuneCandidate(kind, settings, rmse, ms)
         self.candidates.append(candidate)
         if math.isfinite(rmse) and (kind not in self.best_of or rmse < self.best_of[kind].one_step_rmse):
@@ -495,12 +497,75 @@ def _tune_smcd(
 
 
 def _tune_combination(search: _Search, kinds: list[str]) -> None:
+    """Score the combination grid of the best members, from one run of each member.
+
+    The members run on the same stream whatever the weights, so their one-step predictions are
+    recorded once and every ``(eta, share)`` is scored from them (:func:`combination_rmse`), the
+    same error :func:`smcd_rl.diagnostics.trace` gives a :class:`~smcd_rl.combination.Combination`,
+    at the cost of one combination run instead of one per grid point.
+    """
     if len(kinds) < 2:
         return
     members = [{"name": kind, "settings": search.best_of[kind].settings} for kind in kinds]
     ms = sum(search.best_of[kind].ms_per_step for kind in kinds)
-    for eta, share in product(COMBINATION_GRID["eta"], COMBINATION_GRID["share"]):
-        search.score("combination", {"members": members, "eta": eta, "share": share}, ms=ms)
+    grid = list(product(COMBINATION_GRID["eta"], COMBINATION_GRID["share"]))
+    settings = [{"members": members, "eta": eta, "share": share} for eta, share in grid]
+    if all(_key("combination", s) in search.known for s in settings) or search.timing.over(ms):
+        for one in settings:  # reused from an earlier call, or over the budget: nothing to run
+            search.score("combination", one, ms=ms)
+        return
+    recorded = _member_predictions(search.model, search.td, [build_strategy(m["name"], m["settings"]) for m in members])
+    for (eta, share), one in zip(grid, settings, strict=True):
+        rmse = math.inf if recorded is None else combination_rmse(search.model, *recorded, eta=eta, share=share)
+        search.score("combination", one, ms=ms, rmse=rmse)
+
+
+def _member_predictions(
+    model: AdaptiveModel, td: TensorDictBase, strategies: list[Adaptation]
+) -> tuple[Tensor, Tensor] | None:
+    """Each strategy's prediction of every step before it observes it, ``[E, T, out, K]``, and the targets.
+
+    ``None`` if a strategy refuses an observation or predicts a non-finite value: a combination
+    of them stops there too.
+    """
+    x, y = _pairs(model, td)
+    num_episodes, steps = x.shape[:2]
+    predictions = []
+    with torch.no_grad():
+        for strategy in strategies:
+            model.with_adaptation(strategy).reset(batch_shape=(num_episodes,))
+            row = []
+            for t in range(steps):
+                row.append(strategy.predict(x[:, t]))
+                try:
+                    strategy.observe(x[:, t], y[:, t])
+                except ValueError:
+                    return None
+            predictions.append(torch.stack(row, dim=1))
+    stacked = torch.stack(predictions, dim=-1)
+    return (stacked, y) if bool(torch.isfinite(stacked).all()) else None
+
+
+def combination_rmse(model: AdaptiveModel, predictions: Tensor, targets: Tensor, *, eta: float, share: float) -> float:
+    """The one-step RMSE (target units) of a combination from its members' recorded predictions.
+
+    ``predictions [E, T, out, K]`` are the members' normalised one-step predictions, each made
+    before its step was observed, ``targets [E, T, out]`` the normalised observations. The weights
+    follow :class:`~smcd_rl.combination.Combination` operation for operation, and the error is
+    accumulated as :func:`smcd_rl.diagnostics.trace` accumulates it.
+    """
+    num_episodes, steps, outputs, count = predictions.shape
+    log_weights = predictions.new_full((num_episodes, count), -math.log(count))
+    output_std = model.output_norm.std.to(torch.float64)
+    squared = 0.0
+    for t in range(steps):
+        members = predictions[:, t]
+        if t > 0:
+            combined = (members * log_weights.exp().reshape(num_episodes, 1, count)).sum(-1)
+            squared += float(((combined - targets[:, t]).to(torch.float64) * output_std).square().sum())
+        step = (members - targets[:, t].unsqueeze(-1)).square().sum(-2)
+        log_weights = mixed_log_weights(log_weights - eta * step, share)
+    return math.sqrt(squared / (num_episodes * (steps - 1) * outputs))
 
 
 def build_strategy(kind: str, settings: dict[str, Any]) -> Adaptation:

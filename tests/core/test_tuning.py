@@ -199,3 +199,25 @@ def test_reuse_of_other_episodes_is_refused_and_changes_nothing(model, result) -
     with pytest.raises(TypeError, match="TuneResult"):
         smcd_rl.tune(model, shifted_episodes(0.5), **FAST, reuse=result.to_dict())
     assert model.tuning == before
+
+
+def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, result, monkeypatch) -> None:
+    """The grid is scored from one recorded run of the members; each score is what trace gives.
+
+    Same operations in the same order, so the scores agree to float rounding (rel 1e-6 is a
+    thousand times looser than float32's; a wrong weight update moves them by far more).
+    """
+    scored = [c for c in result.candidates if c.kind == "combination"]
+    assert len(scored) == len(smcd_rl.tuning.COMBINATION_GRID["eta"]) * len(smcd_rl.tuning.COMBINATION_GRID["share"])
+    for candidate in scored:
+        strategy = smcd_rl.tuning.build_strategy("combination", candidate.settings)
+        expected = smcd_rl.diagnostics.trace(model, shifted_episodes(0.5), strategy).rmse
+        assert candidate.one_step_rmse == pytest.approx(expected, rel=1e-6)
+    # Scoring the grid runs no combination through trace.
+    traced = []
+    real_trace = smcd_rl.tuning.trace
+    monkeypatch.setattr(
+        smcd_rl.tuning, "trace", lambda m, e, s: traced.append(type(s).__name__) or real_trace(m, e, s)
+    )
+    smcd_rl.tune(model, shifted_episodes(0.5), **FAST)
+    assert "Combination" not in traced and "GradientDescent" in traced
