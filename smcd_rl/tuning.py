@@ -603,19 +603,37 @@ def _combination(members: list[dict[str, Any]], eta: float, share: float) -> Com
 def describe_settings(settings: dict[str, Any]) -> str:
     """A candidate's settings in a few words, as :meth:`TuneResult.table` shows them.
 
+    What :func:`tune` searches is always shown (SMCD's particles, flip probability and noise;
+    gradient descent's learning rate, steps and window); any other setting only where it differs
+    from its default, so a row says what was chosen, not the strategy's whole config.
+
     Example:
         >>> describe_settings({"lr": 0.1, "steps": 5, "window": 10, "loss": "mse", "huber_delta": 1.0})
         'lr 0.1, steps 5, window 10'
+        >>> describe_settings({**SMCD(num_particles=500, noise_std=[0.0134, 0.01325]).config(), "seed": 3})
+        'num_particles 500, flip_prob 0.01, noise_std [0.0134, 0.0132]'
     """
     if "members" in settings:
         return f"{' + '.join(m['name'] for m in settings['members'])}, eta {settings['eta']:g}, share {settings['share']:g}"
-    shown = {k: v for k, v in settings.items() if k not in ("seed", "device")}
-    if shown.get("loss") == "mse":
-        # Gradient descent's default loss: shown by its absence, and its Huber delta is unused.
-        shown = {k: v for k, v in shown.items() if k not in ("loss", "huber_delta")}
+    searched = ("num_particles", "flip_prob", "noise_std", "lr", "steps", "window")
+    defaults = _DEFAULTS["smcd" if "num_particles" in settings else "gradient_descent"]
+    shown = {
+        k: v
+        for k, v in settings.items()
+        if k not in ("seed", "device") and (k in searched or defaults.get(k, _UNSET) != v)
+    }
+    if shown.get("loss", "mse") == "mse":  # the squared error's Huber delta is unused
+        shown.pop("huber_delta", None)
     parts = []
     for k, v in shown.items():
         if isinstance(v, (list, tuple)) and len(v) > 3:
             v = f"rms {math.sqrt(sum(float(u) ** 2 for u in v) / len(v)):.3g} ({len(v)} dims)"
+        elif isinstance(v, (list, tuple)):
+            v = "[" + ", ".join(f"{float(u):.3g}" for u in v) + "]"
         parts.append(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}")
     return ", ".join(parts) or "-"
+
+
+#: Each kind's default settings: :func:`describe_settings` leaves out what equals them.
+_DEFAULTS: dict[str, dict[str, Any]] = {"smcd": SMCD().config(), "gradient_descent": GradientDescent().config()}
+_UNSET = object()
