@@ -216,8 +216,6 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
     # Scoring the grid runs no combination through trace.
     traced = []
     real_trace = smcd_rl.tuning.trace
-    monkeypatch.setattr(
-        smcd_rl.tuning, "trace", lambda m, e, s: traced.append(type(s).__name__) or real_trace(m, e, s)
-    )
+    monkeypatch.setattr(smcd_rl.tuning, "trace", lambda m, e, s: traced.append(type(s).__name__) or real_trace(m, e, s))
     smcd_rl.tune(model, shifted_episodes(0.5), **FAST)
     assert "Combination" not in traced and "GradientDescent" in traced
