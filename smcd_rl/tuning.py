@@ -506,7 +506,7 @@ def _tune_combination(search: _Search, kinds: list[str]) -> None:
     """
     if len(kinds) < 2:
         return
-    members = [{"name": kind, "settings": search.best_of[kind].settings} for kind in kinds]
+    members: list[dict[str, Any]] = [{"name": kind, "settings": search.best_of[kind].settings} for kind in kinds]
     ms = sum(search.best_of[kind].ms_per_step for kind in kinds)
     grid = list(product(COMBINATION_GRID["eta"], COMBINATION_GRID["share"]))
     settings = [{"members": members, "eta": eta, "share": share} for eta, share in grid]
