@@ -500,7 +500,7 @@ def _tune_combination(search: _Search, kinds: list[str]) -> None:
     """Score the combination grid of the best members, from one run of each member.
 
     The members run on the same stream whatever the weights, so their one-step predictions are
-    recorded once and every ``(eta, share)`` is scored from them (:func:`combination_rmse`), the
+    recorded once and every ``(eta, share)`` is scored from them (``_combination_rmse``), the
     same error :func:`smcd_rl.diagnostics.trace` gives a :class:`~smcd_rl.combination.Combination`,
     at the cost of one combination run instead of one per grid point.
     """
@@ -516,7 +516,7 @@ def _tune_combination(search: _Search, kinds: list[str]) -> None:
         return
     recorded = _member_predictions(search.model, search.td, [build_strategy(m["name"], m["settings"]) for m in members])
     for (eta, share), one in zip(grid, settings, strict=True):
-        rmse = math.inf if recorded is None else combination_rmse(search.model, *recorded, eta=eta, share=share)
+        rmse = math.inf if recorded is None else _combination_rmse(search.model, *recorded, eta=eta, share=share)
         search.score("combination", one, ms=ms, rmse=rmse)
 
 
@@ -546,7 +546,7 @@ def _member_predictions(
     return (stacked, y) if bool(torch.isfinite(stacked).all()) else None
 
 
-def combination_rmse(model: AdaptiveModel, predictions: Tensor, targets: Tensor, *, eta: float, share: float) -> float:
+def _combination_rmse(model: AdaptiveModel, predictions: Tensor, targets: Tensor, *, eta: float, share: float) -> float:
     """The one-step RMSE (target units) of a combination from its members' recorded predictions.
 
     ``predictions [E, T, out, K]`` are the members' normalised one-step predictions, each made
