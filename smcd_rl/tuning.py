@@ -50,7 +50,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation
-from smcd_rl.calibration import _checked_model, _pairs, _stacked, calibrate
+from smcd_rl.calibration import _checked_flips, _checked_model, _pairs, _stacked, calibrate
 from smcd_rl.checks import check_count, check_real
 from smcd_rl.combination import Combination, mixed_log_weights
 from smcd_rl.diagnostics import trace
@@ -228,10 +228,8 @@ def tune(
     grid = _checked_gd_grid(gd_grid)
     td = _stacked(episodes)
     x, y = _pairs(model, td)  # checks keys, shapes and values before any run
-    flip_probs = tuple(float(f) for f in flip_probs)  # calibrate checks each value
-    data = content_digest(
-        {"model": model_digest(model), "episodes": content_digest(td), "seed": seed, "flips": list(flip_probs)}
-    )
+    flips = _checked_flips(flip_probs, model, SMCD(num_particles=num_particles))  # calibrate's own check
+    data = content_digest({"model": model_digest(model), "episodes": content_digest(td), "seed": seed, "flips": flips})
     known = _reusable(reuse, data, criterion)
     timing = _Timing(model, x[0], y[0], budget_ms)
     search = _Search(model, td, timing, progress, known)
@@ -242,7 +240,7 @@ def tune(
         if "gradient_descent" in kinds:
             _tune_gd(search, grid)
         if "smcd" in kinds:
-            _tune_smcd(search, model, td, num_particles, criterion, flip_probs, seed, progress)
+            _tune_smcd(search, model, td, num_particles, criterion, tuple(flips), seed, progress)
         if "combination" in kinds:
             _tune_combination(search, [k for k in ("none", "gradient_descent", "smcd") if k in search.best_of])
     finally:

@@ -92,6 +92,8 @@ def test_tune_leaves_the_calibration_and_the_network_as_they_were(model) -> None
         ({"gd_grid": {"loss": ("l1",)}}, r"gd_grid\['loss'\] takes losses from \['mse', 'huber'\], got \['l1'\]"),
         ({"gd_grid": {"loss": "huber"}}, "non-empty sequences"),  # a bare string, not the losses h, u, b, ...
         ({"gd_grid": {"momentum": (0.9,)}}, "gd_grid"),
+        ({"flip_probs": (0.01, 2.0)}, r"flip_probs\[1\]"),
+        ({"flip_probs": ()}, "at least one flip probability"),
     ],
 )
 def test_bad_options_are_refused_and_change_nothing(model, options, message) -> None:
@@ -99,6 +101,15 @@ def test_bad_options_are_refused_and_change_nothing(model, options, message) -> 
     with pytest.raises(ValueError, match=message):
         smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, **options})
     assert model.tuning == before
+
+
+def test_bad_flip_probabilities_are_refused_before_any_run(model, monkeypatch) -> None:
+    """calibrate's own check of the flips runs first: no grid is scored only to fail at SMCD."""
+    monkeypatch.setattr(smcd_rl.tuning, "trace", lambda *a: pytest.fail("a setting ran before the refusal"))
+    with pytest.raises(TypeError, match="flip_probs must be a sequence of probabilities"):
+        smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, "flip_probs": 0.01})
+    with pytest.raises(ValueError, match=r"flip_probs\[0\]"):
+        smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, "flip_probs": (-0.1,)})
 
 
 def test_the_strategies_it_returns_adapt(model, result) -> None:
