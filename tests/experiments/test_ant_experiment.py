@@ -2,6 +2,7 @@
 
 import csv
 import json
+import math
 import re
 
 import pytest
@@ -55,8 +56,11 @@ TINY = [
     "--gd-window",
     "5",
 ]
-ALL_CELLS = ["--planners", "cem", "mppi", "rs", "--adaptations", "N", "G", "S", "S(paper)"]
-ADAPTED = ("M+G", "M+S", "M+S(paper)")
+VARIANTS = ["N", "G", "S", "S(evidence)", "S(paper)", "C"]
+ALL_CELLS = ["--planners", "cem", "mppi", "rs", "--adaptations", *VARIANTS]
+ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C")
+#: The scoreboard's columns, each a strategy of the primary metric (every strategy's prediction error runs).
+COLUMNS = {"none", "GD", "SMCD (paper)", "SMCD (calibrated)", "SMCD (one-step)", "combination"}
 ONE_CELL = ["--planners", "rs", "--adaptations", "N", "--conditions", "crippled"]
 
 
@@ -67,13 +71,16 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     captured = capsys.readouterr()
     printed = captured.out
     planned = planned_stages(captured.err, "run")
-    assert planned[:3] == ["collect", "train", "tune M"] and len(planned) == 3 + 2 * 4 + 3 * 4 * 2
+    assert planned[:3] == ["collect", "train", "tune M"] and len(planned) == 3 + 2 * 6 + 3 * 6 * 2
     # The primary table (prediction error) comes first, then its verdicts, the returns and the tuning.
     first = [printed.index(t) for t in ("Prediction error", "M+S paired with M+N", "Episode return", "Tuning of M")]
     assert first == sorted(first)
     assert "| condition" in printed and "| planner" in printed and "healthy" in printed and "crippled" in printed
     assert re.search(r"\| -?\d+\.\d \[-?\d+\.\d, -?\d+\.\d\] +\|", printed)  # mean [95% CI] return cells
-    assert "| M+S    | M+N        |" in printed and "| M+S    | M+G        |" in printed  # the headline verdicts
+    for against in ("M+N", "M+G", "M+S(evidence)", "M+S(paper)", "M+C"):  # the headline verdicts
+        assert re.search(rf"\| M\+S +\| {re.escape(against)} +\|", printed), against
+    # The primary table shows each strategy's time per observation (every strategy of M was tuned).
+    assert "ms / observation" in printed and "| healthy   | M+C " in printed
     names = ("results.csv", "trials.csv", "comparisons.csv", "results.json", "report.md", "model.pt")
     for name in (*names, "ant.png", "prediction.png", "tuning-M.png"):
         assert (out / name).is_file(), name
@@ -86,11 +93,13 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     assert cells == [(ant.PLANNERS[p], ant.ADAPTATIONS[a], c) for p, a, c in ant.CELLS]
     assert all(float(r["return_low"]) <= float(r["return_mean"]) <= float(r["return_high"]) for r in returns)
     predictions = [r for r in rows if r["part"] == "prediction"]
-    assert len(predictions) == 2 * 2 * 4  # condition x (one-step, 3-step) x strategy
+    assert len(predictions) == 2 * 2 * 6  # condition x (one-step, 3-step) x strategy
     assert all(float(r["rmse_low"]) <= float(r["rmse_mean"]) <= float(r["rmse_high"]) for r in predictions)
+    ms = [float(r["ms_per_observation"]) for r in rows]  # every row's method is one of M's strategies
+    assert all(math.isfinite(v) and v > 0 for v in ms)
     trials = list(csv.DictReader(open(out / "trials.csv")))
     episodes = [e for e in trials if e["part"] == "return"]
-    assert len(episodes) == 24 * 2
+    assert len(episodes) == 36 * 2
     # Episode k is the same episode (seed, leg) in every cell; healthy episodes cripple no leg.
     legs = {(e["condition"], e["episode"]): set() for e in episodes}
     for e in episodes:
@@ -101,13 +110,15 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     # Per planner and condition: each adaptive method against M+N and against each other.
     comparisons = [c for c in csv.DictReader(open(out / "comparisons.csv")) if c["part"] == "return"]
     pairs = {(c["method"], c["against"]) for c in comparisons}
-    assert len(comparisons) == 6 * 6 and ("M+S", "M+N") in pairs and ("M+S", "M+G") in pairs
+    assert len(comparisons) == 6 * (5 + 10) and ("M+S", "M+N") in pairs and ("M+S", "M+G") in pairs
+    assert ("M+S", "M+S(evidence)") in pairs and ("M+S", "M+C") in pairs and ("M+G", "M+C") in pairs
     assert {c["verdict"] for c in comparisons} <= {"better", "worse", "no significant difference"}
     payload = json.loads((out / "results.json").read_text())
-    assert payload["config"]["episodes"] == 2 and len(payload["results"]) == 24 + 16
+    assert payload["config"]["episodes"] == 2 and len(payload["results"]) == 36 + 24
     assert len(payload["training"]["paper_noise_std"]) == 41 and payload["machine"]["torch_threads"] == 1
     report = (out / "report.md").read_text()
-    assert "mean [95% CI]" in report and "M+S paired with M+N, M+G and M+S(paper)" in report
+    assert "mean [95% CI]" in report and "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C" in report
+    assert "M: tuned under 10 ms per observation" in report  # smcd_rl.tune's budgeted table
     assert "![tuning-M.png](tuning-M.png)" in report and "![prediction.png](prediction.png)" in report
 
     # A rerun finds the training, the tuning, the errors and every cell finished: evaluating one again would raise.
@@ -119,30 +130,35 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     assert cli.main(["ant", "--out", str(out), *TINY, *ALL_CELLS]) == 0
     assert capsys.readouterr().out.splitlines()[:40] == printed.splitlines()[:40]
     # A subset of the cells is found in the same cache: which cells run is not part of its key.
-    options = ["--planners", "rs", "--adaptations", "N", "G", "S", "S(paper)", "--conditions", "crippled"]
+    options = ["--planners", "rs", "--adaptations", *VARIANTS, "--conditions", "crippled"]
     assert cli.main(["ant", "--out", str(out), *TINY, *options]) == 0
     rows = list(csv.DictReader(open(out / "results.csv")))
-    assert len([r for r in rows if r["part"] == "return"]) == 4
+    assert len([r for r in rows if r["part"] == "return"]) == 6
     assert len(list(out.glob("train-*.ckpt"))) == 1
 
 
 def test_results_json_has_the_tuning_and_two_scoreboard_entries(tmp_path) -> None:
-    """The fair protocol's record: GD's chosen point lies in the grid, and one scoreboard entry per condition
-    from the primary metric (one-step prediction error) with every strategy's estimate."""
+    """The fair protocol's record: every strategy's settings and time, and one scoreboard entry per condition
+    from the primary metric (one-step prediction error) with every strategy's estimate and time."""
     out = tmp_path / "run"
     assert cli.main(["ant", "--out", str(out), *TINY, *ONE_CELL, "--conditions", "healthy", "crippled"]) == 0
     payload = json.loads((out / "results.json").read_text())
-    tuned = payload["tuning"]["M"]["tuned"]
-    assert tuned["gd_lr"] in (0.01, 0.1) and tuned["gd_steps"] == 1 and tuned["gd_window"] == 5
-    assert len(payload["tuning"]["M"]["gd_grid"]) == 2 and payload["tuning"]["M"]["episodes"] == 4
-    assert len(payload["tuning"]["M"]["paper"]["noise_std"]) == 41  # S(paper): 3 x the held-out RMSE per dim
+    tuning = payload["tuning"]["M"]
+    assert list(tuning["specs"]) == VARIANTS and tuning["episodes"] == 4
+    gd = tuning["specs"]["G"]["settings"]  # the grid's point, or one past its edge
+    assert gd["lr"] > 0 and gd["steps"] >= 1 and gd["window"] >= 5 and gd["loss"] in ("mse", "huber")
+    assert [m["name"] for m in tuning["specs"]["C"]["settings"]["members"]] == ["none", "gradient_descent", "smcd"]
+    assert len(tuning["specs"]["S(paper)"]["settings"]["noise_std"]) == 41  # 3 x the held-out RMSE per dim
+    assert all(math.isfinite(v) and v > 0 for v in tuning["ms_per_observation"].values())
     board = payload["scoreboard"]
     assert [e["task"] for e in board] == ["Ant one-step prediction (healthy)", "Ant one-step prediction (crippled)"]
     for entry, condition in zip(board, ("healthy", "crippled"), strict=True):
         assert entry["cell"] == {"condition": condition, "prediction": "one-step"} and entry["metric"] == "rmse"
         assert entry["unit"] == "observation units" and entry["lower_is_better"] is True
-        assert set(entry["estimates"]) == {"none", "GD", "SMCD (paper)", "SMCD (calibrated)"}
+        assert set(entry["estimates"]) == COLUMNS and entry["estimates"]["combination"]["method"] == "M+C"
         assert all(e["trials"] == 6 for e in entry["estimates"].values())
+        assert set(entry["ms_per_observation"]) == COLUMNS
+        assert entry["ms_per_observation"]["SMCD (one-step)"] == tuning["ms_per_observation"]["S"]
         assert all(v != "not compared" for v in entry["verdicts"].values())
 
 
@@ -178,7 +194,7 @@ def test_prediction_error_is_paired_over_the_same_episodes(tmp_path) -> None:
     for condition in ("healthy", "crippled"):
         for metric in ("one-step", "3-step"):
             assert all((condition, metric, m, "M+N") in pairs for m in ADAPTED)
-            assert (condition, metric, "M+S", "M+G") in pairs and (condition, metric, "M+S", "M+S(paper)") in pairs
+            assert all((condition, metric, "M+S", m) in pairs for m in ADAPTED if m != "M+S")
 
 
 def test_subset_of_cells_and_single_condition(tmp_path, capsys) -> None:
@@ -214,6 +230,16 @@ def test_other_data_under_the_same_settings_retrains_and_reruns_the_cells(tmp_pa
     assert cli.main(["ant", "--out", str(out), *TINY, *ONE_CELL]) == 0
     assert calls == [("rs", "N", "crippled")]
     assert len(list(out.glob("train-*.ckpt"))) == 2
+
+
+def test_stage_plan_counts_the_combinations_members() -> None:
+    """C predicts with N, G and S in the planner's rollouts: its cell is planned at about their sum."""
+    from smcd_rl.experiments.ant.plan import stage_costs
+
+    costs = stage_costs(ant.AntConfig(adaptations=tuple(ant.ADAPTATIONS)))
+    cell = {v: costs[f"evaluate cem/{v}/crippled"] for v in ant.ADAPTATIONS}
+    assert cell["C"] > 0.9 * (cell["N"] + cell["G"] + cell["S"]) and cell["S(evidence)"] == cell["S"]
+    assert all(f"prediction-healthy {v}" in costs for v in VARIANTS)
 
 
 def test_help_lists_every_option(capsys) -> None:

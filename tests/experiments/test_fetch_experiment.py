@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +45,11 @@ TINY = [
     "N",
     "G",
     "S",
+    "S(evidence)",
+    "C",
 ]
+#: The methods of the tiny run that adapt, each tuned (and timed) by the fair protocol.
+ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+C")
 
 
 def run_tiny(out: Path, *extra: str) -> dict[str, Any]:
@@ -71,11 +76,13 @@ def test_tiny_run_writes_its_files_and_planning_beats_random_actions(tmp_path: P
         assert (out / name).is_file(), name
     assert (out / "tuning-reach.png").is_file()
     rows = {(r["planner"], r["method"], r["metric"]): r for r in result["results"]}
-    assert {m for _, m, _ in rows} == {"M+N", "M+G", "M+S", "random actions"}
+    assert {m for _, m, _ in rows} == {"M+N", *ADAPTED, "random actions"}
     for metric in ("success", "distance"):
-        for method in ("M+N", "M+G", "M+S"):
+        for method in ("M+N", *ADAPTED):
             r = rows[("CEM", method, metric)]
             assert r["low"] <= r["mean"] <= r["high"] and r["trials"] == 6
+            assert math.isfinite(r["ms_per_observation"]) and r["ms_per_observation"] > 0  # timed in tuning
+        assert rows[("-", "random actions", metric)]["ms_per_observation"] is None
     random = rows[("-", "random actions", "distance")]["mean"]
     adapted = rows[("CEM", "M+S", "distance")]["mean"]
     assert adapted < 0.6 * random, (adapted, random)
@@ -86,12 +93,19 @@ def test_tiny_run_writes_its_files_and_planning_beats_random_actions(tmp_path: P
     seeds = {m: [t["seed"] for t in trials if t["method"] == m] for m in ("M+N", "M+S", "random actions")}
     assert seeds["M+N"] == seeds["M+S"] == seeds["random actions"] and len(seeds["M+N"]) == 6
     comparisons = result["comparisons"]
-    assert {(c["method"], c["against"]) for c in comparisons} >= {("M+S", "M+N"), ("M+G", "M+N"), ("M+S", "M+G")}
-    # The scoreboard entry and the report.
+    pairs = {(c["method"], c["against"]) for c in comparisons}
+    assert pairs >= {("M+S", "M+N"), ("M+G", "M+N"), ("M+S", "M+G"), ("M+S", "M+S(evidence)"), ("M+G", "M+C")}
+    # The scoreboard entry, with each strategy's time, and the report.
     (entry,) = json.loads((out / "results.json").read_text())["scoreboard"]
-    assert entry["estimates"]["SMCD (calibrated)"]["mean"] == rows[("CEM", "M+S", "success")]["mean"]
+    for column, method in [("SMCD (one-step)", "M+S"), ("SMCD (calibrated)", "M+S(evidence)"), ("combination", "M+C")]:
+        assert entry["estimates"][column]["mean"] == rows[("CEM", method, "success")]["mean"]
+        assert entry["ms_per_observation"][column] == rows[("CEM", method, "success")]["ms_per_observation"]
+    assert set(entry["ms_per_observation"]) == set(entry["estimates"]) and "SMCD (paper)" not in entry["estimates"]
+    assert entry["verdicts"]["combination vs GD"] != "not compared"
     report = (out / "report.md").read_text()
-    assert "Success rate" in report and "Settings (fingerprint" in report
+    assert "Success rate" in report and "Settings (fingerprint" in report and "| ms / observation |" in report
+    assert "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C" in report
+    assert "reach: tuned under 10 ms per observation" in report  # smcd_rl.tune's budgeted table
     # A rerun reuses every finished piece and writes the same numbers.
     again = run_tiny(tmp_path / "fetch")
     assert again["results"] == result["results"]
@@ -105,8 +119,10 @@ def test_video_writes_gifs_and_changes_no_number(tmp_path: Path) -> None:
     plain = run_tiny(tmp_path / "plain", "--adaptations", "N", "--episodes", "2")
     filmed = run_tiny(tmp_path / "filmed", "--adaptations", "N", "--episodes", "2", "--video", "1")
 
-    def numbers(result: dict[str, Any]) -> list[dict[str, Any]]:
-        return [{k: v for k, v in row.items() if k != "seconds"} for row in result["results"]]
+    def numbers(result: dict[str, Any]) -> list[dict[str, Any]]:  # less the wall times, which vary run to run
+        return [
+            {k: v for k, v in row.items() if k not in ("seconds", "ms_per_observation")} for row in result["results"]
+        ]
 
     assert numbers(filmed) == numbers(plain)
     gifs = sorted((tmp_path / "filmed" / "videos").glob("*.gif"))
@@ -125,3 +141,14 @@ def test_bad_options_are_refused() -> None:
     ]:
         with pytest.raises(ValueError, match=message):
             FetchConfig(**bad).validate()
+
+
+def test_stage_plan_counts_every_adaptation_and_the_combinations_members() -> None:
+    """The combination predicts with N, G and S in every rollout step: its cells are planned at three times S's."""
+    from smcd_rl.experiments.fetch.config import FetchConfig
+    from smcd_rl.experiments.fetch.run import _costs
+
+    costs = _costs(FetchConfig())
+    cells = [name for name in costs if name.startswith("evaluate reach/cem/")]
+    assert cells == [f"evaluate reach/cem/{v}" for v in ("N", "G", "S", "S(evidence)", "S(paper)", "C")]
+    assert costs["evaluate reach/cem/C"] == 3 * costs["evaluate reach/cem/S"] > 0

@@ -17,6 +17,8 @@ from smcd_rl.experiments.interpret import links as interpret_links
 from smcd_rl.experiments.interpret import lookahead as interpret_lookahead
 from smcd_rl.experiments.interpret import run as interpret
 from smcd_rl.experiments.shared import stages
+from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS
+from smcd_rl.experiments.shared.tuning import VARIANTS
 from smcd_rl.interpret import top_k_neighbour_accuracy
 from tests.experiments.test_stages import planned_stages
 
@@ -77,6 +79,9 @@ TINY = [
     "5",
     "--calibrate-flips",
     "0.01",
+    # A budget every tiny strategy fits on a loaded machine too: the budgeted choice is then the same every run.
+    "--budget-ms",
+    "1000",
 ]
 FILES = (
     "results.csv",
@@ -102,11 +107,26 @@ CHECKPOINTS = ("fig9_ld8-*.ckpt", "fig9_ld16-*.ckpt", "bc-*.ckpt", "reptile-*.ck
 
 #: A wall time in the printed text ("0.2 s", "1 min 5 s"): it follows the machine's speed and load, not the results.
 WALL_TIME = re.compile(r"\b\d+(?:\.\d+)? (?:s|min|h)\b")
+#: The header of a table's column of milliseconds per observation, measured like a wall time.
+MS = "ms / observation"
 
 
 def tables(printed: str) -> list[str]:
-    """The printed tables, wall times masked, without the closing line that names the output directory."""
-    return [WALL_TIME.sub("<time>", line) for line in printed.splitlines() if not line.startswith("wrote ")]
+    """The printed tables, wall times and ms per observation masked, without the line naming the output directory."""
+    lines, column = [], None
+    for line in printed.splitlines():
+        if line.startswith("wrote "):
+            continue
+        cells = line.split("|")
+        if not line.startswith("|"):
+            column = None  # a table ends at its first line that is not a row
+        elif column is None and any(c.strip() == MS for c in cells):
+            column = next(i for i, c in enumerate(cells) if c.strip() == MS)  # the header row
+        elif column is not None and not set(cells[column]) <= set("-: "):
+            cells[column] = " <ms> "
+            line = "|".join(cells)
+        lines.append(WALL_TIME.sub("<time>", line))
+    return lines
 
 
 def test_tables_mask_wall_times_only() -> None:
@@ -116,6 +136,10 @@ def test_tables_mask_wall_times_only() -> None:
     again = first.replace("0.2 s", "0.1 s").replace("1 min 5 s", "1 min 7 s")
     assert tables(first) == tables(again) and "4 held-out episodes x 5 steps" in tables(first)[0]
     assert tables(first) != tables(first.replace("12 filter runs", "13 filter runs"))
+    table = "| method | RMSE | ms / observation |\n|---|---|---|\n| M+S | 0.25 | 1.23 |\n| R+N | 0.5 | - |\n\nafter 1.5"
+    timed_again = table.replace("1.23", "1.31")
+    assert tables(table) == tables(timed_again) and "| M+S | 0.25 | <ms> |" in tables(table)
+    assert tables(table) != tables(table.replace("0.25", "0.26")) and tables(table)[-1] == "after 1.5"
 
 
 @pytest.mark.slow
@@ -137,8 +161,8 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
     for pattern in CHECKPOINTS:
         assert len(list(first.glob(pattern))) == 1, pattern
     assert "Fig. 9" in printed and "| skill" in printed and "| M+S" in printed and "| R+N" in printed
-    assert "M+S paired with M+N, M+G and M+S(paper)" in printed and "[95% CI]" in printed
-    assert "Tuning of M on 4 held-out training-task episodes x 5 steps" in printed
+    assert "M+S paired with M+N, M+G, M+S(evidence), M+S(paper) and M+C" in printed and "[95% CI]" in printed
+    assert "Tuning of M on 4 held-out training-task episodes x 5 steps" in printed and MS in printed
     payload = json.loads((first / "results.json").read_text())
     assert (
         payload["dataset"]["train"]["trajectories"]
@@ -152,6 +176,9 @@ def test_interpret_writes_results_and_an_interrupted_run_resumes_to_the_same_tab
     assert all(0 <= r["confidence_mean"] <= 1 for r in payload["confidence"])
     assert all(0 <= r["accuracy_mean"] <= 1 for r in payload["fig9"])
     assert all(math.isfinite(r["rmse_mean"]) and r["rmse_mean"] > 0 for r in payload["lookahead"])
+    # Each method of the tuned network M is timed; R was not tuned (no R method adapts): R+N has no time.
+    timed = {r["method"]: r.get("ms_per_observation") for r in payload["lookahead"]}
+    assert all(0 < timed[m] < math.inf for m in ("M+N", "M+S")) and timed["R+N"] is None
     # Every adaptive method paired with M+N and with each other on the same trajectories, in each cell.
     pairs = {(c["figure"], c.get("set", ""), c["method"], c["against"]) for c in payload["comparisons"]}
     for set_name in ("known", "unknown"):
@@ -305,27 +332,38 @@ def test_overwriting_the_dataset_file_retrains_and_recomputes(tmp_path, capsys, 
 
 @pytest.mark.slow
 def test_lookahead_tunes_on_held_out_flights_and_writes_a_scoreboard_entry(tmp_path, capsys) -> None:
-    """The fair protocol: GD's chosen point is in the grid, SMCD calibrated, four strategies on the scoreboard."""
+    """The fair protocol: every method tuned on the tuning flights, timed, six strategies on the scoreboard."""
     out = tmp_path / "run"
-    methods = ["--methods", "M+N", "M+G", "M+S", "M+S(paper)"]
+    methods = ["--methods", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C"]
     assert cli.main(["interpret", "--out", str(out), "--parts", "lookahead", *TINY, *methods]) == 0
     printed = capsys.readouterr().out
-    assert "| M+S(paper)" in printed and "Tuning of M on 4" in printed
+    assert all(f"| {m} " in printed for m in methods[1:]) and "Tuning of M on 4" in printed
+    assert "tuned under 1000 ms per observation" in printed  # smcd_rl.tune's budgeted table
     payload = json.loads((out / "results.json").read_text())
     assert set(payload["tuning"]) == {"M"}  # no R method ran: only M is tuned
     tuning = payload["tuning"]["M"]
     assert tuning["episodes"] == 4 and tuning["steps"] == 5
-    assert tuning["tuned"]["gd_lr"] in (0.01, 0.1) and tuning["tuned"]["gd_steps"] == 1
-    assert tuning["tuned"]["gd_window"] == 5 and len(tuning["gd_grid"]) == 2
-    assert tuning["calibration"] and tuning["paper"]["flip_prob"] == interpret.InterpretConfig().flip_prob
-    assert len(tuning["paper"]["noise_std"]) == 3  # noise-scale x M's training RMSE per action dim
+    specs = tuning["specs"]
+    assert set(specs) == set(VARIANTS) == {m[2:] for m in methods[1:]}
+    assert specs["G"]["kind"] == "gradient_descent" and specs["C"]["kind"] == "combination"
+    assert specs["S"]["kind"] == specs["S(evidence)"]["kind"] == "smcd"
+    paper = specs["S(paper)"]["settings"]
+    assert paper["flip_prob"] == interpret.InterpretConfig().flip_prob
+    assert len(paper["noise_std"]) == 3  # noise-scale x M's training RMSE per action dim
+    assert all(0 < ms < math.inf for ms in tuning["ms_per_observation"].values())
+    # The results table's rows carry each method's time, the one the tuning measured.
+    rows = [r for r in payload["lookahead"] if r["method"] in methods]
+    assert all(r["ms_per_observation"] == tuning["ms_per_observation"][r["method"][2:]] for r in rows)
     board = payload["scoreboard"]
     assert board["task"] == "drone look-ahead" and board["cell"] == {"set": "unknown", "burn_in": 0.5, "horizon": 0.25}
-    assert set(board["estimates"]) == {"none", "GD", "SMCD (paper)", "SMCD (calibrated)"}
-    assert {e["method"] for e in board["estimates"].values()} == {"M+N", "M+G", "M+S(paper)", "M+S"}
+    assert set(board["estimates"]) == set(COLUMNS)
+    assert {e["method"] for e in board["estimates"].values()} == set(methods[1:])
     assert all(v != "not compared" for v in board["verdicts"].values())
+    assert set(board["ms_per_observation"]) == set(COLUMNS)
+    assert all(0 < ms < math.inf for ms in board["ms_per_observation"].values())
     pairs = {(c["method"], c["against"]) for c in payload["comparisons"]}
-    assert {("M+S", "M+N"), ("M+S", "M+G"), ("M+S", "M+S(paper)")} <= pairs
+    assert {("M+S", m) for m in ("M+N", "M+G", "M+S(evidence)", "M+S(paper)", "M+C")} <= pairs
+    assert {("M+C", "M+N"), ("M+C", "M+G"), ("M+S(evidence)", "M+N")} <= pairs
     assert (out / "tuning-M.png").is_file()
     # Without the look-ahead part: no tuning, no scoreboard entry.
     other = tmp_path / "other"

@@ -1,8 +1,8 @@
 """``smcd-rl panda`` at a tiny scale (files, tables, resume, refused options) and the reaching loop's semantics."""
 
 import csv
-import itertools
 import json
+import math
 
 import pytest
 import torch
@@ -12,8 +12,9 @@ from smcd_rl import cli
 from smcd_rl.envs.panda_reach import panda_fk, sample_goals, sample_tool_lengths
 from smcd_rl.experiments.panda import run as panda
 from smcd_rl.experiments.shared import stages, tuning
+from smcd_rl.experiments.shared.adaptation_config import VARIANTS
 from smcd_rl.experiments.shared.runtime import torch_threads
-from smcd_rl.experiments.shared.scoreboard_entry import CORE_COLUMNS
+from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, HEADLINE
 from tests.experiments.test_stages import planned_stages
 
 TINY = [
@@ -44,8 +45,13 @@ TINY = [
     "4",
     "--tuning-steps",
     "5",
+    # A small tuning (smcd_rl.tune scores GD, SMCD and the combination twice, unbudgeted and budgeted).
+    "--gd-lr",
+    "0.1",
+    "--calibrate-flips",
+    "0.03",
 ]
-LABELS = ["FK", "M+N", "M+G", "M+S", "M+S(paper)"]
+LABELS = ["FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C"]
 
 
 class Interrupted(RuntimeError):
@@ -60,6 +66,11 @@ def _table(printed: str) -> list[str]:
     return lines[start:end]
 
 
+def _without_times(table: list[str]) -> list[str]:
+    """The table without its last column, the ms per observation: wall times differ between runs that tune afresh."""
+    return [line.rsplit("|", 2)[0] for line in table]
+
+
 def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, capsys, monkeypatch) -> None:
     out = tmp_path / "run"
     monkeypatch.setattr(stages, "RESUMED_SECONDS", 0.0)  # tiny stages count as timed: the time left shows
@@ -68,11 +79,17 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     printed = captured.out
     assert planned_stages(captured.err, "run")[:3] == ["train", "tune M", "evaluate FK n=1"]
     table = _table(printed)
-    assert [cell.strip() for cell in table[0].split("|")[1:-1]] == ["method", "n=2", "n=5"]
+    assert [cell.strip() for cell in table[0].split("|")[1:-1]] == ["method", "n=2", "n=5", "ms / observation"]
     assert [line.split("|")[1].strip() for line in table[2:]] == LABELS
-    # The headline verdicts: M+S against M+N, M+G and M+S(paper); then the tuning table.
-    assert "M+S paired with M+N, M+G and M+S(paper)" in printed and "| 5        | M+S    | M+G " in printed
+    # The last column: every method of the network has its time per observation, FK none.
+    timed = {line.split("|")[1].strip(): line.split("|")[-2].strip() for line in table[2:]}
+    assert timed["FK"] == "-" and all(0 < float(timed[m]) < math.inf for m in LABELS[1:])
+    # The headline verdicts: M+S against M+N, M+G, M+S(evidence) and M+S(paper); then the tuning tables.
+    assert "M+S paired with M+N, M+G, M+S(evidence) and M+S(paper)" in printed
+    assert "| 5        | M+S    | M+G " in printed and "| 5        | M+S    | M+S(evidence) |" in printed
     assert "Tuning of M on 4 held-out training-task episodes x 5 steps" in printed
+    assert "M: tuned on 4 held-out training-task episodes x 5 steps" in printed
+    assert "M: tuned under 10 ms per observation" in printed
     files = ("results.csv", "trials.csv", "comparisons.csv", "results.json", "panda.png", "tuning-M.png", "report.md")
     for name in (*files, "model.pt"):
         assert (out / name).is_file(), name
@@ -88,16 +105,20 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     for r in rows:
         low, mean, high = float(r["success_low"]), float(r["success_mean"]), float(r["success_high"])
         assert 0.0 <= low <= mean <= high <= 1.0 and int(r["seeds"]) == 2 and int(r["trials"]) == 2 * 4
+        assert (r["ms_per_observation"] == "") if r["method"] == "FK" else float(timed[r["method"]]) > 0
     assert len(list(csv.DictReader(open(out / "trials.csv")))) == len(rows) * 2 * 4
-    # Every adaptive method against M+N, and pairwise (M+S, M+S(paper), M+G, FK), at each interval both run at.
+    # Every adaptive method against M+N, and pairwise (M+S, M+S(evidence), M+S(paper), M+C, M+G, FK), at each
+    # interval both run at.
     pairs = {(c["interval"], c["method"], c["against"]) for c in csv.DictReader(open(out / "comparisons.csv"))}
     for n in ("2", "5"):
         assert {(n, "M+S", "M+N"), (n, "M+S", "M+G"), (n, "M+S", "M+S(paper)"), (n, "M+G", "FK")} <= pairs
+        assert {(n, "M+S", "M+S(evidence)"), (n, "M+C", "M+N"), (n, "M+C", "M+G"), (n, "M+S(evidence)", "FK")} <= pairs
     payload = json.loads((out / "results.json").read_text())
     assert payload["config"]["tasks"] == 4 and payload["machine"]["torch_threads"] >= 1
     assert payload["held_out_rmse_m"] > 0 and len(payload["train_loss"]) == 2
     report = (out / "report.md").read_text()
     assert "M+S(paper)" in report and "Tuning of M" in report and "tuning-M.png" in report
+    assert "M+C" in report and "ms / observation" in report
 
     # A rerun finds every (method, n) run and the tuning done: it must not control a single arm again.
     def no_reaching(*args, **kwargs):
@@ -127,7 +148,7 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     calls.clear()
     interrupt_at.clear()
     assert cli.main(["panda", "--out", str(resumed), *TINY]) == 0
-    assert _table(capsys.readouterr().out) == table
+    assert _without_times(_table(capsys.readouterr().out)) == _without_times(table)  # tuned afresh in this folder
     assert len(calls) == (len(rows) - 3) * 2  # the two seeds of every run but FK's three
 
     # Which runs there are does not change what a run computes: FK alone first, then every
@@ -137,31 +158,37 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     capsys.readouterr()
     calls.clear()
     assert cli.main(["panda", "--out", str(subset), *TINY]) == 0
-    assert _table(capsys.readouterr().out) == table
+    assert _without_times(_table(capsys.readouterr().out)) == _without_times(table)
     assert len(calls) == (len(rows) - 3) * 2
 
 
 def test_results_json_has_the_tuning_and_the_scoreboard_entry(tmp_path, capsys) -> None:
-    """GD's chosen settings come from the grid; the scoreboard shows all four strategies at n = 20."""
+    """GD's chosen settings come from the grid (or its extension past an edge); the scoreboard shows all six
+    strategies at n = 20, each with its time per observation."""
     out = tmp_path / "run"
-    grid = ["--gd-lr", "0.01", "0.1", "--gd-steps", "1", "2", "--gd-window", "3"]
+    grid = ["--gd-lr", "0.01", "0.1", "--gd-window", "3", "6"]
     assert cli.main(["panda", "--out", str(out), *TINY, *grid, "--intervals", "5", "20"]) == 0
     capsys.readouterr()
     payload = json.loads((out / "results.json").read_text())
     entry = payload["tuning"]["M"]
-    chosen = entry["tuned"]
-    assert (chosen["gd_lr"], chosen["gd_steps"], chosen["gd_window"]) in set(
-        itertools.product((0.01, 0.1), (1, 2), (3,))
-    )
-    assert len(entry["gd_grid"]) == 4 and entry["episodes"] == 4 and entry["steps"] == 5
-    assert entry["calibration"] and set(entry["traces"]) == {"N", "G", "S", "S(paper)"}
+    assert set(entry["specs"]) == set(entry["traces"]) == set(entry["ms_per_observation"]) == set(VARIANTS)
+    gd = entry["specs"]["G"]
+    assert gd["kind"] == "gradient_descent" and gd["settings"]["loss"] in ("mse", "huber")
+    # The grid, extended past an edge by its own ratio (lr x10) or by doubling (steps, window).
+    assert math.log10(gd["settings"]["lr"] / 0.01) == pytest.approx(round(math.log10(gd["settings"]["lr"] / 0.01)))
+    assert gd["settings"]["steps"] in (1, 2, 4, 8) and gd["settings"]["window"] in (3, 6, 12, 24, 48)
+    assert entry["specs"]["C"]["kind"] == "combination" and entry["specs"]["S(evidence)"]["kind"] == "smcd"
+    assert entry["episodes"] == 4 and entry["steps"] == 5
     board = payload["scoreboard"]
     assert board["task"] == "Panda reaching" and board["cell"] == {"interval": panda.HEADLINE_INTERVAL}
     assert board["metric"] == "success" and board["lower_is_better"] is False
-    assert set(board["estimates"]) == set(CORE_COLUMNS)
-    assert [board["estimates"][c]["method"] for c in CORE_COLUMNS] == ["M+N", "M+G", "M+S(paper)", "M+S"]
+    assert set(board["estimates"]) == set(COLUMNS)
+    assert [board["estimates"][c]["method"] for c in COLUMNS] == [f"M+{HEADLINE[c]}" for c in COLUMNS]
     assert all(e["trials"] == 2 * 4 and 0.0 <= e["mean"] <= 1.0 for e in board["estimates"].values())
     assert "not compared" not in board["verdicts"].values()
+    # Each strategy's time is its method's, measured on the tuning episodes.
+    assert board["ms_per_observation"] == {c: entry["ms_per_observation"][HEADLINE[c]] for c in COLUMNS}
+    assert all(0 < ms < math.inf for ms in board["ms_per_observation"].values())
     # --gd-lr with one value is a one-point grid.
     assert cli.make_config("panda", {"gd_lr": (0.01,)}).gd_lr == (0.01,)
 
@@ -184,9 +211,9 @@ def test_m_s_paper_is_smcd_at_exactly_noise_std_and_flip_prob(tmp_path, capsys, 
     assert isinstance(by_variant["S(paper)"], smcd_rl.SMCD)
     assert by_variant["S(paper)"].noise_std == 0.037 and by_variant["S(paper)"].flip_prob == 0.02
     assert by_variant["S(paper)"].num_particles == 20
-    entry = json.loads((out / "results.json").read_text())["tuning"]["M"]
-    assert entry["paper"]["noise_std"] == 0.037 and entry["paper"]["flip_prob"] == 0.02
-    assert entry["tuned"]["noise_std"] != 0.037  # calibrated: M+S's own likelihood noise
+    specs = json.loads((out / "results.json").read_text())["tuning"]["M"]["specs"]
+    assert specs["S(paper)"]["settings"]["noise_std"] == 0.037 and specs["S(paper)"]["settings"]["flip_prob"] == 0.02
+    assert specs["S"]["settings"]["noise_std"] != 0.037  # tuned: M+S's own likelihood noise
 
 
 def test_help_full_preset_and_bad_options(capsys) -> None:
@@ -194,7 +221,7 @@ def test_help_full_preset_and_bad_options(capsys) -> None:
         cli.main(["panda", "--help"])
     printed = capsys.readouterr().out
     assert exit_info.value.code == 0 and "--intervals" in printed
-    for option in ("--tuning-episodes", "--tuning-steps", "--gd-lr", "--calibrate-flips", "S(paper)"):
+    for option in ("--tuning-episodes", "--tuning-steps", "--gd-lr", "--calibrate-flips", "S(paper)", "S(evidence)"):
         assert option in printed, option
     defaults = cli.make_config("panda", {})
     assert defaults.tasks * defaults.seeds >= 250  # power for a 0.1 success-rate difference (see panda.py)

@@ -2,6 +2,7 @@
 
 import csv
 import json
+import math
 import re
 
 import pytest
@@ -11,6 +12,7 @@ import smcd_rl
 from smcd_rl import cli
 from smcd_rl.envs.two_link_arm import motor_babbling
 from smcd_rl.experiments.shared import stages
+from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS
 from smcd_rl.experiments.telescoping import run as telescoping
 from smcd_rl.experiments.telescoping.tracking import sample_episodes, track
 from tests.experiments.test_stages import planned_stages
@@ -34,11 +36,20 @@ TINY = [
     "5",
     "12",
     "--particles",
-    "50",
+    "20",
     "--oracle-particles",
     "50",
     "--gd-steps",
     "1",
+    # A small tuning (smcd_rl.tune scores GD, SMCD and the combination twice, unbudgeted and budgeted).
+    "--tuning-episodes",
+    "4",
+    "--gd-lr",
+    "0.1",
+    "--gd-window",
+    "5",
+    "--calibrate-flips",
+    "0.03",
 ]
 
 
@@ -48,6 +59,11 @@ def first_table(printed: str) -> list[str]:
     start = next(i for i, line in enumerate(lines) if line.startswith("|"))
     end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
     return lines[start:end]
+
+
+def without_times(table: list[str]) -> list[str]:
+    """The table without its last column, the ms per observation: wall times differ between runs that tune afresh."""
+    return [line.rsplit("|", 2)[0] for line in table]
 
 
 def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, capsys, monkeypatch) -> None:
@@ -60,8 +76,17 @@ def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, 
     assert planned_stages(captured.err, "whole") == expected
     uninterrupted = first_table(printed)
     assert [line.split("|")[1].strip() for line in uninterrupted[2:]] == list(telescoping.DEFAULT_METHODS)
-    # the headline verdicts: M+S against M+N, M+G and M+S(paper)
-    assert re.search(r"\| episode \| M\+S +\| M\+N +\|", printed) and "| M+S(paper) |" in printed
+    for name in ("M+S(evidence)", "M+C", "R+S(evidence)", "R+C"):
+        assert name in telescoping.DEFAULT_METHODS, name
+    # The last column: each adapted method's ms per observation; none for the true kinematics and the oracle.
+    assert uninterrupted[0].split("|")[-2].strip() == "ms / observation"
+    timed = {line.split("|")[1].strip(): line.split("|")[-2].strip() for line in uninterrupted[2:]}
+    assert timed["true"] == timed["O+P"] == "-"
+    assert all(float(timed[m]) > 0 for m in telescoping.DEFAULT_METHODS if m[0] in "MR")
+    # the headline verdicts: M+S against M+N, M+G, M+S(evidence) and M+S(paper)
+    for against in (r"M\+N", r"M\+S\(evidence\)", r"M\+S\(paper\)"):
+        assert re.search(rf"\| episode \| M\+S +\| {against} +\|", printed), against
+    assert "M: tuned under 10 ms per observation" in printed and "R: tuned on " in printed
     for name in ("results.csv", "trials.csv", "comparisons.csv", "curves.csv", "results.json", "tracking.png"):
         assert (whole / name).is_file(), name
     for name in ("report.md", "model.pt", "reptile.pt"):
@@ -72,13 +97,24 @@ def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, 
     for r in rows:
         assert 0 <= float(r["episode_low"]) <= float(r["episode_mean"]) <= float(r["episode_high"])
         assert float(r["error_k12_low"]) <= float(r["error_k12"]) <= float(r["error_k12_high"]) and r["trials"] == "6"
+        if r["method"] in ("true", "O+P"):
+            assert r["ms_per_observation"] == ""
+        else:
+            assert 0 < float(r["ms_per_observation"]) < math.inf, r
     assert len(list(csv.DictReader(open(whole / "trials.csv")))) == len(telescoping.DEFAULT_METHODS) * 6
     pairs = {(c["k"], c["method"], c["against"]) for c in csv.DictReader(open(whole / "comparisons.csv"))}
     assert {("episode", "M+S", "M+N"), ("episode", "M+S", "M+G"), ("5", "R+S", "R+N"), ("12", "M+S", "true")} <= pairs
+    assert {("episode", "M+S", "M+S(evidence)"), ("episode", "M+C", "M+G"), ("5", "R+C", "R+N")} <= pairs
     curves = list(csv.DictReader(open(whole / "curves.csv")))
     assert len(curves) == len(telescoping.DEFAULT_METHODS) * 13  # k = 0..12
     payload = json.loads((whole / "results.json").read_text())
     assert payload["config"]["trials"] == 6 and set(payload["train_loss"]) == {"M", "R"}
+    assert set(payload["tuning"]["M"]["specs"]) == {"N", "G", "S", "S(evidence)", "S(paper)", "C"}
+    # The scoreboard's entry: every strategy of M, each with its time per observation.
+    board = payload["scoreboard"]
+    assert set(board["estimates"]) == set(board["ms_per_observation"]) == set(COLUMNS)
+    assert board["estimates"]["combination"]["method"] == "M+C"
+    assert all(0 < ms < math.inf for ms in board["ms_per_observation"].values())
     # Every method starts from the same arms and targets: the k = 0 errors agree.
     assert len({c["error_mean"] for c in curves if c["k"] == "0"}) == 1
 
@@ -88,7 +124,7 @@ def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, 
     first = json.loads((split / "results.json").read_text())["seconds"]
     capsys.readouterr()
     assert cli.main(["telescoping", "--out", str(split), *TINY]) == 0
-    assert first_table(capsys.readouterr().out) == uninterrupted
+    assert without_times(first_table(capsys.readouterr().out)) == without_times(uninterrupted)
     resumed = json.loads((split / "results.json").read_text())["seconds"]
     for name in ("evaluate R+S", "evaluate O+P"):
         assert resumed[name] == first[name]  # taken from the cache

@@ -84,21 +84,24 @@ def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> 
     assert payload["config"]["trials"] == 60 and payload["machine"]["torch_threads"] >= 1
     assert len(payload["reptile_train_loss"]) == 3 and len(payload["latent_train_loss"]) == 3
 
-    # The fair protocol: both networks tuned on the same held-out episodes, GD's choice from its grid.
+    # The fair protocol: both networks tuned by smcd_rl.tune on the same held-out episodes.
     config = two_link.TwoLinkConfig()
     for name in ("M", "R"):
         tuning = payload["tuning"][name]
         assert (out / f"tuning-{name}.png").is_file()
-        assert tuning["tuned"]["gd_lr"] in config.gd_lr and tuning["tuned"]["gd_window"] in config.gd_window
-        assert len(tuning["gd_grid"]) == len(config.gd_lr) * len(config.gd_steps) * len(config.gd_window)
-        assert tuning["paper"]["noise_std"] == config.noise_std  # S(paper): the fixed setting, not tuned
-        best = min(row["one_step_rmse"] for row in tuning["gd_grid"])
-        assert tuning["traces"]["G"]["rmse"] == pytest.approx(best)  # the chosen point is the grid's best
+        assert set(tuning["specs"]) == {"N", "G", "S", "S(evidence)", "S(paper)", "C"}
+        assert tuning["specs"]["S(paper)"]["settings"]["noise_std"] == config.noise_std  # the fixed setting
+        assert all(0 < ms < float("inf") for ms in tuning["ms_per_observation"].values())
+        assert any("under 10 ms" in caption for caption in tuning["tune_tables"])
+    timed = {r["method"]: r["ms_per_observation"] for r in csv.DictReader(open(out / "results.csv"))}
+    assert float(timed["M+S"]) > 0 and timed["O+P"] == "" and "ms / observation" in printed
     board = payload["scoreboard"]
     assert board["cell"] == {"burn_in": 10, "horizon": 1}
-    assert set(board["estimates"]) == {"none", "GD", "SMCD (paper)", "SMCD (calibrated)"}
+    columns = {"none", "GD", "SMCD (paper)", "SMCD (calibrated)", "SMCD (one-step)", "combination"}
+    assert set(board["estimates"]) == columns == set(board["ms_per_observation"])
     assert board["estimates"]["none"]["mean"] == pytest.approx(rows[("M+N", 10, 1)])
     assert board["verdicts"]["SMCD (calibrated) vs none"].startswith("better")
+    assert {"SMCD (one-step) vs GD", "combination vs GD"} <= set(board["verdicts"])
 
     # A rerun finds the trained model and every method's trials done, and prints the same table.
     assert cli.main(["two-link", "--out", str(out), *SMALL, "--methods", *methods]) == 0

@@ -175,7 +175,8 @@ def run_cell(
 
     Args:
         model: the trained dynamics model; the cell adapts a copy (``model.with_adaptation``).
-        cell: planner (cem, mppi, rs), adaptation (N, G, S, S(paper)) and condition (healthy, crippled).
+        cell: planner (cem, mppi, rs), adaptation (one of the VARIANTS: N, G, S, S(evidence), S(paper), C) and
+            condition (healthy, crippled).
         config: the experiment's settings (planner and episode sizes).
         strategy: a fresh strategy of the cell's adaptation, with its tuned settings (the fair
             protocol, :func:`smcd_rl.experiments.shared.tuning.tune`).

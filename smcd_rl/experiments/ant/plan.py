@@ -9,7 +9,20 @@ from smcd_rl.experiments.ant.episodes import ACTION_DIM, OBS_DIM
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.tuning import VARIANTS
 
-__all__ = ["stage_costs"]
+__all__ = ["stage_costs", "predictions"]
+
+
+def predictions(variant: str) -> float:
+    """Network forwards of one prediction by adaptation ``variant``: the combination ``C`` predicts with each member.
+
+    Inside the planner's rollouts and the open-loop predictions, ``C`` runs N's, G's and S's
+    predictions (SMCD's from its MMSE mask) and mixes them, so it costs about three strategies' worth.
+
+    Example:
+        >>> predictions("C"), predictions("S(evidence)")
+        (3.0, 1.0)
+    """
+    return 3.0 if variant == "C" else 1.0
 
 
 def stage_costs(config: AntConfig) -> dict[str, float]:
@@ -29,6 +42,8 @@ def stage_costs(config: AntConfig) -> dict[str, float]:
         >>> costs = stage_costs(AntConfig())
         >>> list(costs)[:4], costs["evaluate cem/S/crippled"] > costs["evaluate cem/N/crippled"]
         (['collect', 'train', 'tune M', 'prediction-healthy N'], True)
+        >>> costs["evaluate cem/C/crippled"] > 2 * costs["evaluate cem/S/crippled"]
+        True
     """
     flops = mlp_flops(OBS_DIM + ACTION_DIM, (config.hidden,) * config.depth, OBS_DIM)
     samples = config.transitions * (1 - config.validation)
@@ -46,17 +61,19 @@ def stage_costs(config: AntConfig) -> dict[str, float]:
     for condition in config.conditions:
         for variant in VARIANTS:
             overhead, update = update_cost(variant, config)
-            forwards = config.prediction_episodes * config.prediction_steps * (update + horizon)
-            steps = config.prediction_steps * (1 + overhead) + horizon  # the open-loop rollouts run batched
+            rollout = predictions(variant) * horizon
+            forwards = config.prediction_episodes * config.prediction_steps * (update + rollout)
+            steps = config.prediction_steps * (1 + overhead) + rollout  # the open-loop rollouts run batched
             costs[f"prediction-{condition} {variant}"] = estimate(steps=steps, forwards=forwards, flops=flops)
     plan = config.candidates * config.iterations * config.horizon
     for cell in CELLS:
         if cell[0] in config.planners and cell[1] in config.adaptations and cell[2] in config.conditions:
             overhead, update = update_cost(cell[1], config)
             steps = config.episodes * config.episode_steps
+            each = predictions(cell[1])
             costs[f"evaluate {'/'.join(cell)}"] = estimate(
-                steps=steps * (1 + overhead + config.iterations * config.horizon / 10),
-                forwards=steps * (update + plan),
+                steps=steps * (1 + overhead + each * config.iterations * config.horizon / 10),
+                forwards=steps * (update + each * plan),
                 flops=flops,
             )
     return costs

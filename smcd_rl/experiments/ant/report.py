@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -10,7 +11,7 @@ import numpy as np
 
 from smcd_rl.experiments.ant.config import ADAPTATIONS, PLANNERS, AntConfig
 from smcd_rl.experiments.ant.episodes import render_states
-from smcd_rl.experiments.shared.outputs import format_table, save_figure
+from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
 from smcd_rl.experiments.shared.video import video_name, write_gif
 
 __all__ = ["write_videos", "prediction_table", "return_rows", "table", "plot_returns", "plot_prediction"]
@@ -27,8 +28,20 @@ def write_videos(done: dict[tuple[str, str, str], dict[str, Any]], config: AntCo
     return names
 
 
-def prediction_table(rows: list[dict[str, Any]]) -> str:
-    """Prediction RMSE ``mean [95% CI]`` per condition and strategy (down), per metric (across)."""
+def prediction_table(rows: list[dict[str, Any]], ms: Mapping[str, float] | None = None) -> str:
+    """Prediction RMSE ``mean [95% CI]`` per condition and strategy (down), per metric (across).
+
+    The last column is each strategy's median milliseconds per observation on the tuning episodes
+    (``ms``, method -> ms; "-" for a method without one).
+
+    Example:
+        >>> row = {"condition": "healthy", "method": "M+S", "prediction": "one-step"}
+        >>> print(prediction_table([row | {"rmse_mean": 0.2, "rmse_low": 0.1, "rmse_high": 0.3}], {"M+S": 1.234}))
+        | condition | method | one-step       | ms / observation |
+        |-----------|--------|----------------|------------------|
+        | healthy   | M+S    | 0.2 [0.1, 0.3] | 1.23             |
+    """
+    ms = ms or {}
     metrics = list(dict.fromkeys(r["prediction"] for r in rows))
     lookup = {(r["condition"], r["method"], r["prediction"]): r for r in rows}
     keys = list(dict.fromkeys((r["condition"], r["method"]) for r in rows))
@@ -38,8 +51,8 @@ def prediction_table(rows: list[dict[str, Any]]) -> str:
         for metric in metrics:
             r = lookup.get((condition, method, metric))
             cells.append("-" if r is None else f"{r['rmse_mean']:.4g} [{r['rmse_low']:.4g}, {r['rmse_high']:.4g}]")
-        body.append([condition, method, *cells])
-    return format_table(body, ["condition", "method", *metrics])
+        body.append([condition, method, *cells, ms_cell(ms.get(method))])
+    return format_table(body, ["condition", "method", *metrics, "ms / observation"])
 
 
 def return_rows(

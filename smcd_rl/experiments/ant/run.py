@@ -10,11 +10,15 @@ on the healthy Ant and on the Ant with a crippled leg. All strategies share the 
 The adaptations (``--adaptations``), labelled as in every experiment:
 
 * ``M+N``: no adaptation;
-* ``M+G``: online gradient descent, its ``--gd-lr x --gd-steps x --gd-window`` grid point of best
-  one-step error on the tuning episodes;
-* ``M+S``: SMCD calibrated by log evidence (:func:`smcd_rl.calibrate`) on the tuning episodes;
+* ``M+G``: online gradient descent tuned by one-step error on the tuning episodes
+  (:func:`smcd_rl.tune`: the ``--gd-lr x --gd-steps x --gd-window`` grid, squared error or Huber);
+* ``M+S``: SMCD tuned by one-step error on the tuning episodes (:func:`smcd_rl.tune`);
+* ``M+S(evidence)``: SMCD calibrated by its evidence (:func:`smcd_rl.calibrate`) on the tuning episodes;
 * ``M+S(paper)``: SMCD at the paper's settings: likelihood noise per observation dimension
-  ``--noise-scale`` (3) times the model's held-out RMSE, and ``--flip-prob``.
+  ``--noise-scale`` (3) times the model's held-out RMSE, and ``--flip-prob``;
+* ``M+C``: the combination of N, G and S (:class:`smcd_rl.Combination`), tuned on the same
+  episodes. It predicts with every member, inside the planner's rollouts too, so a step of its
+  MPC costs about as much as N's, G's and S's together.
 
 **Fair protocol.** The tuning episodes are ``--tuning-episodes`` episodes of ``--tuning-steps``
 uniform random actions on the *healthy* Ant (the training distribution: the model never saw a
@@ -36,8 +40,13 @@ scoreboard entries (healthy, crippled) are the one-step error.
 **Secondary metric: return.** ``--episodes`` MPC episodes of ``--episode-steps`` steps per
 planner x adaptation x condition cell (the episodes are in
 :mod:`smcd_rl.experiments.ant.episodes`); episode ``k`` is the same (env seed, start state,
-leg) in every cell. By default one planner (CEM) and three adaptations, 30 episodes of 100
-steps, so that the default finishes in about 12 minutes on 2 CPU cores.
+leg) in every cell. By default one planner (CEM) and five adaptations (all but ``S(paper)``), 30
+episodes of 100 steps, so that the default finishes in about 25 minutes on 2 CPU cores (the
+stage plan's estimate).
+
+**Time.** Each strategy's median milliseconds per observation (one stream, on the tuning
+episodes, measured by the fair protocol) is the last column of the prediction table and the
+``ms_per_observation`` of its rows in ``results.csv`` and of the scoreboard entries.
 
 Writes ``results.csv`` (``part`` prediction: per condition, metric and strategy the mean error
 with its 95% CI; ``part`` return: per planner, adaptation and condition the mean return),
@@ -70,13 +79,12 @@ Example:
     >>> from smcd_rl.experiments.ant.config import AntConfig, CELLS
     >>> config = AntConfig()
     >>> len(CELLS), config.planners, config.adaptations, config.conditions
-    (24, ('cem',), ('N', 'G', 'S'), ('healthy', 'crippled'))
+    (36, ('cem',), ('N', 'G', 'S', 'S(evidence)', 'C'), ('healthy', 'crippled'))
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import asdict
 from typing import Any
 
 import torch
@@ -98,7 +106,7 @@ from smcd_rl.experiments.ant.report import (
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.tuning import VARIANTS, Tuning, tune
+from smcd_rl.experiments.shared.tuning import VARIANTS, Tuning, ms_column, tune
 from smcd_rl.experiments.shared.workers import computed
 
 __all__ = [
@@ -119,7 +127,7 @@ DATA_SETTINGS = ("seed", "task", "data_policy", "sac_steps", "transitions", "dat
 #: Offsets of the env seeds from ``--seed``: MPC episodes, tuning episodes, prediction episodes.
 EPISODE_SEED, TUNING_SEED, PREDICTION_SEED = 1_000_003, 2_000_003, 3_000_003
 #: The paired comparisons: each adaptive method against M+N and against each other.
-ADAPTIVE = ("M+S", "M+S(paper)", "M+G")
+ADAPTIVE = ("M+S", "M+S(evidence)", "M+S(paper)", "M+G", "M+C")
 
 
 def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
@@ -152,7 +160,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
         val_rmse, val_nmse = validation_error(model, val)
         paper_noise = (config.noise_scale * val_rmse).clamp_min(1e-4)
 
-        # --- the fair protocol: SMCD calibrated, GD grid-tuned on held-out healthy episodes --------
+        # --- the fair protocol: every strategy tuned on held-out healthy episodes -----------------
         task_env = TASKS[config.task][0]
         tuning_episodes, _ = random_episodes(
             task_env,
@@ -163,7 +171,8 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
         )
         tuning = tune(ex, model, tuning_episodes.to(ex.device), config, name="M", paper_noise_std=paper_noise.tolist())
         strategy = functools.partial(_strategy, tuning, config, ex.device)
-        content = {"model": model_digest(model), "tuned": asdict(tuning.tuned), "paper": asdict(tuning.paper)}
+        content = {"model": model_digest(model), "specs": tuning.specs}
+        ms = ms_column(list(ADAPTATIONS.values()), {"M": tuning})
 
         # --- primary: every strategy's prediction error on the same logged episodes ----------------
         prediction, legs = _prediction(ex, model, config, strategy, content)
@@ -246,10 +255,10 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
         tables = {
             f"Prediction error (RMSE, observation units), mean [95% CI] over {config.prediction_episodes} random-action "
             f"episodes of {config.prediction_steps} steps per condition (one-step: step t from the steps before it; "
-            f"{config.prediction_horizon}-step: open loop on the logged actions)": prediction_table(p_rows),
-            "M+S paired with M+N, M+G and M+S(paper) over the same episodes (negative: M+S's error is lower)": (
-                verdict_table(headline, cell=("condition", "prediction"))
-            ),
+            f"{config.prediction_horizon}-step: open loop on the logged actions); median ms per observation on the "
+            "tuning episodes": prediction_table(p_rows, ms),
+            "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C over the same episodes "
+            "(negative: M+S's error is lower)": verdict_table(headline, cell=("condition", "prediction")),
         }
         if r_rows:
             tables[
@@ -260,7 +269,8 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
             tables[
                 "M+S paired with the other adaptations over the same MPC episodes (positive: M+S's return is higher)"
             ] = verdict_table(r_headline, cell=("planner", "condition"))
-        tables[tuning.caption()] = tuning.table()
+        tables.update(tuning.tables())
+        results = [("prediction", r) for r in p_rows] + [("return", r) for r in r_rows]
         plots = {"prediction.png": lambda path: plot_prediction(p_rows, config, path)}
         if r_rows:
             plots["ant.png"] = lambda path: plot_returns(r_rows, config, path)
@@ -268,7 +278,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
         ex.write(
             experiment="crippled-leg Ant, model-based control with adaptation (paper appendix C, Fig. 15)",
             tables=tables,
-            rows=[{"part": "prediction", **r} for r in p_rows] + [{"part": "return", **r} for r in r_rows],
+            rows=[{"part": part, **r, "ms_per_observation": ms.get(r["method"])} for part, r in results],
             trials=p_trials + r_trials,
             comparisons=[{"part": "prediction", **c} for c in p_comparisons]
             + [{"part": "return", **c} for c in r_comparisons],
@@ -305,6 +315,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
                         cell={"condition": condition, "prediction": one_step},
                         metric="rmse",
                         unit="observation units",
+                        ms=ms,
                     )
                     for condition in config.conditions
                 ],
@@ -316,7 +327,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
 
 
 def _strategy(tuning: Tuning, config: AntConfig, device: torch.device, variant: str) -> smcd_rl.Adaptation:
-    """A fresh strategy of ``variant`` with the tuned (or paper) settings; SMCD's generator seeded alike."""
+    """A fresh strategy of ``variant`` with its settings from the fair protocol; every SMCD's generator seeded alike."""
     return tuning.strategy(variant, seed=config.seed + 11, device=device)
 
 

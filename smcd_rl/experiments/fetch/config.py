@@ -28,7 +28,7 @@ ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
 
 @dataclass
 class FetchConfig(TuningConfig):
-    """Settings of ``smcd-rl fetch``; the defaults (FetchReachRotated only) finish in about 2 minutes on 2 CPU cores."""
+    """Settings of ``smcd-rl fetch``; the defaults (FetchReachRotated only) finish in about 4 minutes on 2 CPU cores."""
 
     out: str = setting("runs/fetch", "output directory (results, plot, report, data, trained models)")
     families: tuple[str, ...] = setting(
@@ -56,8 +56,10 @@ class FetchConfig(TuningConfig):
     planners: tuple[str, ...] = setting(("cem", "mppi"), "planners: cem, mppi", choices=tuple(PLANNERS))
     adaptations: tuple[str, ...] = setting(
         VARIANTS,
-        "adaptations: N (none), G (tuned gradient descent), S (calibrated SMCD), "
-        "S(paper) (SMCD at fixed settings: noise --noise-scale x held-out RMSE, --flip-prob)",
+        "adaptations: N (none), G (tuned gradient descent), S (SMCD tuned by one-step error), S(evidence) (SMCD "
+        "calibrated by its evidence), S(paper) (SMCD at fixed settings: noise --noise-scale x held-out RMSE, "
+        "--flip-prob), C (the combination of N, G and S: it predicts with all three, so its cells cost about "
+        "theirs together)",
         choices=tuple(ADAPTATIONS),
     )
     episodes: int = setting(100, "held-out test draws per family (one MPC episode each, the same in every cell)", low=2)
@@ -70,7 +72,7 @@ class FetchConfig(TuningConfig):
         0.01, "MPPI temperature (units of the predicted return: metres of summed distance)", above=0.0
     )
     mppi_noise: float = setting(0.5, "MPPI perturbation std (actions lie in [-1, 1])", above=0.0)
-    particles: int = setting(100, "SMCD mask particles (both SMCD variants)", low=1)
+    particles: int = setting(100, "SMCD mask particles (every SMCD variant, the combination's too)", low=1)
     flip_prob: float = setting(0.01, "bit-flip probability per step of SMCD at fixed settings (S(paper))", low=0.0)
     noise_scale: float = setting(
         1.0, "likelihood noise of S(paper), in units of the network's held-out one-step RMSE per dimension", above=0.0

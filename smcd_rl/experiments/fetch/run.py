@@ -22,12 +22,16 @@ Families (``--families``; only ``reach`` by default):
 The adaptations (``--adaptations``), labelled as in every experiment:
 
 * ``M+N``: no adaptation;
-* ``M+G``: online gradient descent, its ``--gd-lr x --gd-steps x --gd-window`` grid point of best
-  one-step error on the tuning episodes;
-* ``M+S``: SMCD calibrated by log evidence (:func:`smcd_rl.calibrate`) on the tuning episodes;
+* ``M+G``: online gradient descent tuned by one-step error on the tuning episodes
+  (:func:`smcd_rl.tune`: the ``--gd-lr x --gd-steps x --gd-window`` grid, squared error or Huber);
+* ``M+S``: SMCD tuned by one-step error on the tuning episodes (:func:`smcd_rl.tune`);
+* ``M+S(evidence)``: SMCD calibrated by its evidence (:func:`smcd_rl.calibrate`) on the tuning episodes;
 * ``M+S(paper)``: SMCD at fixed settings. The paper has no Fetch task, so the fixed setting is
   this: likelihood noise per observation dimension ``--noise-scale`` (1) times the network's
-  held-out one-step RMSE, and ``--flip-prob`` (0.01, the paper's Ant setting).
+  held-out one-step RMSE, and ``--flip-prob`` (0.01, the paper's Ant setting);
+* ``M+C``: the combination of N, G and S (:class:`smcd_rl.Combination`), tuned on the same
+  episodes. It predicts with every member, inside the planner's rollouts too, so its cells cost
+  about as much as N's, G's and S's together.
 
 **Fair protocol.** The tuning episodes are ``--tuning-episodes`` episodes of ``--tuning-steps``
 data-policy actions, each on a fresh draw of the family (the training distribution), from env
@@ -41,7 +45,9 @@ family's dense reward (``reward_type="dense"``, minus the distance), since the s
 every candidate the same reward until one already reaches the goal. Per cell the mean with a 95%
 bootstrap CI, and paired comparisons over the same draws (and planner seeds) of every adaptive
 method against ``M+N`` and each other (:func:`~smcd_rl.experiments.shared.stats.cell_statistics`). The
-scoreboard entry is the reach success rate under CEM.
+scoreboard entry is the reach success rate under CEM. Each method's median milliseconds per
+observation (one stream, on the family's tuning episodes, measured by the fair protocol) is the
+last column of the results table and the ``ms_per_observation`` of its rows and of the entry.
 
 Writes ``results.csv`` (per family, planner, method and metric the mean with its CI),
 ``trials.csv`` (every episode, with its draw), ``comparisons.csv``, ``results.json`` (with
@@ -53,13 +59,12 @@ Example:
     >>> from smcd_rl.experiments.fetch.config import FetchConfig
     >>> config = FetchConfig()
     >>> config.families, config.planners, config.adaptations
-    (('reach',), ('cem', 'mppi'), ('N', 'G', 'S', 'S(paper)'))
+    (('reach',), ('cem', 'mppi'), ('N', 'G', 'S', 'S(evidence)', 'S(paper)', 'C'))
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -70,10 +75,10 @@ from smcd_rl.digests import model_digest
 from smcd_rl.experiments.fetch.config import ADAPTATIONS, FAMILIES, FULL, PLANNERS, FetchConfig
 from smcd_rl.experiments.fetch.episodes import collect, random_cell, run_cell, tuning_episodes, validation_error
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.experiments.shared.outputs import format_table, save_figure
+from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.tuning import tune
+from smcd_rl.experiments.shared.tuning import ms_column, tune
 from smcd_rl.experiments.shared.video import video_name
 from smcd_rl.experiments.shared.workers import computed
 
@@ -84,13 +89,18 @@ EPISODE_SEED, TUNING_SEED = 1_000_003, 2_000_003
 #: Settings that determine the collected transitions (besides the family).
 DATA_SETTINGS = ("seed", "rotation", "transitions", "data_episode_steps")
 #: The paired comparisons: each adaptive method against M+N and against each other.
-ADAPTIVE = ("M+S", "M+S(paper)", "M+G")
+ADAPTIVE = ("M+S", "M+S(evidence)", "M+S(paper)", "M+G", "M+C")
 #: The reference row: uniform random actions on the same test draws.
 RANDOM = "random actions"
 #: Metrics: name in the rows -> (label, higher is better).
 METRICS = {"success": ("success rate", True), "distance": ("final distance (m)", False)}
-#: Relative stage costs (seconds of the default run on 2 CPU cores, one torch thread).
-COSTS = {"collect": 20.0, "train": 9.0, "tune": 7.0, "evaluate": 15.0, "random": 1.0}
+#: Relative stage costs (seconds of the default run on 2 CPU cores, one torch thread). The tuning
+#: took 7 s before :func:`smcd_rl.tune`, which runs about twice the filter runs
+#: (:func:`~smcd_rl.experiments.shared.stages.tuning_cost` at the defaults: 38 against 19).
+COSTS = {"collect": 20.0, "train": 9.0, "tune": 14.0, "evaluate": 15.0, "random": 1.0}
+#: Network predictions per model step of an adaptation's MPC, where not one: the combination
+#: predicts with each of its members (N, G, S), in every rollout step of the planner.
+PREDICTIONS = {"C": 3.0}
 
 
 def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
@@ -102,6 +112,7 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
         seconds: dict[tuple[str, str, str], float] = {}
         training: dict[str, Any] = {}
         tunings: dict[str, Any] = {}
+        ms: dict[str, dict[str, float]] = {}  # family -> method -> median ms per observation
         plots: dict[str, Any] = {}
         tables: dict[str, str] = {}
         videos: list[str] = []  # --video: the GIFs the cells wrote
@@ -146,11 +157,8 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
             tuning_data = tuning_episodes(family, config, seed=config.seed + TUNING_SEED).to(ex.device)
             tuning = tune(ex, model, tuning_data, config, name=family, paper_noise_std=paper_noise.tolist())
             tunings[family] = tuning
-            content: dict[str, Any] = {
-                "model": model_digest(model),
-                "tuned": asdict(tuning.tuned),
-                "paper": asdict(tuning.paper),
-            }
+            ms[family] = ms_column(list(ADAPTATIONS.values()), {"M": tuning})  # the family's model is "M"
+            content: dict[str, Any] = {"model": model_digest(model), "specs": tuning.specs}
 
             # --- MPC episodes of every (planner, adaptation) cell on the same test draws ----------
             cells = {
@@ -188,7 +196,7 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                 seconds[(family, PLANNERS[planner], ADAPTATIONS[variant])] = result["seconds"]
             episodes[(family, "-", RANDOM)] = reference[f"{family}/random"]["episodes"]
             seconds[(family, "-", RANDOM)] = reference[f"{family}/random"]["seconds"]
-            tables[tuning.caption()] = tuning.table()
+            tables.update(tuning.tables())
             plots[f"tuning-{family}.png"] = tuning.plot
 
         # --- statistics: paired over the same draws in every cell ----------------------------------
@@ -209,7 +217,12 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                 seed=config.seed,
             )
             rows += [
-                {"metric": metric, **_rename(r, metric), "seconds": seconds[(r["family"], r["planner"], r["method"])]}
+                {
+                    "metric": metric,
+                    **_rename(r, metric),
+                    "seconds": seconds[(r["family"], r["planner"], r["method"])],
+                    "ms_per_observation": ms[r["family"]].get(r["method"]),
+                }
                 for r in m_rows
             ]
             comparisons += [{"metric": metric, **c} for c in m_comparisons]
@@ -222,9 +235,10 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
         results_tables = {
             f"Success rate (the env's is_success after the last step) and final distance to the goal, mean [95% CI] "
             f"over {config.episodes} held-out test draws per family, one MPC episode of {config.episode_steps} steps "
-            "each (the same draws and planner seeds in every row)": table(rows),
-            "M+S paired with M+N, M+G and M+S(paper) over the same draws (success: positive is better; "
-            "distance: negative is better)": verdict_table(
+            "each (the same draws and planner seeds in every row); median ms per observation on the tuning "
+            "episodes": table(rows),
+            "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C over the same draws (success: positive "
+            "is better; distance: negative is better)": verdict_table(
                 [c for c in comparisons if c["method"] == "M+S"], cell=("metric", "family", "planner")
             ),
             "The other adaptive methods paired with M+N over the same draws": verdict_table(
@@ -250,6 +264,7 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                         metric="success",
                         unit="success rate",
                         lower_is_better=False,
+                        ms=ms[family],
                     )
                     for family in config.families
                 ],
@@ -280,7 +295,8 @@ def _costs(config: FetchConfig) -> dict[str, float]:
         costs[f"tune {family}"] = COSTS["tune"] * config.tuning_episodes / defaults.tuning_episodes
         for planner in config.planners:
             for variant in config.adaptations:
-                costs[f"evaluate {family}/{planner}/{variant}"] = COSTS["evaluate"] * steps * plan
+                each = PREDICTIONS.get(variant, 1.0)
+                costs[f"evaluate {family}/{planner}/{variant}"] = COSTS["evaluate"] * steps * plan * each
         costs[f"random {family}/random"] = COSTS["random"] * steps
     return costs
 
@@ -298,9 +314,20 @@ def _unrename(row: dict[str, Any]) -> dict[str, Any]:
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    """``mean [95% CI]`` per family, planner and method (down), per metric (across)."""
+    """``mean [95% CI]`` per family, planner and method (down), per metric (across), then ms per observation.
+
+    The last column is the rows' ``ms_per_observation`` ("-" where a row has none, as random actions).
+
+    Example:
+        >>> row = {"family": "reach", "planner": "CEM", "method": "M+S", "mean": 0.5, "low": 0.25, "high": 0.75}
+        >>> print(table([row | {"metric": "success", "ms_per_observation": 2.345}]))
+        | family | planner | method | success rate      | final distance (m) | ms / observation |
+        |--------|---------|--------|-------------------|--------------------|------------------|
+        | reach  | CEM     | M+S    | 0.50 [0.25, 0.75] | -                  | 2.35             |
+    """
     lookup = {(r["family"], r["planner"], r["method"], r["metric"]): r for r in rows}
     keys = list(dict.fromkeys((r["family"], r["planner"], r["method"]) for r in rows))
+    times = {(r["family"], r["planner"], r["method"]): r.get("ms_per_observation") for r in rows}
     body = []
     for family, planner, method in keys:
         cells = []
@@ -310,8 +337,9 @@ def table(rows: list[dict[str, Any]]) -> str:
             cells.append(
                 "-" if r is None else f"{r['mean']:.{digits}f} [{r['low']:.{digits}f}, {r['high']:.{digits}f}]"
             )
-        body.append([family, planner, method, *cells])
-    return format_table(body, ["family", "planner", "method", *(label for label, _ in METRICS.values())])
+        body.append([family, planner, method, *cells, ms_cell(times[(family, planner, method)])])
+    header = ["family", "planner", "method", *(label for label, _ in METRICS.values()), "ms / observation"]
+    return format_table(body, header)
 
 
 def _plot(rows: list[dict[str, Any]], config: FetchConfig, path: Path) -> None:

@@ -18,9 +18,12 @@ __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SI
 #: The parts of the command (``--parts``).
 PARTS: tuple[str, ...] = ("fig9", "confidence", "lookahead")
 #: Fig. 14's methods: M multi-task / R Reptile training; N none / G gradient descent (tuned) / S SMCD
-#: (calibrated) / S(paper) SMCD at the paper's settings.
-METHODS: tuple[str, ...] = ("M+N", "M+G", "M+S", "M+S(paper)", "R+N", "R+G", "R+S", "R+S(paper)")
-#: What runs by default (R+S(paper) only on request: the R network's comparison is R+S against R+G).
+#: tuned by one-step error / S(evidence) SMCD calibrated by its evidence / S(paper) SMCD at the paper's
+#: settings / C the combination of N, G and S.
+METHODS: tuple[str, ...] = tuple(
+    f"{network}+{variant}" for network in ("M", "R") for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C")
+)
+#: What runs by default (R+S(paper) only on request: the R network's comparison is with its tuned methods).
 DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m != "R+S(paper)")
 #: The labels of :func:`~smcd_rl.envs.drone_operators.simulate_operators` (a ``--dataset`` may have others).
 SIMULATED_LABELS: tuple[str, ...] = ("skill", "strategy", "phase", "success", "target")
@@ -89,7 +92,8 @@ class InterpretConfig(TuningConfig):
     # --- look-ahead (Fig. 14)
     methods: tuple[str, ...] = setting(
         DEFAULT_METHODS,
-        "look-ahead methods: M (multi-task) or R (Reptile) + N, G (tuned), S (calibrated) or S(paper)",
+        "look-ahead methods: M (multi-task) or R (Reptile) + N, G (tuned GD), S (SMCD tuned by one-step error), "
+        "S(evidence) (SMCD calibrated by its evidence), S(paper) or C (the combination of N, G and S)",
         choices=METHODS,
     )
     burn_in: tuple[float, ...] = setting(
@@ -101,7 +105,7 @@ class InterpretConfig(TuningConfig):
     # --- the fair protocol (smcd_rl.experiments.shared.tuning): the grid fields come from TuningConfig
     tuning_episodes: int = setting(
         32,
-        "held-out training-distribution flights SMCD and GD are tuned on (fresh simulated operators, or "
+        "held-out training-distribution flights every method is tuned on (fresh simulated operators, or "
         "flights held out of a --dataset's training split; never test flights)",
         low=2,
     )

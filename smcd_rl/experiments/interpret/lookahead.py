@@ -5,13 +5,15 @@ steps, then predicts the operator's actions on the next ``h = max(1, round(rh T)
 to ``b + h <= T``) from the observed states, with no further adaptation. The score is the RMSE
 over the horizon's steps and the 3 action dims, per trajectory; a trajectory with ``b >= T`` is
 left out of that burn-in's cells. Methods: M (multi-task) or R (Reptile, operators as tasks:
-:func:`smcd_rl.fit_reptile`) with N (none), G (gradient descent, tuned), S (SMCD, calibrated) or
-S(paper) (SMCD at the paper's settings).
+:func:`smcd_rl.fit_reptile`) with N (none), G (gradient descent, tuned), S (SMCD tuned by one-step
+error), S(evidence) (SMCD calibrated by its evidence), S(paper) (SMCD at the paper's settings) or
+C (the combination of N, G and S).
 
-The fair protocol (:mod:`smcd_rl.experiments.shared.tuning`): before any test flight is seen, each trained
-network's GD is grid-tuned (``--gd-lr`` x ``--gd-steps`` x ``--gd-window``, by one-step error) and
-its SMCD calibrated (by log evidence) on ``--tuning-episodes`` training-distribution flights that
-the networks were not fitted on, each cut to its first ``--tuning-steps`` steps
+The fair protocol (:mod:`smcd_rl.experiments.shared.tuning`): before any test flight is seen, each
+trained network's methods are tuned by :func:`smcd_rl.tune` (GD from the grid ``--gd-lr`` x
+``--gd-steps`` x ``--gd-window``, SMCD and the combination, all by one-step error) and its SMCD
+calibrated by log evidence (``S(evidence)``) on ``--tuning-episodes`` training-distribution flights
+that the networks were not fitted on, each cut to its first ``--tuning-steps`` steps
 (:func:`tuning_flights`): for the simulated operators, flights of freshly simulated operators (one
 flight each, from the same population as the training operators); for a ``--dataset``, flights
 held out of the training split (never an operator's last one), which M and R are then not fitted
@@ -68,7 +70,7 @@ TUNING_SEED = 7919
 def tuning_flights(
     config: InterpretConfig, data: TrajectoryDataset | None, split: dict[str, np.ndarray] | None
 ) -> tuple[TrajectoryDataset, np.ndarray | None]:
-    """The flights SMCD and GD are tuned on, and the training trajectories the networks are fitted on.
+    """The flights every method is tuned on, and the training trajectories the networks are fitted on.
 
     Simulated operators (no ``--dataset``): one flight, at least ``--tuning-steps`` long, of each of
     ``--tuning-episodes`` freshly simulated operators (seed ``--seed + TUNING_SEED``); the training
@@ -103,7 +105,7 @@ def tuning_episodes(flights: TrajectoryDataset, config: InterpretConfig, device:
     """``[E, --tuning-steps]`` states and actions: the first steps of each tuning flight."""
     if flights.num_trajectories < 2 or int(flights.lengths.min()) < config.tuning_steps:
         raise ValueError(
-            f"SMCD's calibration and GD's tuning need at least 2 training-distribution flights of at least "
+            f"the tuning of every method needs at least 2 training-distribution flights of at least "
             f"--tuning-steps {config.tuning_steps} steps; only {flights.num_trajectories} were found: lower "
             "--tuning-steps or give more training flights"
         )
@@ -131,8 +133,9 @@ def make_method(
     config: InterpretConfig,
     device: torch.device,
 ) -> smcd_rl.AdaptiveModel:
-    """Method ``name``: its trained network (``M`` or ``R``) with its strategy (``N``, tuned ``G``,
-    calibrated ``S`` or ``S(paper)``, from that network's :class:`~smcd_rl.experiments.shared.tuning.Tuning`)."""
+    """Method ``name``: its trained network (``M`` or ``R``) with its strategy (``N``, tuned ``G``, ``S``
+    tuned by one-step error, ``S(evidence)``, ``S(paper)`` or ``C``, from that network's
+    :class:`~smcd_rl.experiments.shared.tuning.Tuning`)."""
     strategy = strategy_for(name, tunings, seed=config.seed + 41, device=device)
     return bases[method_variant(name)[0]].with_adaptation(strategy)
 
@@ -215,20 +218,32 @@ def cell_scores(
     return scores
 
 
-def table(rows: list[dict[str, Any]], config: InterpretConfig) -> str:
-    """Action RMSE, mean [95% CI] over test trajectories: rows set, method, burn-in ratio; columns horizon ratio."""
+def table(rows: list[dict[str, Any]], config: InterpretConfig, ms: Mapping[str, float] | None = None) -> str:
+    """Action RMSE, mean [95% CI] over test trajectories: rows set, method, burn-in ratio; columns horizon ratio.
+
+    The last column is the method's median milliseconds per observation on the tuning flights
+    (``ms``, by :func:`~smcd_rl.experiments.shared.tuning.ms_column`; "-" for a method without one).
+    """
+    ms = ms or {}
     lookup = {
         (r["set"], r["method"], r["burn_in"], r["horizon"]): f"{r['rmse_mean']:.3f} [{r['rmse_low']:.3f}, "
         f"{r['rmse_high']:.3f}]"
         for r in rows
     }
     body = [
-        [set_name, method, rb, *[lookup.get((set_name, method, rb, rh), "-") for rh in config.horizons]]
+        [
+            set_name,
+            method,
+            rb,
+            *[lookup.get((set_name, method, rb, rh), "-") for rh in config.horizons],
+            f"{ms[method]:.3g}" if method in ms else "-",
+        ]
         for set_name in SETS
         for method in config.methods
         for rb in config.burn_in
     ]
-    return format_table(body, ["operators", "method", "burn-in", *[f"h={rh}" for rh in config.horizons]])
+    header = ["operators", "method", "burn-in", *[f"h={rh}" for rh in config.horizons], "ms / observation"]
+    return format_table(body, header)
 
 
 def plot(rows: list[dict[str, Any]], config: InterpretConfig, path: Path) -> None:

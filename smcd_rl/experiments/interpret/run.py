@@ -9,11 +9,14 @@ Three parts (``--parts``), each resumable, each in a module of its own:
   confidence of drone operators' skill, strategy, phase and success from the ``k`` nearest
   stored masks, known and unknown operators apart.
 * ``lookahead`` (Fig. 14; :mod:`~smcd_rl.experiments.interpret.lookahead`): action RMSE of
-  M+N, M+G, M+S, M+S(paper) and, with Reptile, R+N, R+G, R+S (R+S(paper) on request) after a
-  burn-in. The fair protocol (:mod:`smcd_rl.experiments.shared.tuning`): G is grid-tuned and S calibrated
-  per network on ``--tuning-episodes`` training-distribution flights the networks were not fitted
-  on (freshly simulated operators, or flights held out of a ``--dataset``'s training split), never
-  on the test flights; S(paper) keeps ``--noise-scale`` and ``--flip-prob``.
+  M+N, M+G, M+S, M+S(evidence), M+S(paper), M+C and, with Reptile, R+N, R+G, R+S, R+S(evidence),
+  R+C (R+S(paper) on request) after a burn-in. The fair protocol
+  (:mod:`smcd_rl.experiments.shared.tuning`): per network, :func:`smcd_rl.tune` tunes G, S (SMCD
+  tuned by one-step error) and C (the combination of N, G and S) by one-step error, and
+  S(evidence) is SMCD calibrated by its evidence, all on ``--tuning-episodes`` training-distribution
+  flights the networks were not fitted on (freshly simulated operators, or flights held out of a
+  ``--dataset``'s training split), never on the test flights; S(paper) keeps ``--noise-scale`` and
+  ``--flip-prob``. Fig. 14's table gives each method's median milliseconds per observation.
 
 Reads top to bottom: for each part, its data, its models (trained or resumed by the harness),
 its methods (cached by the models' and the dataset's content), then per-trial scores with 95%
@@ -26,19 +29,19 @@ Writes ``fig9.csv``, ``confidence.csv``, ``lookahead.csv`` (each part's table ro
 score), ``comparisons.csv`` (the paired comparisons), ``results.json``, ``report.md``,
 ``fig9.png``, ``fig4_skill_strategy.png``, ``fig13_phase_success.png``, ``fig14_lookahead.png``,
 ``tuning-M.png`` / ``tuning-R.png`` (the tuning's diagnosis), the dataset used (``dataset.npz``) and
-the trained models. With the look-ahead part, ``results.json`` holds ``"tuning"`` (chosen settings
-and every candidate, per network) and ``"scoreboard"`` (Fig. 14's headline cell for
-``smcd-rl scoreboard``).
+the trained models. With the look-ahead part, ``results.json`` holds ``"tuning"`` (chosen settings,
+times per observation and the tuning tables, per network) and ``"scoreboard"`` (Fig. 14's headline
+cell for ``smcd-rl scoreboard``, with ``ms_per_observation``); ``lookahead.csv``'s rows carry
+``ms_per_observation`` where the method was timed.
 
 Example:
     >>> from smcd_rl.experiments.interpret.config import InterpretConfig, METHODS
-    >>> InterpretConfig().k, METHODS
-    (5, ('M+N', 'M+G', 'M+S', 'M+S(paper)', 'R+N', 'R+G', 'R+S', 'R+S(paper)'))
+    >>> InterpretConfig().k, METHODS[:6]
+    (5, ('M+N', 'M+G', 'M+S', 'M+S(evidence)', 'M+S(paper)', 'M+C'))
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict
 from functools import partial
 from typing import Any
 
@@ -63,12 +66,16 @@ from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import verdict_table
-from smcd_rl.experiments.shared.tuning import Tuning, method_variant, tune
+from smcd_rl.experiments.shared.tuning import Tuning, method_variant, ms_column, tune
 
 __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SIMULATED_LABELS", "run"]
 
-#: The adaptive methods, each compared (paired over the same trajectories) with M+N and with each other.
-ADAPTIVE: tuple[str, ...] = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N")
+#: The adaptive methods, each compared (paired over the same trajectories) with M+N and with each other
+#: (the earlier one of a pair is its ``method``: M+S is compared against every other M method).
+ADAPTIVE: tuple[str, ...] = (
+    *(f"{network}+{variant}" for network in ("M", "R") for variant in ("S", "C", "S(evidence)", "S(paper)", "G")),
+    "R+N",
+)
 
 
 #: Mean steps of a simulated landing (62 in the tiny test run's dataset), and the drone model's sizes.
@@ -269,13 +276,13 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                 )
                 reptile.save(ex.out / "reptile_model.pt")
                 bases["R"] = reptile
-            # The fair protocol: each network's GD tuned and SMCD calibrated on the tuning flights.
+            # The fair protocol: each network's methods tuned on the tuning flights.
             tunings: dict[str, Tuning] = {}
             if tuning_episodes is not None:
                 for key in adapting:
                     paper_noise = drone.noise_std(bases[key], fitted, config, ex.device)
                     tunings[key] = tune(ex, bases[key], tuning_episodes, config, name=key, paper_noise_std=paper_noise)
-                    report.tables[tunings[key].caption()] = tunings[key].table()
+                    report.tables.update(tunings[key].tables())
                     report.plots[f"tuning-{key}.png"] = tunings[key].plot
                 report.payload["tuning"] = {key: t.payload() for key, t in tunings.items()}
             errors = ex.evaluate(
@@ -287,7 +294,7 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                 content={
                     **{key: model_digest(m) for key, m in bases.items()},
                     "dataset": dataset,
-                    "tuning": {key: [asdict(t.tuned), asdict(t.paper)] for key, t in tunings.items()},
+                    "tuning": {key: t.specs for key, t in tunings.items()},
                 },
                 kind="lookahead",
             )
@@ -301,9 +308,13 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                 metric="rmse",
                 seed=config.seed,
             )
-            report.tables[LOOKAHEAD] = lookahead.table(rmse, config)
+            ms = ms_column(config.methods, tunings)
+            for row in rmse:  # the rows of lookahead.csv and results.csv, timed where the method was
+                if row["method"] in ms:
+                    row["ms_per_observation"] = ms[row["method"]]
+            report.tables[LOOKAHEAD] = lookahead.table(rmse, config, ms)
             comparisons = report.comparisons["lookahead"]
-            headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
+            headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in HEADLINE_AGAINST]
             if headline:
                 report.tables[HEADLINE] = verdict_table(headline, cell=cell)
             report.plots["fig14_lookahead.png"] = lambda path: lookahead.plot(rmse, config, path)
@@ -314,6 +325,7 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                 cell={"set": "unknown", "burn_in": max(config.burn_in), "horizon": min(config.horizons)},
                 metric="rmse",
                 unit="m/s",
+                ms=ms,
             )
 
         # --- results: each part's CSV, every part in results.csv / trials.csv / comparisons.csv ------
@@ -324,6 +336,14 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
 # Table captions and the label groups of the two confidence figures.
 FIG9 = "Fig. 9: top-k link-length accuracy of two-link masks, mean [95% CI] over held-out arms"
 CONFIDENCE = "Figs. 4 / 13: eq. (9) confidence of the true label, k = {k}, mean [95% CI] over test trajectories"
-LOOKAHEAD = "Fig. 14: look-ahead action RMSE (m/s), mean [95% CI] over test trajectories; columns: horizon ratio"
-HEADLINE = "M+S paired with M+N, M+G and M+S(paper) over the same trajectories (negative: M+S's error is lower)"
+LOOKAHEAD = (
+    "Fig. 14: look-ahead action RMSE (m/s), mean [95% CI] over test trajectories; columns: horizon ratio, "
+    "then the median ms per observation"
+)
+#: The methods M+S is paired with in the headline table.
+HEADLINE_AGAINST = ("M+N", "M+G", "M+S(evidence)", "M+S(paper)", "M+C")
+HEADLINE = (
+    "M+S paired with M+N, M+G, M+S(evidence), M+S(paper) and M+C over the same trajectories "
+    "(negative: M+S's error is lower)"
+)
 SKILL, PHASE = ("skill", "strategy"), ("phase", "success")

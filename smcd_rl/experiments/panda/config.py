@@ -38,8 +38,10 @@ MAX_EPISODE_STEPS: int = 200
 #: The measurement intervals n run by default.
 DEFAULT_INTERVALS = (1, 2, 5, 10, 20)
 
-#: Methods of Fig. 3 that this command runs: S is calibrated SMCD, S(paper) SMCD at the paper's settings.
-METHODS = ("FK", "M+N", "M+G", "M+S", "M+S(paper)")
+#: Methods of Fig. 3 that this command runs, all by default: N none, G tuned GD, S SMCD tuned by
+#: one-step error, S(evidence) SMCD calibrated by its evidence, S(paper) SMCD at the paper's
+#: settings, C the combination of N, G and S.
+METHODS = ("FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C")
 
 # Power (the default trial count). The methods run on the same arms, so a verdict such as M+S
 # against M+G is a paired comparison of binary outcomes: only the discordant arms (one method
@@ -52,19 +54,23 @@ METHODS = ("FK", "M+N", "M+G", "M+S", "M+S(paper)")
 # Time (1 thread, 2 shared cores), measured on 1 seed x 100 arms at n = 1 and 20 with 100
 # particles: M+S 8 s and M+S(paper) 16 s at n = 1 (SMCD's cost is its observations, ~1/n of that at
 # n > 1), M+G 35 s at n = 1 and 13 s at n = 20 (its per-arm weights cost at every control step),
-# FK and M+N under 1 s. Over n in {1, 2, 5, 10, 20} that is ~150 s per seed, so the default run
-# takes ~8-9 min with training (20 s) and tuning (25 s). 300 particles would triple SMCD's share
-# (~13 min), so the default is 100 (the paper's smaller count; --full uses 1000).
+# FK and M+N under 1 s. Over n in {1, 2, 5, 10, 20} that is ~150 s per seed, so those five methods
+# take ~8-9 min with training (20 s) and tuning (25 s, before smcd_rl.tune). Estimated, not measured:
+# M+S(evidence) costs about what M+S does (~15 s per seed) and M+C about M+G and M+S together (it
+# runs both; ~115 s per seed), so the seven default methods take ~280 s per seed, ~15 min in all.
+# 300 particles would triple SMCD's share, so the default is 100 (the paper's smaller count; --full
+# uses 1000).
 
 
 @dataclass
 class PandaConfig(AdaptationConfig):
-    """Settings of ``smcd-rl panda``; the defaults finish in about 9 minutes on 2 CPU cores.
+    """Settings of ``smcd-rl panda``; the defaults finish in about 15 minutes on 2 CPU cores (estimated).
 
-    SMCD and gradient descent follow the fair protocol (:mod:`smcd_rl.experiments.shared.tuning`): ``M+S``
-    is SMCD calibrated and ``M+G`` gradient descent grid-tuned (``--gd-lr x --gd-steps x
-    --gd-window``) on ``--tuning-episodes`` held-out episodes of fresh training-distribution tools;
-    ``M+S(paper)`` is SMCD at ``--noise-std`` and ``--flip-prob``.
+    SMCD and gradient descent follow the fair protocol (:mod:`smcd_rl.experiments.shared.tuning`): on
+    ``--tuning-episodes`` held-out episodes of fresh training-distribution tools, ``M+S`` is SMCD
+    tuned by one-step error, ``M+G`` gradient descent tuned by it too (``--gd-lr x --gd-steps x
+    --gd-window``, extended past an edge) and ``M+C`` the combination of N, G and S; ``M+S(evidence)``
+    is SMCD calibrated by its evidence and ``M+S(paper)`` SMCD at ``--noise-std`` and ``--flip-prob``.
     """
 
     out: str = setting("runs/panda", "output directory (results, plot, report, trained model)")
@@ -83,11 +89,12 @@ class PandaConfig(AdaptationConfig):
     steps: int = setting(MAX_EPISODE_STEPS, "control steps per task: success is reaching the goal within them", low=1)
     methods: tuple[str, ...] = setting(
         METHODS,
-        "methods to run: FK (chain without the tool); M (the network) + N (none), G (GD, tuned), S (SMCD, "
-        "calibrated) or S(paper) (SMCD at --noise-std and --flip-prob)",
+        "methods to run: FK (chain without the tool); M (the network) + N (none), G (GD, tuned), S (SMCD tuned "
+        "by one-step error), S(evidence) (SMCD calibrated by its evidence), S(paper) (SMCD at --noise-std and "
+        "--flip-prob) or C (the combination of N, G and S)",
         choices=METHODS,
     )
-    particles: int = setting(100, "SMCD mask particles (M+S, M+S(paper) and the calibration)", low=1)
+    particles: int = setting(100, "SMCD mask particles (every SMCD method, M+C's too, and the tuning)", low=1)
     flip_prob: float = setting(
         0.05, "bit-flip probability per step of M+S(paper), SMCD at the paper's settings", low=0.0, high=1.0
     )

@@ -1,8 +1,9 @@
 """The reaching loop of ``smcd-rl panda``: a batch of Panda arms under Jacobian PD control, measured every n-th step.
 
 :func:`sample_tasks` draws one seed's tools and goals, :func:`method_kinematics` turns a method
-label (``FK``, ``M+N``, ``M+G``, ``M+S (N=...)``) into the controller's kinematics and what a
-measurement updates, and :func:`reach` drives the arms and reports who got there.
+label (``FK``, ``M+N``, ``M+G``, ``M+S``, ``M+S(evidence)``, ``M+S(paper)``, ``M+C``) into the
+controller's kinematics and what a measurement updates, and :func:`reach` drives the arms and
+reports who got there.
 """
 
 from __future__ import annotations
@@ -98,8 +99,10 @@ def method_kinematics(
 ) -> tuple[Kinematics, Observe | None]:
     """The controller's kinematics and, for adaptive models, what a measurement updates.
 
-    ``M+G`` and ``M+S`` adapt with the settings ``tuning`` chose (tuned GD, calibrated SMCD),
-    ``M+S(paper)`` with SMCD at ``--noise-std`` and ``--flip-prob``; ``M+N`` does not adapt.
+    Every method but ``FK`` and ``M+N`` adapts with the strategy ``tuning`` holds for it: ``M+G``
+    tuned GD, ``M+S`` SMCD tuned by one-step error, ``M+S(evidence)`` SMCD calibrated by its
+    evidence, ``M+C`` the combination of N, G and S, ``M+S(paper)`` SMCD at ``--noise-std`` and
+    ``--flip-prob``; ``M+N`` does not adapt.
     """
     if label == "FK":
         return (lambda q: panda_fk(q, 0.0)), None  # the tool is unknown: assume none

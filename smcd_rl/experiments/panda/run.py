@@ -9,21 +9,26 @@ within ``steps`` control steps.
 
 Methods (Fig. 3): ``FK``, the analytic chain that does not know the tool (assumes ``l = 0``);
 ``M+N``, the trained network with no adaptation; ``M+G``, online gradient descent (tuned);
-``M+S``, SMCD (calibrated); ``M+S(paper)``, SMCD at the paper's settings (``--noise-std`` 0.02 m,
-``--flip-prob`` 0.05). At every n-th step (0, n, 2n, ...) the true end effector is measured: the
-adaptive model observes ``(q, measured x)`` and the controller corrects the measured error. In
-between, nothing is observed and the controller corrects the error of its own kinematics'
-prediction (model-reference control). ``FK`` at ``n = 1`` is the reference line of Fig. 3.
+``M+S``, SMCD tuned by one-step error; ``M+S(evidence)``, SMCD calibrated by its evidence;
+``M+S(paper)``, SMCD at the paper's settings (``--noise-std`` 0.02 m, ``--flip-prob`` 0.05);
+``M+C``, the combination of N, G and S (:class:`smcd_rl.Combination`). At every n-th step (0, n,
+2n, ...) the true end effector is measured: the adaptive model observes ``(q, measured x)`` and the
+controller corrects the measured error. In between, nothing is observed and the controller
+corrects the error of its own kinematics' prediction (model-reference control). ``FK`` at
+``n = 1`` is the reference line of Fig. 3.
 
 The fair protocol (:mod:`smcd_rl.experiments.shared.tuning`): before any test task is seen,
 ``--tuning-episodes`` episodes are drawn from the *training* distribution (each a fresh tool from
-``U(-tool_range, tool_range)`` observed at ``--tuning-steps`` uniform joint configurations, from a
-generator of its own, so neither training samples nor test tasks are among them). On them SMCD's
-likelihood noise and flip probability are calibrated by log evidence (``M+S``) and gradient
-descent's learning rate, steps and window are picked from the grid ``--gd-lr x --gd-steps x
---gd-window`` by one-step error (``M+G``; one value each makes a one-point grid). ``M+S(paper)`` is
-not tuned. The report's tuning table and ``tuning-M.png`` show the chosen settings and each
-strategy's diagnosis on those episodes; ``results.json`` holds them under ``"tuning"``.
+``U(-tool_range, tool_range)`` observed at ``--tuning-steps`` states of a reach towards a fresh goal,
+from a generator of its own, so neither training samples nor test tasks are among them). On them
+:func:`smcd_rl.tune` tunes every method by one-step error: SMCD's likelihood noise and flip
+probability (``M+S``), gradient descent's learning rate, steps, window and loss from the grid
+``--gd-lr x --gd-steps x --gd-window`` (``M+G``; one value each makes a one-point grid, extended
+past an edge while the best point lies there) and the combination's weights (``M+C``).
+``M+S(evidence)`` is SMCD calibrated by its log evidence instead; ``M+S(paper)`` is not tuned. The
+report's tuning tables and ``tuning-M.png`` show the chosen settings, each method's median time
+per observation (also the results table's last column) and each strategy's diagnosis on those
+episodes; ``results.json`` holds them under ``"tuning"``.
 
 Writes ``results.csv`` (success rate per method and n: mean and 95 % CI over all arms, std over
 seeds), ``trials.csv`` (every arm: reached, steps, final distance, tool), ``comparisons.csv``
@@ -51,7 +56,7 @@ Example:
     >>> from smcd_rl.experiments.panda.run import PandaConfig, method_labels
     >>> config = PandaConfig()
     >>> method_labels(config)
-    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(paper)']
+    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(evidence)', 'M+S(paper)', 'M+C']
     >>> config.tasks * config.seeds, config.gd_lr, PandaConfig(gd_lr=(0.01,)).gd_lr
     (300, (0.003, 0.01, 0.03, 0.1), (0.01,))
 """
@@ -78,7 +83,7 @@ from smcd_rl.experiments.shared.outputs import format_table, save_figure
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.tuning import Tuning, tune
+from smcd_rl.experiments.shared.tuning import Tuning, ms_column, tune
 from smcd_rl.experiments.shared.video import video_name, write_gif
 
 __all__ = [
@@ -118,8 +123,8 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
         held_out_rmse = _held_out_rmse(model, held_out.to(ex.device))
 
         # --- the fair protocol: SMCD and GD tuned on held-out episodes of fresh training tools ------
-        adapts = any(m in config.methods for m in ("M+G", "M+S", "M+S(paper)"))
-        tuning = tune(ex, model, tuning_episodes(config, ex.device), config, name="M") if adapts else None
+        tuning = tune(ex, model, tuning_episodes(config, ex.device), config, name="M") if _adapts(config) else None
+        tunings = {"M": tuning} if tuning is not None else {}
 
         # --- every (method, n) on the same arms: each seed's tasks run as one batch -----------------
         labels = method_labels(config)
@@ -143,7 +148,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             (n,): {label: r["reached"].reshape(-1).double() for (label, m), r in results.items() if m == n}
             for n in intervals
         }
-        adaptive = [m for m in ("M+S", "M+S(paper)", "M+G", "FK") if m in labels]
+        adaptive = [m for m in ("M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+G", "FK") if m in labels]
         rows, comparisons = cell_statistics(
             scores,
             cell=("interval",),
@@ -153,19 +158,22 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             lower_is_better=False,
             seed=config.seed,
         )
-        rows = sorted((_describe(row, results, config) for row in rows), key=lambda r: labels.index(r["method"]))
-        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
-        tunings = {"M": tuning} if tuning is not None else {}
+        ms = ms_column(labels, tunings)
+        rows = sorted((_describe(row, results, config, ms) for row in rows), key=lambda r: labels.index(r["method"]))
+        headline = [
+            c
+            for c in comparisons
+            if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(evidence)", "M+S(paper)")
+        ]
         ex.write(
             experiment="7-DOF Panda reaching with an unknown tool and sparse measurements (paper Fig. 3)",
             tables={
                 f"Success rate (within {100 * config.tolerance:.0f} cm in {config.steps} steps), mean [95% CI] over "
                 f"{config.seeds} seeds x {config.tasks} arms; the network's held-out RMSE (mean mask) is "
-                f"{held_out_rmse:.3f} m": table(rows, config),
-                "M+S paired with M+N, M+G and M+S(paper) over the same arms (positive: M+S reaches more goals)": (
-                    verdict_table(headline, cell=("interval",))
-                ),
-                **{t.caption(): t.table() for t in tunings.values()},
+                f"{held_out_rmse:.3f} m; median ms per observation": table(rows, config),
+                "M+S paired with M+N, M+G, M+S(evidence) and M+S(paper) over the same arms "
+                "(positive: M+S reaches more goals)": verdict_table(headline, cell=("interval",)),
+                **{caption: text for t in tunings.values() for caption, text in t.tables().items()},
             },
             rows=rows,
             trials=_trial_rows(results, config),
@@ -182,6 +190,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
                     metric="success",
                     unit="success rate",
                     lower_is_better=False,
+                    ms=ms,
                 ),
             },
             plots={
@@ -279,7 +288,7 @@ def stage_costs(config: PandaConfig) -> dict[str, float]:
             flops=flops,
         )
     }
-    if any(m in config.methods for m in ("M+G", "M+S", "M+S(paper)")):
+    if _adapts(config):
         costs["tune M"] = tuning_cost(config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops)
     for label in method_labels(config):
         for n in _intervals(label, config):
@@ -293,13 +302,24 @@ def stage_costs(config: PandaConfig) -> dict[str, float]:
     return costs
 
 
+def _adapts(config: PandaConfig) -> bool:
+    """Whether a method adapts the network, so that it needs the tuning (every ``M+`` method but ``M+N``)."""
+    return any(m.startswith("M+") and m != "M+N" for m in config.methods)
+
+
 def _intervals(label: str, config: PandaConfig) -> list[int]:
     # FK with a measurement every step is the reference line of Fig. 3, so it always runs.
     return sorted(set(config.intervals) | ({1} if label == "FK" else set()))
 
 
-def _describe(row: dict[str, Any], results: dict[tuple[str, int], dict[str, Any]], config: PandaConfig) -> dict:
-    """A table row with what the success rate leaves out: spread over seeds, steps, final distance."""
+def _describe(
+    row: dict[str, Any], results: dict[tuple[str, int], dict[str, Any]], config: PandaConfig, ms: dict[str, float]
+) -> dict:
+    """A table row with what the success rate leaves out: spread over seeds, steps, final distance, and time.
+
+    ``ms`` maps a method to its median ms per observation on the tuning episodes; a method
+    without one (FK, or M+N of a run that tuned nothing) has no ``ms_per_observation``.
+    """
     r = results[(row["method"], row["interval"])]
     rates, reached = r["reached"].double().mean(1), r["reached"].reshape(-1)
     steps = r["steps"].reshape(-1).double()
@@ -311,6 +331,7 @@ def _describe(row: dict[str, Any], results: dict[tuple[str, int], dict[str, Any]
         "seeds": config.seeds,
         "tasks": config.tasks,
         "seconds": r["seconds"],
+        **({"ms_per_observation": ms[row["method"]]} if row["method"] in ms else {}),
     }
 
 
@@ -333,9 +354,22 @@ def _trial_rows(results: dict[tuple[str, int], dict[str, Any]], config: PandaCon
 
 
 def table(rows: list[dict[str, Any]], config: PandaConfig) -> str:
-    """Success rate (mean [95% CI] over all arms), method down and measurement interval n across."""
+    """Success rate (mean [95% CI] over all arms), method down and measurement interval n across.
+
+    The last column is the method's median milliseconds per observation on the tuning episodes
+    (its rows' ``ms_per_observation``; "-" for a method without one, such as FK).
+
+    Example:
+        >>> row = {"method": "M+S", "interval": 5, "success_mean": 0.5, "success_low": 0.4, "success_high": 0.6}
+        >>> print(table([{**row, "ms_per_observation": 2.345}, {**row, "method": "FK"}], PandaConfig(intervals=(5,))))
+        | method | n=5               | ms / observation |
+        |--------|-------------------|------------------|
+        | M+S    | 0.50 [0.40, 0.60] | 2.35             |
+        | FK     | 0.50 [0.40, 0.60] | -                |
+    """
     intervals = sorted(set(config.intervals))
     lookup = {(r["method"], r["interval"]): r for r in rows}
+    ms = {r["method"]: r["ms_per_observation"] for r in rows if r.get("ms_per_observation") is not None}
     body = []
     for label in dict.fromkeys(r["method"] for r in rows):
         cells = []
@@ -344,8 +378,8 @@ def table(rows: list[dict[str, Any]], config: PandaConfig) -> str:
             cells.append(
                 "-" if r is None else f"{r['success_mean']:.2f} [{r['success_low']:.2f}, {r['success_high']:.2f}]"
             )
-        body.append([label, *cells])
-    return format_table(body, ["method", *[f"n={n}" for n in intervals]])
+        body.append([label, *cells, f"{ms[label]:.3g}" if label in ms else "-"])
+    return format_table(body, ["method", *[f"n={n}" for n in intervals], "ms / observation"])
 
 
 def _held_out_rmse(model: smcd_rl.AdaptiveModel, data: TensorDict) -> float:

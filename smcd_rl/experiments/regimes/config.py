@@ -72,7 +72,6 @@ class RegimesConfig(TwoLinkFamilyConfig):
     outlier_burn_in: int = setting(10, "observations of the outlier regime (the corrupted one is the middle)", low=2)
     every: int = setting(5, "every n-th step measured in the 'every n-th' regime", low=2)
     every_steps: int = setting(30, "steps of the 'every n-th' regime (every n-th of them observed)", low=2)
-    budget_ms: float = setting(10.0, "per-observation budget (ms, one thread) of the budgeted view", above=0.0)
     pendulum_tasks: int = setting(200, "training pendulums (mass and length draws)", low=1)
     pendulum_episodes: int = setting(10, "random-torque episodes per training pendulum", low=1)
     pendulum_steps: int = setting(20, "steps per training episode of the pendulum", low=2)

@@ -27,12 +27,10 @@ import smcd_rl
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.regimes.config import BUDGETED, RegimesConfig
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.tuning import build_strategy, ms_per_observation
+from smcd_rl.experiments.shared.tuning import tuned_specs
+from smcd_rl.tuning import build_strategy
 
 __all__ = ["tune_network", "strategy_of", "residual_of", "budgeted_label"]
-
-#: Method -> the kind of :func:`smcd_rl.tune`'s result it takes.
-TUNED = {"N": "none", "G": "gradient_descent", "S": "smcd", "C": "combination"}
 
 
 def budgeted_label(method: str, config: RegimesConfig) -> str:
@@ -87,44 +85,5 @@ def tune_network(
 def _tune(
     ex: Experiment, model: smcd_rl.AdaptiveModel, episodes: TensorDictBase, config: RegimesConfig, *, name: str
 ) -> dict[str, Any]:
-    seed = config.seed + 23
-    device = str(ex.device)
-    grid = {"lr": config.gd_lr, "steps": config.gd_steps, "window": config.gd_window}
-    common: dict[str, Any] = {"num_particles": config.particles, "gd_grid": grid, "seed": seed, "progress": ex.progress}
-    free = smcd_rl.tune(model, episodes, **common)
-    budgeted = smcd_rl.tune(model, episodes, budget_ms=config.budget_ms, reuse=free, **common)
-    specs: dict[str, dict[str, Any]] = {}
-    ms: dict[str, float] = {}
-    for method, kind in TUNED.items():
-        for label, result in ((method, free), (budgeted_label(method, config), budgeted)):
-            if kind in result.best_of:
-                specs[label] = {"kind": kind, "settings": result.best_of[kind].settings}
-                ms[label] = result.best_of[kind].ms_per_step
-        if method in specs and specs.get(budgeted_label(method, config)) == specs[method]:
-            ms[budgeted_label(method, config)] = ms[method]  # the same strategy: one time, not two noisy ones
-    evidence = smcd_rl.calibrate(
-        model,
-        episodes,
-        base=smcd_rl.SMCD(num_particles=config.particles),
-        flip_probs=config.calibrate_flips,
-        criterion="evidence",
-        seed=seed,
-        progress=ex.progress,
-    )
-    specs["S(evidence)"] = {"kind": "smcd", "settings": {**evidence.strategy.config(), "seed": seed, "device": device}}
-    paper = {"num_particles": config.particles, "noise_std": config.noise_std, "flip_prob": config.flip_prob}
-    specs["S(paper)"] = {"kind": "smcd", "settings": {**paper, "seed": seed, "device": device}}
-    for method in ("S(evidence)", "S(paper)"):
-        ms[method] = ms_per_observation(model, strategy_of(specs[method]), episodes[0])
-    model.tuning = free.to_dict()  # the unbudgeted choice is the model's own
-    return {
-        "specs": specs,
-        "ms": ms,
-        "tables": {
-            f"{name}: tuned on {free.episodes} held-out training-task episodes x {free.steps} steps": free.table(),
-            f"{name}: tuned under {config.budget_ms:g} ms per observation": budgeted.table(),
-        },
-        "residual": residual_of(model, episodes).tolist(),
-        "seconds": free.seconds + budgeted.seconds,
-        "candidates": len(free.candidates) + len(budgeted.candidates),
-    }
+    found = tuned_specs(ex, model, episodes, config, name=name, paper_noise=config.noise_std, budgeted=BUDGETED)
+    return {**found, "residual": residual_of(model, episodes).tolist()}

@@ -2,7 +2,7 @@
 
 Example:
     >>> AdaptationConfig().particles, TuningConfig().gd_steps, VARIANTS
-    (1000, (1, 5), ('N', 'G', 'S', 'S(paper)'))
+    (1000, (1, 5), ('N', 'G', 'S', 'S(evidence)', 'S(paper)', 'C'))
 """
 
 from __future__ import annotations
@@ -14,16 +14,18 @@ from smcd_rl.experiments.shared.config import EvaluationConfig, setting
 
 __all__ = ["TuningConfig", "AdaptationConfig", "VARIANTS", "LearntDynamicsSettings", "check_learnt_dynamics"]
 
-#: The strategies a method name may end in: none, tuned GD, calibrated SMCD, SMCD at the paper's settings.
-VARIANTS = ("N", "G", "S", "S(paper)")
+#: The strategies a method name may end in: none, tuned GD, SMCD tuned by one-step error, SMCD
+#: calibrated by its evidence, SMCD at the paper's settings, the combination of N, G and S.
+VARIANTS = ("N", "G", "S", "S(evidence)", "S(paper)", "C")
 
 
 @dataclass
 class TuningConfig(EvaluationConfig):
     """The settings of the fair protocol (:mod:`smcd_rl.experiments.shared.tuning`), shared by every experiment that adapts.
 
-    The calibrated SMCD (``S``) and gradient descent (``G``) are tuned on ``tuning_episodes``
-    held-out training-task episodes, GD over the grid ``gd_lr x gd_steps x gd_window``. An
+    Every method is tuned by :func:`smcd_rl.tune` on ``tuning_episodes`` held-out training-task
+    episodes: GD from the grid ``gd_lr x gd_steps x gd_window`` (both losses, extended past an
+    edge), SMCD over ``calibrate_flips``, and again under ``budget_ms`` per observation. An
     experiment redeclares ``tuning_episodes`` to say what its episodes are.
     """
 
@@ -38,6 +40,7 @@ class TuningConfig(EvaluationConfig):
     calibrate_flips: tuple[float, ...] = setting(
         (0.001, 0.003, 0.01, 0.03), "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
     )
+    budget_ms: float = setting(10.0, "per-observation budget (ms, one thread) of the budgeted view", above=0.0)
 
     NON_EMPTY: ClassVar[tuple[str, ...]] = ("gd_lr", "gd_steps", "gd_window", "calibrate_flips")
 

@@ -16,6 +16,7 @@ import csv
 import hashlib
 import io
 import json
+import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -23,7 +24,7 @@ from typing import Any
 
 from smcd_rl.files import write_atomic, write_text
 
-__all__ = ["write_csv", "write_json", "write_text", "save_figure", "format_table", "settings_fingerprint"]
+__all__ = ["write_csv", "write_json", "write_text", "save_figure", "format_table", "ms_cell", "settings_fingerprint"]
 
 
 def settings_fingerprint(settings: Mapping[str, Any]) -> str:
@@ -70,6 +71,16 @@ def format_table(rows: Iterable[Sequence[Any]], header: Sequence[str]) -> str:
     lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) + " |" for row in cells]
     lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
     return "\n".join(lines)
+
+
+def ms_cell(value: float | None) -> str:
+    """A time per observation as a table cell: three significant digits, "-" where there is none.
+
+    Example:
+        >>> ms_cell(12.345), ms_cell(None), ms_cell(float("nan"))
+        ('12.3', '-', '-')
+    """
+    return f"{value:.3g}" if value is not None and math.isfinite(value) else "-"
 
 
 def _cell(value: Any) -> str:

@@ -30,14 +30,21 @@ __all__ = [
     "paired_verdict",
 ]
 
-#: The scoreboard's strategies, in order: every experiment reports the first four; SMCD calibrated by
-#: one-step error and the combination of none, GD and SMCD come from experiments tuned by
-#: :func:`smcd_rl.tune` (``regimes``) and read "not run" elsewhere.
+#: The scoreboard's strategies, in order: "SMCD (calibrated)" is SMCD calibrated by its evidence,
+#: "SMCD (one-step)" SMCD tuned by one-step error like GD (:func:`smcd_rl.tune`), "combination"
+#: the tuned combination of none, GD and SMCD; an experiment that did not run one reads "not run".
 COLUMNS = ("none", "GD", "SMCD (paper)", "SMCD (calibrated)", "SMCD (one-step)", "combination")
 #: The columns every experiment's entry has.
 CORE_COLUMNS = COLUMNS[:4]
-#: Strategy -> the method suffix most experiments use for it (after ``M+``).
-HEADLINE = {"none": "N", "GD": "G", "SMCD (paper)": "S(paper)", "SMCD (calibrated)": "S"}
+#: Strategy -> the method suffix the experiments use for it (after ``M+``).
+HEADLINE = {
+    "none": "N",
+    "GD": "G",
+    "SMCD (paper)": "S(paper)",
+    "SMCD (calibrated)": "S(evidence)",
+    "SMCD (one-step)": "S",
+    "combination": "C",
+}
 #: The paired verdicts shown: (method, against); the last two where those strategies ran.
 VERDICTS = (
     ("SMCD (calibrated)", "none"),
@@ -64,6 +71,7 @@ def scoreboard_entry(
     methods: Mapping[str, str] | None = None,
     prefix: str = "M+",
     lower_is_better: bool = True,
+    ms: Mapping[str, float] | None = None,
 ) -> dict[str, Any]:
     """The ``results.json`` entry that stands for ``task`` in the scoreboard: its estimates and verdicts.
 
@@ -78,6 +86,8 @@ def scoreboard_entry(
         methods: strategy (a :data:`COLUMNS` name) -> method suffix; default :data:`HEADLINE`.
         prefix: what the suffixes follow (``"M+"``).
         lower_is_better: ``False`` for success rates and returns.
+        ms: method label -> its median milliseconds per observation (``ms_per_observation`` of
+            the entry, by strategy; only the strategies found in the cell).
     """
     chosen = dict(cell)
     if rows and not any(_in_cell(r, chosen) for r in rows):
@@ -101,7 +111,7 @@ def scoreboard_entry(
         for method, against in VERDICTS
         if (method, against) in CORE_VERDICTS or (method in labels and against in labels)
     }
-    return {
+    entry = {
         "task": task,
         "cell": chosen,
         "metric": metric,
@@ -110,6 +120,10 @@ def scoreboard_entry(
         "estimates": estimates,
         "verdicts": verdicts,
     }
+    if ms:
+        timed = {column: ms[e["method"]] for column, e in estimates.items() if e["method"] in ms}
+        entry["ms_per_observation"] = timed
+    return entry
 
 
 def _in_cell(row: Mapping[str, Any], cell: Mapping[str, Any]) -> bool:

@@ -71,12 +71,13 @@ def mlp_flops(inputs: int, hidden: Sequence[int], outputs: int) -> float:
 
 
 def update_cost(variant: str, config: Any) -> tuple[float, float]:
-    """One observation's update by adaptation ``variant`` ("N", "G", "S", "S(paper)"): (steps, forwards per item).
+    """One observation's update by adaptation ``variant`` (one of ``VARIANTS``): (steps, forwards per item).
 
     SMCD runs ``particles`` forwards per item, with about twice a plain step's overhead; GD
     ``gd_steps`` gradient steps over ``gd_window`` transitions (the grid's mean: tuning picks one),
     a backward counted as two forwards and a gradient step as three steps' overhead (measured:
-    ``smcd-rl panda`` at hidden 128). No adaptation costs nothing.
+    ``smcd-rl panda`` at hidden 128); the combination ``C`` runs both, plus a forward for none.
+    No adaptation costs nothing.
 
     Example:
         >>> from types import SimpleNamespace
@@ -88,34 +89,39 @@ def update_cost(variant: str, config: Any) -> tuple[float, float]:
     if variant == "G":
         steps = sum(config.gd_steps) / len(config.gd_steps)
         return 3.0 * steps, 3.0 * steps * sum(config.gd_window) / len(config.gd_window)
+    if variant == "C":
+        (gd_steps, gd_forwards), (s_steps, s_forwards) = update_cost("G", config), update_cost("S", config)
+        return gd_steps + s_steps + 1.0, gd_forwards + s_forwards + 1.0
     return 0.0, 0.0
 
 
 def tuning_cost(config: Any, *, episodes: int, steps: int, flops: float, options: bool = True) -> float:
     """Rough seconds of :func:`~smcd_rl.experiments.shared.tuning.tune` on ``episodes`` x ``steps`` at ``config``.
 
-    It counts filter runs over all episodes at once: the calibration runs SMCD about
-    ``len(calibrate_flips) + 8`` times, the diagnosis twice (S, S(paper)), and the options (5x
-    particles, predictive mean, a Student-t calibration) ``len(calibrate_flips) + 15`` times more;
-    each run is ``steps`` SMCD updates (:func:`update_cost`) of every episode. The GD grid traces
-    each (lr, steps, window) once, one update per step.
+    It counts filter runs over all episodes at once: :func:`smcd_rl.tune` calibrates SMCD twice
+    (scalar and per-dimension noise, about ``len(calibrate_flips) + 8`` runs each) and scores
+    eight combinations, the evidence calibration runs as many again, the diagnosis five times,
+    and the options (5x particles, predictive mean, a Student-t calibration)
+    ``len(calibrate_flips) + 15`` times more; each run is ``steps`` SMCD updates
+    (:func:`update_cost`) of every episode. The GD grid traces each (lr, steps, window) with both
+    losses, one update per step (its extensions are not foreseen).
 
     Example:
         >>> from types import SimpleNamespace
         >>> grid = {"gd_lr": (0.1,), "gd_steps": (1,), "gd_window": (5,)}
         >>> config = SimpleNamespace(calibrate_flips=(0.01, 0.03), particles=100, **grid)
         >>> round(tuning_cost(config, episodes=32, steps=20, flops=mlp_flops(2, (64, 64), 2)), 1)
-        5.3
+        11.0
     """
     flips = len(config.calibrate_flips)
-    runs = flips + 10 + (flips + 15 if options else 0)
+    runs = 3 * (flips + 8) + 8 + 5 + (flips + 15 if options else 0)
     overhead, forwards = update_cost("S", config)
     smcd = estimate(steps=runs * steps * overhead, forwards=runs * episodes * steps * forwards, flops=flops)
     gd = 0.0
     for _, s, w in product(config.gd_lr, config.gd_steps, config.gd_window):
         one = SimpleNamespace(gd_steps=(s,), gd_window=(w,))
         overhead, forwards = update_cost("G", one)
-        gd += estimate(steps=steps * (1 + overhead), forwards=episodes * steps * (1 + forwards), flops=flops)
+        gd += 2 * estimate(steps=steps * (1 + overhead), forwards=episodes * steps * (1 + forwards), flops=flops)
     return smcd + gd
 
 

@@ -1,22 +1,25 @@
-"""The fair protocol: every adaptive method gets its settings from the same held-out training-task episodes.
+"""The fair protocol: every method's settings from :func:`smcd_rl.tune` on held-out training-task episodes.
 
 Before any test task is seen, each experiment draws ``--tuning-episodes`` episodes from its
-*training* distribution (fresh tasks, never the test tasks) and tunes on them:
+*training* distribution (fresh tasks, never the test tasks) and tunes every method on them by
+one criterion, the one-step prediction error:
 
-- **SMCD (``S``)** by :func:`smcd_rl.calibrate`: the likelihood noise and flip probability of
-  highest log evidence (about 17 filter runs);
-- **gradient descent (``G``)** by the best one-step error over the grid ``--gd-lr`` x
-  ``--gd-steps`` x ``--gd-window`` (16 runs by default);
-- **SMCD with the paper's settings (``S(paper)``)**: ``--noise-std`` and ``--flip-prob`` as given,
-  not tuned, so every table shows what calibration changed.
+- **gradient descent (``G``)** over the grid ``--gd-lr`` x ``--gd-steps`` x ``--gd-window`` x
+  {squared error, Huber}, extended past an edge while the best point lies there;
+- **SMCD (``S``)**: noise (scalar or per dimension) and flip probability (``--calibrate-flips``);
+- **the combination (``C``)** of N, G and S, its ``eta`` and fixed share;
+- **SMCD calibrated by its evidence (``S(evidence)``)** and **SMCD at the paper's settings
+  (``S(paper)``)**, the two references: what the filter's own criterion and no tuning give.
 
-Both tuned methods see the same episodes and a similar number of runs over them. The chosen
-settings, every candidate's score and a step-by-step diagnosis of each strategy on those episodes
-(:func:`smcd_rl.diagnostics.trace`: one-step error, ESS, log evidence, kept share) go into the
-run's report and ``tuning-<model>.png``, with the one-step error of the calibrated SMCD under each
-of :data:`OPTIONS` (five times the particles; the posterior predictive mean instead of the MMSE
-mask) and of SMCD with a Student-t likelihood calibrated by its own evidence, measured on the same
-tuning episodes and never on the test tasks.
+A second call under ``--budget-ms`` per observation (reusing the first call's scores) gives the
+budgeted view: what each kind would be within a 100 Hz control step. Each method's median time
+per observation (one stream, the run's threads) is measured in the main process, while no worker
+runs. The chosen settings, every kind's best with its time, and a step-by-step diagnosis of each
+method on the tuning episodes (:func:`smcd_rl.diagnostics.trace`: one-step error, ESS, log
+evidence, kept share) go into the run's report and ``tuning-<model>.png``. With ``options``,
+the one-step error of the tuned SMCD under each of :data:`OPTIONS` (five times the particles;
+the posterior predictive mean instead of the MMSE mask) and of SMCD with a Student-t likelihood
+calibrated by its own evidence is measured on the same episodes, never on the test tasks.
 
 Example:
     >>> method_variant("M+S(paper)")
@@ -25,11 +28,9 @@ Example:
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
-from itertools import product
 from pathlib import Path
 from typing import Any
 
@@ -38,17 +39,19 @@ from tensordict import TensorDictBase
 
 import smcd_rl
 from smcd_rl.calibration import calibrate
-from smcd_rl.diagnostics import Trace, trace
+from smcd_rl.diagnostics import trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.shared.adaptation_config import VARIANTS
-from smcd_rl.experiments.shared.adaptations import StrategySettings
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.experiments.shared.outputs import format_table, save_figure
+from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
+from smcd_rl.tuning import build_strategy, describe_settings, ms_per_observation
 
-__all__ = ["Tuning", "tune", "VARIANTS", "method_variant", "strategy_for"]
+__all__ = ["Tuning", "tune", "tuned_specs", "VARIANTS", "TUNED", "method_variant", "strategy_for", "ms_column"]
 
+#: Variant -> the kind of :func:`smcd_rl.tune`'s result it takes.
+TUNED = {"N": "none", "G": "gradient_descent", "S": "smcd", "C": "combination"}
 #: Options of SMCD measured on the tuning episodes only (their one-step error goes into the tuning
-#: table beside the calibrated S): option -> the settings it changes, from the calibrated SMCD's.
+#: table beside the tuned S): option -> the settings it changes, from the tuned SMCD's.
 OPTIONS: dict[str, Callable[[smcd_rl.SMCD], dict[str, Any]]] = {
     "5x particles": lambda smcd: {"num_particles": 5 * smcd.num_particles},
     "predictive mean": lambda smcd: {"prediction": "predictive"},
@@ -63,62 +66,56 @@ class Tuning:
 
     #: The model's name in the experiment (``"M"``, ``"R"``...).
     name: str
-    #: Calibrated SMCD and the best GD of the grid (variant ``S`` and ``G``).
-    tuned: StrategySettings
-    #: SMCD at the given (paper) settings, GD at the grid's first point (variant ``S(paper)``).
-    paper: StrategySettings
-    #: Every GD grid point with its one-step RMSE.
-    gd_grid: list[dict[str, Any]]
-    #: Every calibration candidate (noise, flip, log evidence, one-step RMSE).
-    calibration: list[dict[str, Any]]
+    #: Variant (:data:`VARIANTS`) -> ``{"kind": ..., "settings": ...}`` for :func:`smcd_rl.tuning.build_strategy`.
+    specs: dict[str, dict[str, Any]]
+    #: Variant -> median wall milliseconds per observation (one stream, the run's threads).
+    ms: dict[str, float]
+    #: Caption -> Markdown: :func:`smcd_rl.tune`'s tables, unbudgeted and under ``--budget-ms``.
+    tune_tables: dict[str, str]
     #: Per variant: the :class:`~smcd_rl.diagnostics.Trace` on the tuning episodes, as a dict.
     traces: dict[str, dict[str, Any]]
-    #: The calibrated SMCD with one option changed (see :data:`OPTIONS`): its trace, per option.
+    #: The tuned SMCD with one option changed (see :data:`OPTIONS`): its trace, per option.
     options: dict[str, dict[str, Any]]
-    #: Wall seconds of calibration, of the GD grid and of the diagnosis runs.
+    #: Wall seconds of tuning, of the references and of the diagnosis runs.
     seconds: dict[str, float]
     episodes: int
     steps: int
 
     def strategy(self, variant: str, *, seed: int, device: torch.device | str = "cpu") -> smcd_rl.Adaptation:
-        """The strategy of a variant in :data:`VARIANTS`."""
-        if variant == "S(paper)":
-            return self.paper.strategy("S", seed=seed, device=device)
-        if variant not in VARIANTS:
-            raise ValueError(f"unknown strategy {variant!r}; choose from {list(VARIANTS)}")
-        return self.tuned.strategy(variant, seed=seed, device=device)
+        """A fresh strategy of a variant in :data:`VARIANTS`, SMCD's generator seeded with ``seed`` on ``device``."""
+        if variant not in self.specs:
+            raise ValueError(f"unknown strategy {variant!r}; choose from {list(self.specs)}")
+        spec = self.specs[variant]
+        return build_strategy(spec["kind"], _reseeded(spec["kind"], spec["settings"], seed, str(device)))
 
     def table(self) -> str:
-        """Each variant's settings and its one-step RMSE (and SMCD's evidence) on the tuning episodes."""
+        """Each variant's settings, its one-step RMSE (and SMCD's evidence) on the tuning episodes, its time."""
         rows = []
-        for variant in VARIANTS:
-            t = self.traces[variant]
-            settings = {
-                "N": "-",
-                "G": f"lr {self.tuned.gd_lr:g}, {self.tuned.gd_steps} steps, window {self.tuned.gd_window}",
-                "S": f"noise {_noise_text(self.tuned.noise_std)}, flip {self.tuned.flip_prob:g}",
-                "S(paper)": f"noise {_noise_text(self.paper.noise_std)}, flip {self.paper.flip_prob:g}",
-            }[variant]
-            rows.append([f"{self.name}+{variant}", settings, *_scores(t)])
+        for variant, spec in self.specs.items():
+            settings = describe_settings(spec["settings"])
+            rows.append([f"{self.name}+{variant}", settings, *_scores(self.traces[variant]), ms_cell(self.ms[variant])])
         for option, t in self.options.items():
-            rows.append([f"{self.name}+S, {option}", t["settings"], *_scores(t)])
-        return format_table(rows, ["method", "settings", "one-step RMSE", "log evidence / episode", "min ESS share"])
+            rows.append([f"{self.name}+S, {option}", t["settings"], *_scores(t), "-"])
+        header = ["method", "settings", "one-step RMSE", "log evidence / episode", "min ESS share", "ms / observation"]
+        return format_table(rows, header)
 
     def caption(self) -> str:
         s = self.seconds
         return (
             f"Tuning of {self.name} on {self.episodes} held-out training-task episodes x {self.steps} steps "
-            f"(calibration {len(self.calibration)} filter runs, {s['calibrate']:.1f} s; GD grid {len(self.gd_grid)} "
-            f"runs, {s['gd_grid']:.1f} s)"
+            f"(smcd_rl.tune {s['tune']:.1f} s, references {s['references']:.1f} s; diagnosis on the same episodes)"
         )
 
+    def tables(self) -> dict[str, str]:
+        """Every tuning table of this model for the report, caption -> Markdown."""
+        return {self.caption(): self.table(), **self.tune_tables}
+
     def payload(self) -> dict[str, Any]:
-        """The ``results.json`` entry: chosen settings, every candidate, traces and times."""
+        """The ``results.json`` entry: chosen settings, times, traces and the tuning tables."""
         return {
-            "tuned": asdict(self.tuned),
-            "paper": asdict(self.paper),
-            "gd_grid": self.gd_grid,
-            "calibration": self.calibration,
+            "specs": self.specs,
+            "ms_per_observation": self.ms,
+            "tune_tables": self.tune_tables,
             "traces": self.traces,
             "options": self.options,
             "seconds": self.seconds,
@@ -178,6 +175,96 @@ def strategy_for(
     return tunings[network].strategy(variant, seed=seed, device=device)
 
 
+def ms_column(methods: Sequence[str], tunings: Mapping[str, Tuning]) -> dict[str, float]:
+    """Method name -> its median ms per observation, for the methods whose network was tuned."""
+    found = {}
+    for name in methods:
+        network, variant = method_variant(name)
+        if network in tunings and variant in tunings[network].ms:
+            found[name] = tunings[network].ms[variant]
+    return found
+
+
+def tuned_specs(
+    ex: Experiment,
+    model: smcd_rl.AdaptiveModel,
+    episodes: TensorDictBase,
+    config: Any,
+    *,
+    name: str,
+    paper_noise: float | tuple[float, ...] | list[float],
+    budgeted: Sequence[str] = (),
+) -> dict[str, Any]:
+    """Every variant's spec and time per observation from :func:`smcd_rl.tune` and the two references.
+
+    Args:
+        ex: the running experiment (its device and progress setting).
+        model: the trained model.
+        episodes: held-out training-task episodes ``[E, T]`` in the model's keys.
+        config: a :class:`~smcd_rl.experiments.shared.adaptation_config.TuningConfig` with
+            ``particles`` and ``flip_prob``.
+        name: the model's name in the tables' captions.
+        paper_noise: the fixed likelihood noise of ``S(paper)``.
+        budgeted: variants of :data:`TUNED` that also get a spec tuned under ``config.budget_ms``,
+            labelled ``"G@10ms"`` and so on.
+
+    Returns:
+        ``{"specs", "ms", "tables", "seconds", "candidates"}``; the unbudgeted result becomes
+        ``model.tuning``.
+    """
+    seed = config.seed + 23
+    device = str(ex.device)
+    grid = {"lr": config.gd_lr, "steps": config.gd_steps, "window": config.gd_window}
+    common: dict[str, Any] = {
+        "num_particles": config.particles,
+        "gd_grid": grid,
+        "flip_probs": config.calibrate_flips,
+        "seed": seed,
+        "progress": ex.progress,
+    }
+    free = smcd_rl.tune(model, episodes, **common)
+    budget = smcd_rl.tune(model, episodes, budget_ms=config.budget_ms, reuse=free, **common)
+    specs: dict[str, dict[str, Any]] = {}
+    ms: dict[str, float] = {}
+    for variant, kind in TUNED.items():
+        label = f"{variant}@{config.budget_ms:g}ms"
+        if kind in free.best_of:
+            specs[variant] = {"kind": kind, "settings": free.best_of[kind].settings}
+            ms[variant] = free.best_of[kind].ms_per_step
+        if variant in budgeted and kind in budget.best_of:
+            specs[label] = {"kind": kind, "settings": budget.best_of[kind].settings}
+            # The same strategy: one time, not two noisy ones.
+            same = variant in specs and specs[label] == specs[variant]
+            ms[label] = ms[variant] if same else budget.best_of[kind].ms_per_step
+    evidence = calibrate(
+        model,
+        episodes,
+        base=smcd_rl.SMCD(num_particles=config.particles),
+        flip_probs=config.calibrate_flips,
+        criterion="evidence",
+        seed=seed,
+        progress=ex.progress,
+    )
+    specs["S(evidence)"] = {"kind": "smcd", "settings": {**evidence.strategy.config(), "seed": seed, "device": device}}
+    noise = list(paper_noise) if isinstance(paper_noise, (tuple, list)) else float(paper_noise)
+    paper = {"num_particles": config.particles, "noise_std": noise, "flip_prob": config.flip_prob}
+    specs["S(paper)"] = {"kind": "smcd", "settings": {**paper, "seed": seed, "device": device}}
+    for variant in ("S(evidence)", "S(paper)"):
+        spec = specs[variant]
+        ms[variant] = ms_per_observation(model, build_strategy(spec["kind"], spec["settings"]), episodes[0])
+    model.tuning = free.to_dict()  # the unbudgeted choice is the model's own
+    return {
+        "specs": specs,
+        "ms": ms,
+        "tables": {
+            f"{name}: tuned on {free.episodes} held-out training-task episodes x {free.steps} steps": free.table(),
+            f"{name}: tuned under {config.budget_ms:g} ms per observation": budget.table(),
+        },
+        "seconds": free.seconds + budget.seconds,
+        "candidates": len(free.candidates) + len(budget.candidates),
+    }
+
+
 def tune(
     ex: Experiment,
     model: smcd_rl.AdaptiveModel,
@@ -198,9 +285,8 @@ def tune(
         config: an experiment config with :class:`~smcd_rl.experiments.shared.adaptations.AdaptationConfig`'s fields.
         name: the model's name in the method labels.
         paper_noise_std: the fixed likelihood noise of ``S(paper)`` (default ``config.noise_std``).
-        options: also trace the calibrated SMCD with each of :data:`OPTIONS` and with a Student-t
-            likelihood of its own calibration (diagnosis only: no method uses them; about as long
-            again as the calibration).
+        options: also trace the tuned SMCD with each of :data:`OPTIONS` and with a Student-t
+            likelihood of its own calibration (diagnosis only: no method uses them).
     """
     paper_noise = config.noise_std if paper_noise_std is None else paper_noise_std
     paper_noise = tuple(float(v) for v in paper_noise) if isinstance(paper_noise, Sequence) else float(paper_noise)
@@ -211,7 +297,16 @@ def tune(
         "options": options,
         "settings": {
             k: getattr(config, k)
-            for k in ("particles", "flip_prob", "seed", "gd_lr", "gd_steps", "gd_window", "calibrate_flips")
+            for k in (
+                "particles",
+                "flip_prob",
+                "seed",
+                "gd_lr",
+                "gd_steps",
+                "gd_window",
+                "calibrate_flips",
+                "budget_ms",
+            )
         },
     }
     with ex.stage(f"tune {name}"):
@@ -221,10 +316,9 @@ def tune(
             ex.store.put(f"tuning-{name}", key, found)
     tuning = Tuning(
         name=name,
-        tuned=_settings(found["tuned"]),
-        paper=_settings(found["paper"]),
-        gd_grid=found["gd_grid"],
-        calibration=found["calibration"],
+        specs=found["specs"],
+        ms=found["ms"],
+        tune_tables=found["tables"],
         traces=found["traces"],
         options=found["options"],
         seconds=found["seconds"],
@@ -234,10 +328,6 @@ def tune(
     for stage, seconds in tuning.seconds.items():
         ex.timings[f"tune {name} {stage}"] = seconds
     return tuning
-
-
-def _settings(values: Mapping[str, Any]) -> StrategySettings:
-    return StrategySettings(**{**values, "noise_std": _as_tuple(values["noise_std"])})
 
 
 def _tune(
@@ -253,57 +343,21 @@ def _tune(
     num_episodes, steps = episodes.batch_size
     seed = config.seed + 23
     timer = _Timer()
-
-    with timer("calibrate"):
-        base = smcd_rl.SMCD(num_particles=config.particles)
-        result = calibrate(
-            model,
-            episodes,
-            base=base,
-            flip_probs=config.calibrate_flips,
-            criterion="evidence",
-            seed=seed,
-            progress=ex.progress,
-        )
-    calibration = [asdict(c) for c in result.candidates]
-
-    with timer("gd_grid"):
-        grid = list(product(config.gd_lr, config.gd_steps, config.gd_window))
-        gd_grid = []
-        for lr, gd_steps, window in ex.bar(grid, desc=f"tune {name}+G", unit="setting"):
-            gd = smcd_rl.GradientDescent(lr=lr, steps=gd_steps, window=window)
-            gd_grid.append({"lr": lr, "steps": gd_steps, "window": window, "one_step_rmse": _rmse(model, episodes, gd)})
-    best = min(gd_grid, key=lambda row: row["one_step_rmse"])  # the first of equals: the grid's order
-
-    tuned = StrategySettings(
-        particles=config.particles,
-        noise_std=_as_tuple(result.noise_std),
-        flip_prob=result.flip_prob,
-        gd_lr=best["lr"],
-        gd_steps=best["steps"],
-        gd_window=best["window"],
-    )
-    first = gd_grid[0]
-    paper = StrategySettings(
-        particles=config.particles,
-        noise_std=paper_noise,
-        flip_prob=config.flip_prob,
-        gd_lr=first["lr"],
-        gd_steps=first["steps"],
-        gd_window=first["window"],
-    )
+    with timer("tune"):
+        found = tuned_specs(ex, model, episodes, config, name=name, paper_noise=paper_noise)
+    timer.seconds["references"] = timer.seconds["tune"] - found["seconds"]
+    timer.seconds["tune"] = found["seconds"]
+    specs = {variant: found["specs"][variant] for variant in VARIANTS if variant in found["specs"]}
     with timer("diagnose"):
         traces = {}
-        for variant in VARIANTS:
-            settings = paper if variant == "S(paper)" else tuned
-            strategy = settings.strategy(variant[0], seed=seed, device=ex.device)
+        for variant, spec in specs.items():
+            strategy = build_strategy(spec["kind"], _reseeded(spec["kind"], spec["settings"], seed, str(ex.device)))
             traces[variant] = asdict(trace(model, episodes, strategy))
-    traced = _trace_options(ex, model, episodes, config, tuned, seed=seed, timer=timer) if options else {}
+    traced = _trace_options(ex, model, episodes, config, specs["S"], seed=seed, timer=timer) if options else {}
     return {
-        "tuned": asdict(tuned),
-        "paper": asdict(paper),
-        "gd_grid": gd_grid,
-        "calibration": calibration,
+        "specs": specs,
+        "ms": {variant: found["ms"][variant] for variant in specs},
+        "tables": found["tables"],
         "traces": traces,
         "options": traced,
         "seconds": timer.seconds,
@@ -312,21 +366,31 @@ def _tune(
     }
 
 
+def _reseeded(kind: str, settings: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
+    """``settings`` with every SMCD's generator seeded by ``seed`` on ``device`` (a combination's members too)."""
+    if kind == "smcd":
+        return {**settings, "seed": seed, "device": device}
+    if kind == "combination":
+        members = [{**m, "settings": _reseeded(m["name"], m["settings"], seed, device)} for m in settings["members"]]
+        return {**settings, "members": members}
+    return settings
+
+
 def _trace_options(
     ex: Experiment,
     model: smcd_rl.AdaptiveModel,
     episodes: TensorDictBase,
     config: Any,
-    tuned: StrategySettings,
+    tuned: dict[str, Any],
     *,
     seed: int,
     timer: _Timer,
 ) -> dict[str, dict[str, Any]]:
-    """The calibrated SMCD's trace with each option changed, and with a Student-t likelihood of its own calibration."""
+    """The tuned SMCD's trace with each option changed, and with a Student-t likelihood of its own calibration."""
     options = {}
     with timer("options"):
         for option, changed in OPTIONS.items():
-            smcd = tuned.strategy("S", seed=seed, device=ex.device)
+            smcd = build_strategy("smcd", _reseeded("smcd", tuned["settings"], seed, str(ex.device)))
             assert isinstance(smcd, smcd_rl.SMCD)
             generator = torch.Generator(device=ex.device).manual_seed(seed)
             other = smcd_rl.SMCD(**{**smcd.config(), **changed(smcd)}, generator=generator)
@@ -342,24 +406,14 @@ def _trace_options(
             seed=seed,
             progress=ex.progress,
         )
-        model.calibration = chosen  # the model keeps the Gaussian SMCD's calibration
+        model.calibration = chosen  # the model keeps its own calibration
         generator = torch.Generator(device=ex.device).manual_seed(seed)
         strategy = smcd_rl.SMCD(**student.strategy.config(), generator=generator)
         options[STUDENT] = {
             **asdict(trace(model, episodes, strategy)),
-            "settings": f"noise {_noise_text(_as_tuple(student.noise_std))}, flip {student.flip_prob:g}",
+            "settings": describe_settings({"noise_std": student.noise_std, "flip_prob": student.flip_prob}),
         }
     return options
-
-
-def _rmse(model: smcd_rl.AdaptiveModel, episodes: TensorDictBase, strategy: smcd_rl.Adaptation) -> float:
-    result: Trace = trace(model, episodes, strategy)
-    return result.rmse if math.isfinite(result.rmse) else math.inf
-
-
-def _as_tuple(noise: float | Sequence[float]) -> float | tuple[float, ...]:
-    """A noise as :class:`StrategySettings` holds it: a float, or a tuple of per-dimension ones."""
-    return noise if isinstance(noise, (int, float)) else tuple(noise)
 
 
 def _scores(t: Mapping[str, Any]) -> list[Any]:
@@ -367,13 +421,6 @@ def _scores(t: Mapping[str, Any]) -> list[Any]:
     evidence = f"{t['log_evidence'][-1]:.1f}" if t["log_evidence"] else "-"
     ess = f"{min(t['ess']):.3f}" if t["ess"] else "-"
     return [t["rmse"], evidence, ess]
-
-
-def _noise_text(noise: float | tuple[float, ...]) -> str:
-    if isinstance(noise, tuple):
-        rms = math.sqrt(sum(v * v for v in noise) / len(noise))
-        return f"rms {rms:.3g} ({len(noise)} dims)"
-    return f"{noise:.3g}"
 
 
 class _Timer:

@@ -13,7 +13,8 @@ say which; its Fig. 8 differences (an oracle that struggles) appear only with ``
 second link telescopes, ``l2 = 1 + 0.25 sin(pi k / 20)``, so the kinematics keep changing.
 
 Writes ``results.csv`` (the table: mean error and 95 % CI over the episodes at the report steps
-and over the whole episode), ``trials.csv`` (every episode's errors), ``comparisons.csv`` (every
+and over the whole episode, and each adapted method's median ms per observation on the tuning
+episodes), ``trials.csv`` (every episode's errors), ``comparisons.csv`` (every
 adaptive method paired with M+N and with the others over the same episodes), ``curves.csv``
 (mean and std of the error at every step), ``results.json``, ``tracking.png`` and ``report.md``.
 Finished methods are kept in ``partial/``, keyed by the digest of the model they use, so a rerun
@@ -39,7 +40,7 @@ from smcd_rl.experiments.shared.outputs import format_table, save_figure, write_
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.tuning import tune
+from smcd_rl.experiments.shared.tuning import ms_column, tune
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
     fit_settings,
@@ -57,7 +58,12 @@ __all__ = ["TelescopingConfig", "FULL", "METHODS", "DEFAULT_METHODS", "run", "ta
 TUNING_STEPS = 20
 
 #: The adaptive methods, each compared (paired over the same episodes) with M+N and with each other.
-ADAPTIVE = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N", "O+P", "true")
+ADAPTIVE = (
+    *(f"{network}+{variant}" for network in ("M", "R") for variant in ("S", "S(evidence)", "S(paper)", "C", "G")),
+    "R+N",
+    "O+P",
+    "true",
+)
 
 
 def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
@@ -113,23 +119,27 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
         cells, comparisons = cell_statistics(
             scores, cell=("k",), baseline="M+N", adaptive=ADAPTIVE, metric="error", seed=config.seed
         )
-        rows = [_row(name, cells, config) for name in config.methods]
+        ms = ms_column(config.methods, tunings)
+        rows = [_row(name, cells, config, ms.get(name)) for name in config.methods]
         curves = [
             {"method": name, "k": k, "error_mean": float(e[:, k].mean()), "error_std": float(e[:, k].std())}
             for name, e in errors.items()
             for k in range(config.horizon + 1)
         ]
         write_csv(ex.out / "curves.csv", curves)
-        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
+        headline = [
+            c
+            for c in comparisons
+            if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(evidence)", "M+S(paper)")
+        ]
         ex.write(
             experiment="two-link tracking with a telescoping link (paper appendix A.4, Fig. 8)",
             tables={
                 f"Distance end effector - target (m), mean [95% CI] over {config.trials} episodes, "
-                f"x {config.feedback}; std over episodes": table(rows, config),
-                "M+S paired with M+N, M+G and M+S(paper) over the same episodes (negative: M+S's error is lower)": (
-                    verdict_table(headline, cell=("k",))
-                ),
-                **{t.caption(): t.table() for t in tunings.values()},
+                f"x {config.feedback}; std over episodes; median ms per observation": table(rows, config),
+                "M+S paired with M+N, M+G, M+S(evidence) and M+S(paper) over the same episodes "
+                "(negative: M+S's error is lower)": verdict_table(headline, cell=("k",)),
+                **{caption: text for t in tunings.values() for caption, text in t.tables().items()},
             },
             rows=rows,
             trials=_trial_rows(scores),
@@ -145,6 +155,7 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
                     cell={"k": "episode"},
                     metric="error",
                     unit="m",
+                    ms=ms,
                 ),
             },
             plots={
@@ -188,25 +199,33 @@ def _write_videos(
 def table(rows: list[dict[str, Any]], config: TelescopingConfig) -> str:
     """Mean distance (m) from end effector to target [95% CI] at the report steps and over the episode.
 
+    The last column is the method's median milliseconds per observation on the tuning episodes
+    (a row's ``ms_per_observation``; "-" for a method without one: the true kinematics, the
+    oracle, an untuned network's N).
+
     Example:
         >>> row = {"method": "M+S", "error_k10": 0.2, "error_k10_low": 0.15, "error_k10_high": 0.25,
-        ...        "episode_mean": 0.15, "episode_low": 0.14, "episode_high": 0.16, "episode_std": 0.05}
-        >>> print(table([row], TelescopingConfig(report_steps=(10,))))
-        | method | k=10                 | episode mean         | std   |
-        |--------|----------------------|----------------------|-------|
-        | M+S    | 0.200 [0.150, 0.250] | 0.150 [0.140, 0.160] | 0.050 |
+        ...        "episode_mean": 0.15, "episode_low": 0.14, "episode_high": 0.16, "episode_std": 0.05,
+        ...        "ms_per_observation": 1.234}
+        >>> rows = [row, {**row, "method": "true", "ms_per_observation": None}]
+        >>> print(table(rows, TelescopingConfig(report_steps=(10,))))
+        | method | k=10                 | episode mean         | std   | ms / observation |
+        |--------|----------------------|----------------------|-------|------------------|
+        | M+S    | 0.200 [0.150, 0.250] | 0.150 [0.140, 0.160] | 0.050 | 1.23             |
+        | true   | 0.200 [0.150, 0.250] | 0.150 [0.140, 0.160] | 0.050 | -                |
     """
 
     def cell(row: dict[str, Any], name: str, mean: str) -> str:
         return f"{row[mean]:.3f} [{row[name + '_low']:.3f}, {row[name + '_high']:.3f}]"
 
-    header = ["method", *[f"k={k}" for k in config.report_steps], "episode mean", "std"]
+    header = ["method", *[f"k={k}" for k in config.report_steps], "episode mean", "std", "ms / observation"]
     body = [
         [
             r["method"],
             *[cell(r, f"error_k{k}", f"error_k{k}") for k in config.report_steps],
             cell(r, "episode", "episode_mean"),
             r["episode_std"],
+            "-" if r.get("ms_per_observation") is None else f"{r['ms_per_observation']:.3g}",
         ]
         for r in rows
     ]
@@ -279,8 +298,12 @@ def _load_model(path: str, device: torch.device) -> smcd_rl.AdaptiveModel:
     return model
 
 
-def _row(name: str, cells: list[dict[str, Any]], config: TelescopingConfig) -> dict[str, Any]:
-    """One method's row of ``results.csv``: the table's cells with their CIs and spreads."""
+def _row(name: str, cells: list[dict[str, Any]], config: TelescopingConfig, ms: float | None) -> dict[str, Any]:
+    """One method's row of ``results.csv``: the table's cells with their CIs and spreads, and its ms per observation.
+
+    ``ms`` is ``None`` for a method without a time (the true kinematics, the oracle, an untuned
+    network's N): its row has no ``ms_per_observation``.
+    """
     by_cell = {c["k"]: c for c in cells if c["method"] == name}
     row: dict[str, Any] = {"method": name}
     for k in config.report_steps:
@@ -292,7 +315,7 @@ def _row(name: str, cells: list[dict[str, Any]], config: TelescopingConfig) -> d
             f"std_k{k}": c["error_std"],
         }
     c = by_cell["episode"]
-    return row | {
+    row |= {
         "episode_mean": c["error_mean"],
         "episode_low": c["error_low"],
         "episode_high": c["error_high"],
@@ -300,6 +323,9 @@ def _row(name: str, cells: list[dict[str, Any]], config: TelescopingConfig) -> d
         "episode_sem": c["error_std"] / math.sqrt(c["trials"]),
         "trials": c["trials"],
     }
+    if ms is not None:
+        row["ms_per_observation"] = ms
+    return row
 
 
 def _trial_rows(scores: dict[tuple[Any, ...], dict[str, Tensor]]) -> list[dict[str, Any]]:

@@ -2,7 +2,8 @@
 
 :func:`sample_episodes` draws the arms, targets and measurement noise every method faces,
 :func:`make_method` builds a method by its label (``true``, ``O+P``, ``M+N``, ``M+G``, ``M+S``,
-``M+S(paper)``, and the same on the Reptile model R), and :func:`track` runs one method over all episodes at once.
+``M+S(evidence)``, ``M+S(paper)``, ``M+C``, and the same on the Reptile model R), and :func:`track`
+runs one method over all episodes at once.
 """
 
 from __future__ import annotations

@@ -14,14 +14,19 @@ from smcd_rl.experiments.shared.two_link_family_config import FAMILY_FULL, TwoLi
 
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "REPTILE_METHODS"]
 
-#: Method labels of Fig. 2 that this command runs: S is calibrated SMCD, S(paper) SMCD at the paper's settings.
-METHODS = ("O+P", "M+N", "M+G", "M+S", "M+S(paper)", "R+N", "R+G", "R+S", "R+S(paper)", "LV+N")
-#: Fig. 2's methods for the Reptile network (``--full`` runs them; R+S(paper) only on request).
-REPTILE_METHODS = ("R+N", "R+G", "R+S")
+#: Method labels that this command runs: Fig. 2's, with S SMCD tuned by one-step error, S(evidence)
+#: SMCD calibrated by its evidence, S(paper) SMCD at the paper's settings and C the combination.
+METHODS = (
+    "O+P",
+    *(f"{network}+{variant}" for network in ("M", "R") for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C")),
+    "LV+N",
+)
+#: The Reptile network's methods (``--full`` runs them; R+S(paper) only on request).
+REPTILE_METHODS = ("R+N", "R+G", "R+S", "R+S(evidence)", "R+C")
 #: What runs by default: the multi-task network's methods and the baselines. The Reptile network
 #: doubles the run's training and tuning (about 3.5 minutes on 2 cores), so it runs with ``--full``
 #: or on request (``--methods ... R+N R+G R+S``).
-DEFAULT_METHODS = ("O+P", "M+N", "M+G", "M+S", "M+S(paper)", "LV+N")
+DEFAULT_METHODS = ("O+P", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "LV+N")
 
 
 @dataclass
@@ -37,8 +42,9 @@ class TwoLinkConfig(TwoLinkFamilyConfig):
     horizons: tuple[int, ...] = setting((1, 5, 10, 20), "look-ahead horizons H", low=1)
     methods: tuple[str, ...] = setting(
         DEFAULT_METHODS,
-        "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G (tuned), S (calibrated) or "
-        "S(paper); LV+N (VRNN)",
+        "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G (tuned GD), S (SMCD tuned by "
+        "one-step error), S(evidence) (SMCD calibrated by its evidence), S(paper) or C (combination of N, G "
+        "and S); LV+N (VRNN)",
         choices=METHODS,
     )
     tuning_options: bool = setting(

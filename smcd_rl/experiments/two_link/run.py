@@ -20,10 +20,10 @@ import smcd_rl
 from smcd_rl.baselines import LatentVariableModel, fit_latent
 from smcd_rl.digests import model_digest
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.experiments.shared.outputs import format_table, save_figure
+from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.tuning import Tuning, method_variant, strategy_for, tune
+from smcd_rl.experiments.shared.tuning import Tuning, method_variant, ms_column, strategy_for, tune
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
     fit_settings,
@@ -39,7 +39,12 @@ from smcd_rl.experiments.two_link.config import DEFAULT_METHODS, FULL, METHODS, 
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "run", "table"]
 
 #: The adaptive methods, each compared (paired over the same arms) with M+N and with each other.
-ADAPTIVE = ("M+S", "M+S(paper)", "M+G", "R+S", "R+S(paper)", "R+G", "R+N", "LV+N", "O+P")
+ADAPTIVE = (
+    *(f"{network}+{variant}" for network in ("M", "R") for variant in ("S", "S(evidence)", "S(paper)", "G", "C")),
+    "R+N",
+    "LV+N",
+    "O+P",
+)
 
 
 def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
@@ -66,8 +71,7 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         tunings = {
             name: tune(ex, trained, episodes, config, name=name, options=config.tuning_options)
             for name, trained in (("M", model), ("R", reptile))
-            if any(m.startswith(name + "+") and m[2:] in ("G", "S", "S(paper)") for m in config.methods)
-            and trained is not None
+            if any(m.startswith(name + "+") and m[2:] != "N" for m in config.methods) and trained is not None
         }
 
         # --- every method on the same held-out arms -------------------------------------------------
@@ -94,15 +98,22 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
             for name, values in by_method.items()
             for k, v in enumerate(values)
         ]
-        headline = [c for c in comparisons if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(paper)")]
+        headline = [
+            c
+            for c in comparisons
+            if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(evidence)", "M+S(paper)")
+        ]
+        ms = ms_column(config.methods, tunings)
+        rows = [{**r, "ms_per_observation": ms.get(r["method"])} for r in rows]
         ex.write(
             experiment="two-link look-ahead prediction (paper Fig. 2)",
             tables={
-                "End-effector RMSE (m), mean [95% CI] over held-out arms": table(rows, config),
-                "M+S paired with M+N, M+G and M+S(paper) over the same arms (negative: M+S's error is lower)": (
-                    verdict_table(headline, cell=("burn_in", "horizon"))
+                "End-effector RMSE (m), mean [95% CI] over held-out arms; median ms per observation": (
+                    table(rows, config, ms)
                 ),
-                **{t.caption(): t.table() for t in tunings.values()},
+                "M+S paired with M+N, M+G, M+S(evidence) and M+S(paper) over the same arms "
+                "(negative: M+S's error is lower)": verdict_table(headline, cell=("burn_in", "horizon")),
+                **{caption: text for t in tunings.values() for caption, text in t.tables().items()},
             },
             rows=rows,
             trials=trial_rows,
@@ -118,6 +129,7 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
                     cell={"burn_in": 10, "horizon": 1},
                     metric="rmse",
                     unit="m",
+                    ms=ms,
                 ),
             },
             plots={
@@ -137,6 +149,7 @@ _REFERENCE_SECONDS = {
     "tune": 93.0,  # calibration, GD grid and diagnosis of one network; the options add as much again
     "evaluate G": 45.0,  # per method over 500 arms at T = 1, 5, 10
     "evaluate S": 56.0,
+    "evaluate C": 101.0,  # its members G and S
     "evaluate O+P": 1.0,
     "evaluate N": 0.1,
 }
@@ -168,15 +181,24 @@ def stage_costs(config: TwoLinkConfig) -> dict[str, float]:
     return costs
 
 
-def table(rows: list[dict[str, Any]], config: TwoLinkConfig) -> str:
-    """RMSE (mean [95% CI] over arms) with burn-in T down and horizon H across, one block per method."""
-    header = ["method", "T", *[f"H={h}" for h in config.horizons]]
+def table(rows: list[dict[str, Any]], config: TwoLinkConfig, ms: dict[str, float] | None = None) -> str:
+    """RMSE (mean [95% CI] over arms) with burn-in T down and horizon H across, one block per method.
+
+    The last column is the method's median milliseconds per observation on the tuning episodes
+    (``ms``; "-" for a method without one).
+    """
+    ms = ms or {}
+    header = ["method", "T", *[f"H={h}" for h in config.horizons], "ms / observation"]
     lookup = {
         (r["method"], r["burn_in"], r["horizon"]): f"{r['rmse_mean']:.3f} [{r['rmse_low']:.3f}, {r['rmse_high']:.3f}]"
         for r in rows
     }
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    body = [[m, t, *[lookup[(m, t, h)] for h in config.horizons]] for m in methods for t in config.burn_in]
+    body = [
+        [m, t, *[lookup[(m, t, h)] for h in config.horizons], ms_cell(ms.get(m))]
+        for m in methods
+        for t in config.burn_in
+    ]
     return format_table(body, header)
 
 
