@@ -71,6 +71,8 @@ GD_GRID: dict[str, tuple[Any, ...]] = {
 }
 #: At most this many extensions past each edge of the GD grid.
 MAX_EXTENSIONS = 3
+#: The dimensions of the GD grid that extend past their edges.
+EXTENSIBLE = ("lr", "steps", "window")
 #: The combination's grid: the weights' learning rate and the fixed share.
 COMBINATION_GRID = {"eta": (0.1, 1.0, 10.0, 100.0), "share": (0.0, 0.02)}
 #: SMCD never halves its particles below this to meet a budget.
@@ -180,6 +182,7 @@ def tune(
     budget_ms: float | None = None,
     num_particles: int = 1000,
     gd_grid: dict[str, Sequence[Any]] | None = None,
+    gd_limits: Mapping[str, tuple[float | None, float | None]] | None = None,
     flip_probs: Sequence[float] = (0.001, 0.003, 0.01, 0.03),
     seed: int = 0,
     progress: bool = True,
@@ -200,6 +203,10 @@ def tune(
             "loss": ...}``; a key left out takes its values from :data:`GD_GRID` (so a grid
             without ``"loss"`` tries both losses; ``"loss": ("mse",)`` tries the squared error
             only).
+        gd_limits: how far the grid may extend past its edges, ``{"lr": (low, high), ...}``
+            (``None``: no limit on that side), e.g. ``{"lr": (None, 0.03)}`` where a larger
+            learning rate makes a planner's rollouts overflow, or ``{"steps": (None, 20)}`` to
+            cap the cost per observation. The starting grid must lie within them.
         flip_probs: the flip probabilities SMCD's calibration tries (:func:`smcd_rl.calibrate`'s).
         seed: seed of every SMCD run: two calls with the same arguments give the same choice.
         progress: show a progress bar.
@@ -226,6 +233,7 @@ def tune(
         budget_ms = check_real(budget_ms, "budget_ms", low=0.0, open_low=True)
     num_particles = check_count(num_particles, "num_particles")
     grid = _checked_gd_grid(gd_grid)
+    limits = _checked_gd_limits(gd_limits, grid)
     td = _stacked(episodes)
     x, y = _pairs(model, td)  # checks keys, shapes and values before any run
     flips = _checked_flips(flip_probs, model, SMCD(num_particles=num_particles))  # calibrate's own check
@@ -238,7 +246,7 @@ def tune(
         if "none" in kinds:
             search.score("none", {})
         if "gradient_descent" in kinds:
-            _tune_gd(search, grid)
+            _tune_gd(search, grid, limits)
         if "smcd" in kinds:
             _tune_smcd(search, model, td, num_particles, criterion, tuple(flips), seed, progress)
         if "combination" in kinds:
@@ -391,14 +399,39 @@ def _checked_gd_grid(gd_grid: Mapping[str, Sequence[Any]] | None) -> dict[str, t
     return grid
 
 
-def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]]) -> None:
+def _checked_gd_limits(
+    gd_limits: Mapping[str, tuple[float | None, float | None]] | None, grid: dict[str, tuple[Any, ...]]
+) -> dict[str, tuple[float, float]]:
+    """``gd_limits`` as ``{dimension: (low, high)}`` for every extensible dimension, or an error before any run."""
+    if gd_limits is not None and not isinstance(gd_limits, Mapping):
+        raise TypeError(f"gd_limits must be a dict such as {{'lr': (None, 0.03)}}, got {type(gd_limits).__name__}")
+    given = dict(gd_limits or {})
+    unknown = sorted(set(given) - set(EXTENSIBLE))
+    if unknown:
+        raise ValueError(f"gd_limits: unknown {unknown}; the grid extends only along {list(EXTENSIBLE)}")
+    limits = {}
+    for name in EXTENSIBLE:
+        bounds = given.get(name, (None, None))
+        if not isinstance(bounds, (tuple, list)) or len(bounds) != 2:
+            raise ValueError(f"gd_limits[{name!r}] must be a pair (low, high), None for no limit, got {bounds!r}")
+        low, high = (-math.inf if bounds[0] is None else bounds[0], math.inf if bounds[1] is None else bounds[1])
+        outside = [v for v in grid[name] if not low <= v <= high]
+        if outside:
+            raise ValueError(f"gd_grid[{name!r}] has {outside} outside gd_limits[{name!r}] = {tuple(bounds)}")
+        limits[name] = (low, high)
+    return limits
+
+
+def _tune_gd(
+    search: _Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, tuple[float, float]] | None = None
+) -> None:
     """Score the grid; while the best point lies on an edge, go on past that edge along that dimension.
 
     Past an edge only the line through the best point is scored (the new value with the other
     settings at their best), not the whole grid again: each extension costs one setting per loss
     at most, and steps and window double the cost of a setting with each extension. The loss is
     a dimension of the grid but has no edge: the search tries each loss given and extends only the
-    learning rate, steps and window.
+    learning rate, steps and window, never past ``limits``.
     """
     # The losses keep GradientDescent.LOSSES' order, so that among equal errors the squared one wins.
     grid = {k: tuple(sorted(v)) for k, v in grid.items() if k != "loss"} | {
@@ -413,6 +446,7 @@ def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]]) -> None:
 
     for point in product(grid["lr"], grid["steps"], grid["window"], grid["loss"]):
         score(*point)
+    limits = limits or {name: (-math.inf, math.inf) for name in EXTENSIBLE}
     extensions = {("lr", "low"): 0, ("lr", "high"): 0, ("steps", "high"): 0, ("window", "high"): 0}
     while True:
         finite = {k: v for k, v in scored.items() if math.isfinite(v)}
@@ -420,32 +454,56 @@ def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]]) -> None:
             return
         point = min(finite.items(), key=lambda item: item[1])[0]
         best = dict(zip(("lr", "steps", "window", "loss"), point, strict=True))
-        edge = _edge(grid, best, extensions)
+        edge = _edge(grid, best, extensions, limits)
         if edge is None:
+            search.notes.extend(
+                f"gradient descent: best {name} {best[name]:g} on the grid's {side} edge, at gd_limits"
+                for name, side in extensions
+                if _on_edge(grid[name], best[name], side) and not _within(limits[name], _past(grid[name], name, side))
+            )
             return
         name, side = edge
         extensions[edge] += 1
-        values = grid[name]
-        # The learning rate continues the grid's own ratio; steps and window double, since each
-        # multiplies the cost of an observation.
-        ratio = values[1] / values[0] if name == "lr" else 2.0
-        new = values[0] / ratio if side == "low" else values[-1] * ratio
-        new = new if name == "lr" else int(round(new))
-        grid[name] = tuple(sorted({*values, new}))
+        new = _past(grid[name], name, side)
+        grid[name] = tuple(sorted({*grid[name], new}))
         for loss in grid["loss"]:
             score(**{**best, name: new, "loss": loss})
         search.notes.append(f"gradient descent: best {name} {best[name]:g} on the grid's {side} edge; tried {new:g}")
 
 
+def _past(values: tuple[Any, ...], name: str, side: str) -> Any:
+    """The next value past an edge: the learning rate continues the grid's own ratio; steps and
+    window double, since each multiplies the cost of an observation."""
+    ratio = values[1] / values[0] if name == "lr" else 2.0
+    new = values[0] / ratio if side == "low" else values[-1] * ratio
+    return new if name == "lr" else int(round(new))
+
+
 def _edge(
-    grid: dict[str, tuple[Any, ...]], best: dict[str, Any], extensions: dict[tuple[str, str], int]
+    grid: dict[str, tuple[Any, ...]],
+    best: dict[str, Any],
+    extensions: dict[tuple[str, str], int],
+    limits: dict[str, tuple[float, float]],
 ) -> tuple[str, str] | None:
+    """The first edge the best point lies on that may still extend, or ``None``."""
     for name, side in extensions:
         values = grid[name]
-        at_edge = best[name] == (values[0] if side == "low" else values[-1])
-        if at_edge and len(values) > 1 and extensions[(name, side)] < MAX_EXTENSIONS:
+        if (
+            _on_edge(values, best[name], side)
+            and extensions[(name, side)] < MAX_EXTENSIONS
+            and _within(limits[name], _past(values, name, side))
+        ):
             return name, side
     return None
+
+
+def _on_edge(values: tuple[Any, ...], value: Any, side: str) -> bool:
+    """Whether ``value`` is the grid's ``side`` end (a dimension of one value has no edge)."""
+    return len(values) > 1 and value == (values[0] if side == "low" else values[-1])
+
+
+def _within(bounds: tuple[float, float], value: float) -> bool:
+    return bounds[0] <= value <= bounds[1]
 
 
 def _tune_smcd(

@@ -54,6 +54,21 @@ def test_the_gd_grid_extends_past_an_edge_where_its_best_point_lies(model) -> No
     assert result.best_of["gradient_descent"].settings["lr"] > 1e-4
 
 
+def test_gd_limits_stop_the_extension_and_the_result_says_so(model) -> None:
+    """The same grid as above, whose best lies on its high edge: a limit at that edge keeps it there."""
+    grid = {"lr": (1e-5, 1e-4), "steps": (1,), "window": (5,)}
+    result = smcd_rl.tune(
+        model,
+        shifted_episodes(0.5),
+        strategies=["gradient_descent"],
+        gd_grid=grid,
+        gd_limits={"lr": (None, 1e-4)},
+        progress=False,
+    )
+    assert max(c.settings["lr"] for c in result.candidates) == 1e-4
+    assert any("lr" in note and "at gd_limits" in note for note in result.notes), result.notes
+
+
 def test_a_budget_skips_what_does_not_fit(model) -> None:
     """No strategy takes less than a nanosecond per observation; every one takes less than an hour."""
     with pytest.raises(ValueError, match="no strategy fits"):
@@ -94,6 +109,9 @@ def test_tune_leaves_the_calibration_and_the_network_as_they_were(model) -> None
         ({"gd_grid": {"momentum": (0.9,)}}, "gd_grid"),
         ({"flip_probs": (0.01, 2.0)}, r"flip_probs\[1\]"),
         ({"flip_probs": ()}, "at least one flip probability"),
+        ({"gd_limits": {"momentum": (None, 1.0)}}, "unknown"),
+        ({"gd_limits": {"lr": 0.1}}, "pair"),
+        ({"gd_limits": {"lr": (None, 5e-3)}}, r"gd_grid\['lr'\] has \[0.01\] outside"),
     ],
 )
 def test_bad_options_are_refused_and_change_nothing(model, options, message) -> None:

@@ -138,6 +138,7 @@ def test_bad_options_are_refused() -> None:
         ({"elites": 200}, "--elites"),
         ({"dropout": 1.0}, "--dropout"),
         ({"families": ()}, "--families"),
+        ({"gd_lr": (0.01, 0.1)}, "--gd-max-lr"),
     ]:
         with pytest.raises(ValueError, match=message):
             FetchConfig(**bad).validate()

@@ -85,7 +85,12 @@ class FetchConfig(TuningConfig):
     tuning_steps: int = setting(20, "steps per tuning episode", low=2)
     gd_lr: tuple[float, ...] = setting(
         (0.001, 0.003, 0.01, 0.03),
-        "gradient-descent learning rates tried in tuning (normalised units; 0.1 makes MPC's rollouts overflow here)",
+        "gradient-descent learning rates tried in tuning (normalised units)",
+        above=0.0,
+    )
+    gd_max_lr: float = setting(
+        0.03,
+        "largest learning rate tuning may extend GD's grid to (0.1 makes MPC's rollouts overflow here)",
         above=0.0,
     )
     full: bool = setting(
@@ -99,6 +104,10 @@ class FetchConfig(TuningConfig):
         """The declared bounds, then what they cannot express: upper bounds and bounds across options."""
         super().validate()
         check_learnt_dynamics(self)
+        if max(self.gd_lr) > self.gd_max_lr:
+            raise ValueError(
+                f"--gd-lr {max(self.gd_lr)} is above --gd-max-lr {self.gd_max_lr}; lower it or raise --gd-max-lr"
+            )
 
 
 #: What ``--full`` changes (options given explicitly still win).

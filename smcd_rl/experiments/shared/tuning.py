@@ -218,6 +218,8 @@ def tuned_specs(
     common: dict[str, Any] = {
         "num_particles": config.particles,
         "gd_grid": grid,
+        # An experiment may bound the grid's extension (fetch: larger learning rates overflow MPC).
+        "gd_limits": {"lr": (None, getattr(config, "gd_max_lr", None))},
         "flip_probs": config.calibrate_flips,
         "seed": seed,
         "progress": ex.progress,
