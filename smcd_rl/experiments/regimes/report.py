@@ -16,7 +16,7 @@ from smcd_rl.experiments.regimes.config import RegimesConfig, regime_names
 from smcd_rl.experiments.regimes.families import FAMILIES, network_of
 from smcd_rl.experiments.regimes.protocol import budgeted_label
 from smcd_rl.experiments.shared.outputs import format_table, save_figure
-from smcd_rl.experiments.shared.scoreboard_entry import paired_verdict, scoreboard_entry
+from smcd_rl.experiments.shared.scoreboard_entry import HEADLINE, paired_verdict, scoreboard_entry
 
 __all__ = ["tables", "plot", "scoreboard_entries", "best_single", "SCOREBOARD_REGIMES"]
 
@@ -112,14 +112,6 @@ def scoreboard_entries(
     rows: Sequence[Mapping[str, Any]], comparisons: Sequence[Mapping[str, Any]], config: RegimesConfig
 ) -> list[dict[str, Any]]:
     """One scoreboard entry per family and regime of :data:`SCOREBOARD_REGIMES` that ran."""
-    methods = {
-        "none": "N",
-        "GD": "G",
-        "SMCD (paper)": "S(paper)",
-        "SMCD (calibrated)": "S(evidence)",
-        "SMCD (one-step)": "S",
-        "combination": "C",
-    }
     entries = []
     for family in config.families:
         for regime in SCOREBOARD_REGIMES:
@@ -132,12 +124,11 @@ def scoreboard_entries(
                 cell={"family": family, "regime": regime},
                 metric="rmse",
                 unit=FAMILIES[family].unit,
-                methods=methods,
-                prefix="",
+                prefix="",  # the regimes' methods carry no network prefix
             )
             entry["ms_per_observation"] = {
                 column: row["ms_per_observation"]
-                for column, method in methods.items()
+                for column, method in HEADLINE.items()
                 for row in rows
                 if row["family"] == family
                 and row["regime"] == regime
