@@ -97,7 +97,8 @@ COMMANDS: dict[str, Command] = {
         "smcd_rl.experiments.scoreboard.config",
         "ScoreboardConfig",
         "smcd_rl.experiments.scoreboard.run",
-        "one table and plot of every task from experiments' run directories: none, GD, SMCD (paper), SMCD (calibrated)",
+        "one table and plot of every task from experiments' run directories: none, GD, SMCD (one-step, paper, "
+        "calibrated), the combination; time per observation",
     ),
     "bench planners": Command(
         "smcd_rl.experiments.bench.planners.config",

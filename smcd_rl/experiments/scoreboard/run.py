@@ -2,15 +2,16 @@
 
 Each experiment writes into its ``results.json`` the cell of its table that stands for the task
 (e.g. two-link at burn-in T = 10, horizon H = 1): the estimates of its methods for "none", "GD",
-"SMCD (paper)" and "SMCD (calibrated)" and their paired verdicts (:func:`~smcd_rl.experiments.shared.scoreboard_entry.scoreboard_entry`). The
-scoreboard reads those entries from the given run directories and writes tables of one row
-per task, narrow enough for a docs page: its metric and cell, each strategy's mean with its 95 % CI, and the verdicts
-of both SMCD variants against none and GD (the experiment's own comparisons, over the same
-trials); where a run has them (``smcd-rl regimes``), SMCD calibrated by one-step error, the
-combination and each strategy's time per observation in tables of their own. ``results.csv``
-holds every number. A task that several runs have is labelled
-with each run's directory. The plot has a panel per task in its own metric, two to a row. The
-entries are kept in ``scoreboard.json``, from which :func:`render` draws the scoreboard again.
+"SMCD (paper)", "SMCD (calibrated)" (by evidence), "SMCD (one-step)" and "combination", their
+paired verdicts and their times per observation
+(:func:`~smcd_rl.experiments.shared.scoreboard_entry.scoreboard_entry`). The scoreboard reads
+those entries from the given run directories and writes tables of one row per task, narrow
+enough for a docs page: its metric and cell; each strategy's mean with its 95 % CI; the verdicts
+of the SMCD variants and the combination against none and GD (the experiment's own comparisons,
+over the same trials); each strategy's median time per observation. ``results.csv`` holds every
+number. A task that several runs have is labelled with each run's directory. The plot has a
+panel per task in its own metric, two to a row. The entries are kept in ``scoreboard.json``,
+from which :func:`render` draws the scoreboard again.
 """
 
 from __future__ import annotations
@@ -135,7 +136,7 @@ def _write(
             },
         )
         ex.write(
-            experiment="scoreboard: every task, none / GD / SMCD (paper settings) / SMCD (calibrated)",
+            experiment="scoreboard: every task, none / GD / SMCD (paper, calibrated, one-step) / combination",
             # Narrow tables, not one wide one: each fits the width of a docs page.
             tables={
                 "Each task's headline metric and cell (every number of the tables below: results.csv)": format_table(
