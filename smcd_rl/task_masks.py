@@ -9,7 +9,6 @@ arguments; nothing here is public API.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
@@ -21,7 +20,7 @@ from smcd_rl.adaptation import SMCD
 from smcd_rl.checks import check_real_tensor
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["TaskIndex", "TaskEpochs", "task_index", "bit_entropy", "TASK_PARTICLES", "MIN_MASK_NOISE"]
+__all__ = ["TaskIndex", "TaskEpochs", "task_index", "TASK_PARTICLES", "MIN_MASK_NOISE"]
 
 #: Particles (over all tasks) per filter batch of ``mask_training="task"``: the tasks' filters run
 #: in batches of ``max(1, TASK_PARTICLES // mask_particles)`` tasks, which bounds the memory of a
@@ -136,7 +135,7 @@ class TaskEpochs:
         """Every task's posterior on the current weights: particles ``[K, N, D]``, weights ``[K, N]``, diagnostics."""
         net, tasks, steps = self.net, self.tasks, self.observations
         x, y, device = self.x, self.y, self.x.device
-        num_tasks, n = tasks.ids.numel(), x.shape[0]
+        n = x.shape[0]
         # A random order within each task: sort by task id plus a uniform key in [0, 1). Each
         # task's filters observe the first `steps` samples of its block, cycling if it is shorter.
         keys = torch.rand(n, generator=generator, device=device, dtype=torch.float64)
@@ -155,52 +154,57 @@ class TaskEpochs:
                     "diverged); lower lr"
                 )
             noise = (noise * self.noise_scale).clamp_min(MIN_MASK_NOISE)
-            per_batch = max(1, TASK_PARTICLES // self.particles)
-            names = ("particles", "weights", "mean_masks", "ess", "evidence", "distinct")
-            parts: dict[str, list[Tensor]] = {name: [] for name in names}
-            for first in range(0, num_tasks, per_batch):
-                rows = slice(first, min(first + per_batch, num_tasks))
-                smcd = SMCD(
-                    num_particles=self.particles,
-                    flip_prob=self.flip_prob,
-                    noise_std=noise.tolist(),
-                    generator=generator,
-                )
-                smcd.bind(net, torch.ones_like(noise))  # the noise is already in normalised units
-                smcd.reset((rows.stop - rows.start,))
-                for step in range(steps):
-                    smcd.observe(xs[rows, step], ys[rows, step])
-                filt = smcd.filter
-                assert filt is not None and filt.particles is not None
-                assert filt.log_evidence is not None and filt.last_ess is not None  # set by reset()
-                parts["particles"].append(filt.particles)
-                parts["weights"].append(filt.weights)
-                parts["mean_masks"].append(filt.mean_mask)
-                parts["ess"].append(filt.last_ess)
-                parts["evidence"].append(filt.log_evidence)
-                ancestors = filt.ancestors
-                if ancestors is None:  # no resampling at the last update: every particle its own
-                    distinct = torch.full(filt.log_evidence.shape, float(self.particles), device=device)
-                else:  # resampling returns sorted ancestors: count the changes along each row
-                    distinct = 1.0 + (ancestors[..., 1:] != ancestors[..., :-1]).sum(-1).to(torch.float32)
-                parts["distinct"].append(distinct)
-            particles, weights = torch.cat(parts["particles"]), torch.cat(parts["weights"])
-            mean_masks = torch.cat(parts["mean_masks"])
+            found = self._filters(xs, ys, noise, generator)
             posteriors = {
                 "tasks": tasks.ids.cpu(),
-                "mean_masks": mean_masks.cpu(),
-                "ess_share": (torch.cat(parts["ess"]) / self.particles).cpu(),
-                "distinct_share": (torch.cat(parts["distinct"]) / self.particles).cpu(),
-                "mask_entropy": bit_entropy(mean_masks).mean(-1).cpu(),
-                "prior_entropy": bit_entropy(torch.tensor(net.keep_prob, dtype=torch.float64)).float(),
-                "log_likelihood": (torch.cat(parts["evidence"]) / steps).cpu(),
+                "mean_masks": found["mean_masks"].cpu(),
+                "ess_share": (found["ess"] / self.particles).cpu(),
+                "distinct_share": (found["distinct"] / self.particles).cpu(),
+                "log_likelihood": (found["evidence"] / steps).cpu(),
                 "noise": noise.cpu(),
             }
-        return particles, weights, posteriors
+            if self.report is not None:
+                # The same filters on the same samples dealt to the tasks at random: what the log
+                # likelihood is when a filter's observations do not share a task. From a generator
+                # of its own, so that reporting never changes the training's random stream.
+                seed = (generator.initial_seed() * 1_000_003 + self.epoch) % 2**63
+                other = torch.Generator(device=device).manual_seed(seed)
+                deal = torch.randperm(xs.shape[0] * steps, generator=other, device=device)
+                mixed = [v.reshape(-1, v.shape[-1])[deal].reshape(v.shape) for v in (xs, ys)]
+                shuffled = self._filters(*mixed, noise, other)["evidence"]
+                posteriors["shuffled_log_likelihood"] = (shuffled / steps).cpu()
+        return found["particles"], found["weights"], posteriors
 
-
-def bit_entropy(p: Tensor) -> Tensor:
-    """Entropy in bits of Bernoulli(``p``), elementwise (0 at p = 0 or 1)."""
-    p = p.clamp(0.0, 1.0)
-    q = 1.0 - p
-    return -(torch.special.xlogy(p, p) + torch.special.xlogy(q, q)) / math.log(2.0)
+    def _filters(self, xs: Tensor, ys: Tensor, noise: Tensor, generator: torch.Generator) -> dict[str, Tensor]:
+        """One SMCD filter per row of ``xs [K, steps, in]`` observing its samples in order, in batches of tasks."""
+        net, num_tasks, steps, device = self.net, xs.shape[0], xs.shape[1], xs.device
+        per_batch = max(1, TASK_PARTICLES // self.particles)
+        names = ("particles", "weights", "mean_masks", "ess", "evidence", "distinct")
+        parts: dict[str, list[Tensor]] = {name: [] for name in names}
+        for first in range(0, num_tasks, per_batch):
+            rows = slice(first, min(first + per_batch, num_tasks))
+            smcd = SMCD(
+                num_particles=self.particles,
+                flip_prob=self.flip_prob,
+                noise_std=noise.tolist(),
+                generator=generator,
+            )
+            smcd.bind(net, torch.ones_like(noise))  # the noise is already in normalised units
+            smcd.reset((rows.stop - rows.start,))
+            for step in range(steps):
+                smcd.observe(xs[rows, step], ys[rows, step])
+            filt = smcd.filter
+            assert filt is not None and filt.particles is not None
+            assert filt.log_evidence is not None and filt.last_ess is not None  # set by reset()
+            parts["particles"].append(filt.particles)
+            parts["weights"].append(filt.weights)
+            parts["mean_masks"].append(filt.mean_mask)
+            parts["ess"].append(filt.last_ess)
+            parts["evidence"].append(filt.log_evidence)
+            ancestors = filt.ancestors
+            if ancestors is None:  # no resampling at the last update: every particle its own
+                distinct = torch.full(filt.log_evidence.shape, float(self.particles), device=device)
+            else:  # resampling returns sorted ancestors: count the changes along each row
+                distinct = 1.0 + (ancestors[..., 1:] != ancestors[..., :-1]).sum(-1).to(torch.float32)
+            parts["distinct"].append(distinct)
+        return {name: torch.cat(values) for name, values in parts.items()}

@@ -139,11 +139,10 @@ def fit(
             ``"ess_share"`` the ESS of the last update over ``mask_particles`` ``[K]`` (1: the
             last observation told the particles nothing apart, ``1 / N``: one particle took all
             weight); ``"distinct_share"`` the share of distinct particles after the last
-            resampling ``[K]``; ``"mask_entropy"`` the mean binary entropy of the MMSE mask's
-            bits in bits ``[K]`` (``"prior_entropy"``, a 0-d tensor, is the value before any
-            observation: lower means a more concentrated posterior); ``"log_likelihood"``
-            the log evidence per observation ``[K]``; ``"noise"`` the likelihood noise
-            ``[out_features]``.
+            resampling ``[K]``; ``"log_likelihood"`` the log evidence per observation ``[K]``;
+            ``"shuffled_log_likelihood"`` the same for the same samples dealt to the tasks at
+            random ``[K]`` (the gap measures how much the masks stand for the tasks: near 0
+            when they do not); ``"noise"`` the likelihood noise ``[out_features]``.
 
     Returns:
         Mean training loss (MSE in normalised units) of every epoch, resumed ones included.

@@ -159,9 +159,7 @@ def test_posterior_diagnostics_are_shaped_and_in_range() -> None:
     assert p["mean_masks"].shape == (4, mask_dim) and bool(((p["mean_masks"] >= 0) & (p["mean_masks"] <= 1)).all())
     for name in ("ess_share", "distinct_share"):
         assert p[name].shape == (4,) and bool(((p[name] >= 1 / 40) & (p[name] <= 1)).all()), name
-    # Bits of entropy per mask bit; before any observation every bit is Bernoulli(keep_prob = 0.8).
-    assert bool(((p["mask_entropy"] >= 0) & (p["mask_entropy"] <= 1)).all())
-    assert float(p["prior_entropy"]) == pytest.approx(-(0.8 * math.log2(0.8) + 0.2 * math.log2(0.2)))
+    assert p["shuffled_log_likelihood"].shape == (4,) and bool(torch.isfinite(p["shuffled_log_likelihood"]).all())
     assert p["noise"].shape == (2,) and bool((p["noise"] > 0).all())
     assert bool(torch.isfinite(p["log_likelihood"]).all())
 
@@ -295,3 +293,52 @@ def test_task_training_makes_the_mask_identify_the_task() -> None:
     print(f"task identification: task-trained {task:.2f}, random-trained {random:.2f} (chance {1 / TASKS:.3f})")
     assert task >= 0.5
     assert task > random
+
+
+def _last_report(task_share: float) -> dict[str, torch.Tensor]:
+    """The posteriors reported at the last epoch of the sines' task training with ``task_share``."""
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(1, 1, hidden=(64, 64), dropout=0.5, mask_groups=8)
+    model = smcd_rl.AdaptiveModel(net, in_keys=["x"], out_key="y")
+    reports: dict[int, dict[str, torch.Tensor]] = {}
+    smcd_rl.fit(
+        model,
+        _sines(128, seed=0),
+        epochs=40,
+        batch_size=64,
+        lr=3e-3,
+        progress=False,
+        mask_training="task",
+        task_share=task_share,
+        seed=0,
+        mask_callback=lambda epoch, posteriors: reports.__setitem__(epoch, posteriors),
+    )
+    return reports[39]
+
+
+def test_the_log_likelihood_of_a_tasks_own_samples_beats_a_shuffled_deal_only_after_task_training() -> None:
+    """``log_likelihood - shuffled_log_likelihood`` measures how much a mask is a task's.
+
+    Each task's filter explains its own samples better than the same samples dealt to the tasks at
+    random only if some mask stands for the task. With task_share = 0 (random dropout, reported)
+    nothing ties a mask to a phase, and the two are equal up to the filters' noise. Measured on a
+    2-core x86 CPU: a mean gap of 0.19 nats per observation after task training (every task's
+    positive), 0.0005 after random training (some tasks' negative). The thresholds sit halfway.
+    """
+    task, random = _last_report(0.5), _last_report(0.0)
+    for p in (task, random):
+        assert p["shuffled_log_likelihood"].shape == p["log_likelihood"].shape == (TASKS,)
+    task_gap = task["log_likelihood"] - task["shuffled_log_likelihood"]
+    random_gap = random["log_likelihood"] - random["shuffled_log_likelihood"]
+    print(f"gap: task-trained {task_gap.mean():.3f}, random-trained {random_gap.mean():.4f}")
+    assert float(task_gap.mean()) > 0.1 and bool((task_gap > 0).all())
+    assert float(random_gap.mean()) < 0.1
+
+
+def test_reporting_the_posteriors_does_not_change_the_training() -> None:
+    """The shuffled diagnostic draws from a generator of its own: same losses and weights with or without it."""
+    settings = {"epochs": 3, "lr": 1e-3, "progress": False, "mask_training": "task", "mask_particles": 16}
+    quiet, reported = _model(), _model()
+    losses = smcd_rl.fit(quiet, _data(), **settings)
+    assert smcd_rl.fit(reported, _data(), mask_callback=lambda e, p: None, **settings) == losses
+    assert _same_weights(quiet, reported)
