@@ -240,6 +240,7 @@ def test_help_full_preset_and_bad_options(capsys) -> None:
         (["--particles", "-5"], "--particles must be >= 1"),
         (["--gd-lr", "0"], "--gd-lr must be > 0"),
         (["--tuning-episodes", "1"], "--tuning-episodes must be >= 2"),
+        (["--gd-steps", "1", "20"], "--gd-steps 20 is above --gd-max-steps 10"),
         (["--tuning-steps", "1"], "--tuning-steps must be >= 2"),
         (["--epochs", "0"], "--epochs must be >= 1"),
         (["--seeds", "0"], "--seeds must be >= 1"),

@@ -102,6 +102,12 @@ class PandaConfig(AdaptationConfig):
     tuning_steps: int = setting(
         20, "measurements per tuning episode (evenly spaced along a reach of a fresh tool and goal)", low=2
     )
+    gd_max_steps: int = setting(
+        10,
+        "most gradient steps per observation tuning may extend GD's grid to: 40 took 177 ms per observation on "
+        "one thread, over three control periods; every method must fit the step it adapts in",
+        low=1,
+    )
     k1: float = setting(20.0, "PD gain on the end-effector error", low=0.0)
     k2: float = setting(5.0, "PD gain on the joint velocity", low=0.0)
     dt: float = setting(DEFAULT_DT, "control period (s)", above=0.0)
@@ -115,6 +121,15 @@ class PandaConfig(AdaptationConfig):
     NON_EMPTY = ("intervals", "methods")
     # Which (method, n) runs there are; a run's name says its method and n.
     SELECTION = ("methods", "intervals")
+
+    def validate(self) -> None:
+        """The declared bounds, then the one across options: the GD grid within its step limit."""
+        super().validate()
+        if max(self.gd_steps) > self.gd_max_steps:
+            raise ValueError(
+                f"--gd-steps {max(self.gd_steps)} is above --gd-max-steps {self.gd_max_steps}; lower it or raise "
+                "--gd-max-steps"
+            )
 
 
 #: What ``--full`` changes (options given explicitly still win).

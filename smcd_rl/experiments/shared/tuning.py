@@ -218,8 +218,12 @@ def tuned_specs(
     common: dict[str, Any] = {
         "num_particles": config.particles,
         "gd_grid": grid,
-        # An experiment may bound the grid's extension (fetch: larger learning rates overflow MPC).
-        "gd_limits": {"lr": (None, getattr(config, "gd_max_lr", None))},
+        # An experiment may bound the grid's extension: fetch its learning rate (larger ones overflow
+        # MPC's rollouts), panda its steps (more do not fit the control period).
+        "gd_limits": {
+            "lr": (None, getattr(config, "gd_max_lr", None)),
+            "steps": (None, getattr(config, "gd_max_steps", None)),
+        },
         "flip_probs": config.calibrate_flips,
         "seed": seed,
         "progress": ex.progress,
