@@ -170,8 +170,8 @@ class TaskEpochs:
                 seed = (generator.initial_seed() * 1_000_003 + self.epoch) % 2**63
                 other = torch.Generator(device=device).manual_seed(seed)
                 deal = torch.randperm(xs.shape[0] * steps, generator=other, device=device)
-                mixed = [v.reshape(-1, v.shape[-1])[deal].reshape(v.shape) for v in (xs, ys)]
-                shuffled = self._filters(*mixed, noise, other)["evidence"]
+                mixed_x, mixed_y = (v.reshape(-1, v.shape[-1])[deal].reshape(v.shape) for v in (xs, ys))
+                shuffled = self._filters(mixed_x, mixed_y, noise, other)["evidence"]
                 posteriors["shuffled_log_likelihood"] = (shuffled / steps).cpu()
         return found["particles"], found["weights"], posteriors
 
