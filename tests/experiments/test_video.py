@@ -55,7 +55,15 @@ def test_panda_video_writes_each_methods_first_arms_until_they_reach(tmp_path, c
     # 5 videos per method from 4 tasks a seed: seed 0's four arms, then seed 1's first.
     assert cli.main(["panda", "--out", str(out), *PANDA, "--video", "5"]) == 0
     capsys.readouterr()
-    methods = {"FK": "FK", "M+N": "M+N", "M+G": "M+G", "M+S": "M+S", "M+S(paper)": "M+S-paper"}
+    methods = {
+        "FK": "FK",
+        "M+N": "M+N",
+        "M+G": "M+G",
+        "M+S": "M+S",
+        "M+S(evidence)": "M+S-evidence",
+        "M+S(paper)": "M+S-paper",
+        "M+C": "M+C",
+    }
     names = [f"videos/{safe}-{k}.gif" for safe in methods.values() for k in range(5)]
     assert [f for f in json.loads((out / "results.json").read_text())["files"] if f.startswith("videos/")] == names
     trials = {
