@@ -422,9 +422,7 @@ def _checked_gd_limits(
     return limits
 
 
-def _tune_gd(
-    search: _Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, tuple[float, float]] | None = None
-) -> None:
+def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, tuple[float, float]]) -> None:
     """Score the grid; while the best point lies on an edge, go on past that edge along that dimension.
 
     Past an edge only the line through the best point is scored (the new value with the other
@@ -446,7 +444,6 @@ def _tune_gd(
 
     for point in product(grid["lr"], grid["steps"], grid["window"], grid["loss"]):
         score(*point)
-    limits = limits or {name: (-math.inf, math.inf) for name in EXTENSIBLE}
     extensions = {("lr", "low"): 0, ("lr", "high"): 0, ("steps", "high"): 0, ("window", "high"): 0}
     while True:
         finite = {k: v for k, v in scored.items() if math.isfinite(v)}
