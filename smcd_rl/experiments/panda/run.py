@@ -64,7 +64,6 @@ Example:
 from __future__ import annotations
 
 import functools
-import itertools
 from pathlib import Path
 from typing import Any
 
@@ -77,9 +76,10 @@ import smcd_rl
 from smcd_rl.digests import model_digest
 from smcd_rl.envs.panda_reach import panda_frame, panda_kinematics_data
 from smcd_rl.experiments.panda.config import DEFAULT_INTERVALS, FULL, METHODS, PandaConfig
+from smcd_rl.experiments.panda.figure import plot
 from smcd_rl.experiments.panda.reaching import method_kinematics, reach, sample_tasks, tuning_episodes
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.experiments.shared.outputs import format_table, save_figure
+from smcd_rl.experiments.shared.outputs import format_table
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
@@ -194,7 +194,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
                 ),
             },
             plots={
-                "panda.png": lambda path: _plot(rows, config, path),
+                "panda.png": lambda path: plot(rows, config, path),
                 **{f"tuning-{name}.png": t.plot for name, t in tunings.items()},
             },
             files=videos,
@@ -388,45 +388,3 @@ def _held_out_rmse(model: smcd_rl.AdaptiveModel, data: TensorDict) -> float:
     with torch.no_grad():
         error = model.predict(data["q"]) - data["ee"]
     return float(error.square().sum(-1).mean().sqrt())
-
-
-def _plot(rows: list[dict[str, Any]], config: PandaConfig, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    intervals = sorted(set(config.intervals))
-    # Orange is the reference line's, as in Fig. 3; the methods take the other colours.
-    colours = itertools.cycle(
-        ["tab:blue", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan"]
-    )
-    for label in dict.fromkeys(r["method"] for r in rows):
-        sel = [r for r in rows if r["method"] == label and r["interval"] in intervals]
-        ax.errorbar(
-            [r["interval"] for r in sel],
-            [r["success_mean"] for r in sel],
-            color=next(colours),
-            yerr=[
-                [r["success_mean"] - r["success_low"] for r in sel],
-                [r["success_high"] - r["success_mean"] for r in sel],
-            ],
-            marker="o",
-            capsize=2,
-            label=label,
-        )
-    reference = [r for r in rows if r["method"] == "FK" and r["interval"] == 1]
-    if reference:
-        ax.axhline(reference[0]["success_mean"], color="tab:orange", linestyle="--", label="FK, measured every step")
-    ax.set_xscale("log")
-    ax.set_xticks(intervals, [str(n) for n in intervals])
-    ax.set_ylim(-0.02, 1.02)
-    ax.set_xlabel("measurement interval n (steps)")
-    ax.set_ylabel(f"success rate (within {100 * config.tolerance:.0f} cm in {config.steps} steps)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower left")
-    ax.set_title(f"Panda reaching, unknown tool ({config.tasks} tasks x {config.seeds} seeds)")
-    fig.tight_layout()
-    save_figure(fig, path, dpi=120)
-    plt.close(fig)

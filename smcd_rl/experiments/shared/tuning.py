@@ -29,7 +29,7 @@ Example:
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -43,21 +43,26 @@ from smcd_rl.diagnostics import trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.shared.adaptation_config import VARIANTS
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
+from smcd_rl.experiments.shared.outputs import format_table, ms_cell
+from smcd_rl.experiments.shared.tuning_options import OPTIONS, STUDENT, trace_options
+from smcd_rl.experiments.shared.tuning_plot import plot_traces
 from smcd_rl.tuning import build_strategy, describe_settings, ms_per_observation
 
-__all__ = ["Tuning", "tune", "tuned_specs", "VARIANTS", "TUNED", "method_variant", "strategy_for", "ms_column"]
+__all__ = [
+    "Tuning",
+    "tune",
+    "tuned_specs",
+    "VARIANTS",
+    "TUNED",
+    "OPTIONS",
+    "STUDENT",
+    "method_variant",
+    "strategy_for",
+    "ms_column",
+]
 
 #: Variant -> the kind of :func:`smcd_rl.tune`'s result it takes.
 TUNED = {"N": "none", "G": "gradient_descent", "S": "smcd", "C": "combination"}
-#: Options of SMCD measured on the tuning episodes only (their one-step error goes into the tuning
-#: table beside the tuned S): option -> the settings it changes, from the tuned SMCD's.
-OPTIONS: dict[str, Callable[[smcd_rl.SMCD], dict[str, Any]]] = {
-    "5x particles": lambda smcd: {"num_particles": 5 * smcd.num_particles},
-    "predictive mean": lambda smcd: {"prediction": "predictive"},
-}
-#: The option of a Student-t likelihood (4 degrees of freedom), calibrated by its own evidence.
-STUDENT = "Student-t likelihood"
 
 
 @dataclass
@@ -125,33 +130,7 @@ class Tuning:
 
     def plot(self, path: Path) -> None:
         """``tuning-<name>.png``: one-step error, ESS share, log evidence and kept share over the steps."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, axes = plt.subplots(1, 4, figsize=(15, 3.4))
-        panels = [
-            ("one_step_rmse", "one-step RMSE", 2),
-            ("ess", "ESS / particles (before resampling)", 1),
-            ("log_evidence", "log evidence so far / episode", 1),
-            ("kept", "share of units the mask keeps", 1),
-        ]
-        for ax, (key, label, first) in zip(axes, panels, strict=True):
-            for i, (variant, t) in enumerate(self.traces.items()):
-                if t[key]:  # a colour per strategy in every panel, also where some have no values
-                    steps = range(first, first + len(t[key]))
-                    ax.plot(steps, t[key], marker=".", color=f"C{i}", label=f"{self.name}+{variant}")
-            ax.set_xlabel("step")
-            ax.set_title(label, fontsize=9)
-            ax.grid(alpha=0.3)
-        axes[0].set_yscale("log")
-        axes[2].set_yscale("symlog")
-        axes[0].legend(fontsize=8)
-        fig.suptitle(f"{self.name}: strategies on {self.episodes} held-out training-task episodes (diagnosis)")
-        fig.tight_layout()
-        save_figure(fig, path, dpi=110)
-        plt.close(fig)
+        plot_traces(self.name, self.traces, self.episodes, path)
 
 
 def method_variant(name: str) -> tuple[str, str]:
@@ -359,7 +338,10 @@ def _tune(
         for variant, spec in specs.items():
             strategy = build_strategy(spec["kind"], _reseeded(spec["kind"], spec["settings"], seed, str(ex.device)))
             traces[variant] = asdict(trace(model, episodes, strategy))
-    traced = _trace_options(ex, model, episodes, config, specs["S"], seed=seed, timer=timer) if options else {}
+    traced: dict[str, dict[str, Any]] = {}
+    if options:
+        traced, seconds = trace_options(ex, model, episodes, config, specs["S"]["settings"], seed=seed)
+        timer.seconds |= seconds
     return {
         "specs": specs,
         "ms": {variant: found["ms"][variant] for variant in specs},
@@ -380,46 +362,6 @@ def _reseeded(kind: str, settings: dict[str, Any], seed: int, device: str) -> di
         members = [{**m, "settings": _reseeded(m["name"], m["settings"], seed, device)} for m in settings["members"]]
         return {**settings, "members": members}
     return settings
-
-
-def _trace_options(
-    ex: Experiment,
-    model: smcd_rl.AdaptiveModel,
-    episodes: TensorDictBase,
-    config: Any,
-    tuned: dict[str, Any],
-    *,
-    seed: int,
-    timer: _Timer,
-) -> dict[str, dict[str, Any]]:
-    """The tuned SMCD's trace with each option changed, and with a Student-t likelihood of its own calibration."""
-    options = {}
-    with timer("options"):
-        for option, changed in OPTIONS.items():
-            smcd = build_strategy("smcd", _reseeded("smcd", tuned["settings"], seed, str(ex.device)))
-            assert isinstance(smcd, smcd_rl.SMCD)
-            generator = torch.Generator(device=ex.device).manual_seed(seed)
-            other = smcd_rl.SMCD(**{**smcd.config(), **changed(smcd)}, generator=generator)
-            options[option] = {**asdict(trace(model, episodes, other)), "settings": "as S"}
-    with timer("student-t"):  # a likelihood of its own needs a noise of its own: calibrated by its evidence
-        chosen = model.calibration
-        student = calibrate(
-            model,
-            episodes,
-            base=smcd_rl.SMCD(num_particles=config.particles, likelihood="student-t"),
-            flip_probs=config.calibrate_flips,
-            criterion="evidence",
-            seed=seed,
-            progress=ex.progress,
-        )
-        model.calibration = chosen  # the model keeps its own calibration
-        generator = torch.Generator(device=ex.device).manual_seed(seed)
-        strategy = smcd_rl.SMCD(**student.strategy.config(), generator=generator)
-        options[STUDENT] = {
-            **asdict(trace(model, episodes, strategy)),
-            "settings": describe_settings({"noise_std": student.noise_std, "flip_prob": student.flip_prob}),
-        }
-    return options
 
 
 def _scores(t: Mapping[str, Any]) -> list[Any]:
