@@ -86,6 +86,24 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     assert "5x particles" not in lean.table() and len(lean.table().splitlines()) == 2 + len(tuning.VARIANTS)
 
 
+def test_a_network_that_runs_only_gd_is_tuned_for_gd_only(tmp_path, monkeypatch) -> None:
+    """An experiment passes the variants its methods use: no SMCD calibration, reference or option runs for G alone."""
+    model, episodes, _ = known_mask_episodes(episodes=4, steps=8)
+    config = TinyConfig(out=str(tmp_path), gd_lr=(0.03,), gd_steps=(1,), gd_window=(4,))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("SMCD was calibrated for a network that runs only G")
+
+    monkeypatch.setattr(tuning, "calibrate", refuse)
+    monkeypatch.setattr("smcd_rl.experiments.shared.tuning_options.calibrate", refuse)
+    with Experiment(config, progress=False) as ex:
+        result = tuning.tune(ex, model, episodes, config, variants=("G",))
+    assert set(result.specs) == set(result.ms) == set(result.traces) == {"N", "G"} and result.options == {}
+    assert set(model.tuning["best_of"]) == {"none", "gradient_descent"}
+    with Experiment(config, progress=False) as ex, pytest.raises(ValueError, match=r"unknown variants \['X'\]"):
+        tuning.tune(ex, model, episodes, config, variants=("G", "X"))
+
+
 def test_unknown_variant_is_refused() -> None:
     specs = {
         "G": {"kind": "gradient_descent", "settings": {"lr": 0.1, "steps": 1, "window": 2}},
@@ -164,6 +182,29 @@ def printed_tables(printed: str) -> tuple[dict[str, list[str]], dict[str, list[s
             tables[-1][cells[0]] = cells[1:]
     tasks, means, verdicts = tables
     return {task: [*tasks[task], *cells] for task, cells in means.items()}, verdicts
+
+
+def test_smcd_on_task_masks_has_a_column_and_verdicts_only_where_it_ran(tmp_path, capsys) -> None:
+    torch.manual_seed(0)
+    base = torch.rand(40) + 1.0
+    scores = {(10,): {"M+N": base, "M+G": base - 0.2, "M+S": base - 0.1, "T+S": base - 0.3}}
+    adaptive = ("T+S", "M+S", "M+G")
+    rows, comparisons = cell_statistics(scores, cell=("T",), baseline="M+N", adaptive=adaptive, metric="rmse")
+    entry = scoreboard_entry("with T", rows, comparisons, cell={"T": 10}, metric="rmse", unit="m")
+    assert entry["estimates"]["SMCD (task masks)"]["method"] == "T+S"
+    # T+S is 0.1 below GD and 0.2 below one-step SMCD on every trial.
+    assert entry["verdicts"]["SMCD (task masks) vs GD"] == "better -0.100 [-0.100, -0.100]"
+    assert entry["verdicts"]["SMCD (task masks) vs SMCD (one-step)"] == "better -0.200 [-0.200, -0.200]"
+    without = scoreboard_entry("no T", rows[:3], comparisons, cell={"T": 10}, metric="rmse", unit="m")
+    assert "SMCD (task masks)" not in without["estimates"] and not any("task masks" in v for v in without["verdicts"])
+    for name, e in (("t", entry), ("plain", without)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps({"scoreboard": e}))
+    out = tmp_path / "board"
+    assert cli.main(["scoreboard", str(tmp_path / "t"), str(tmp_path / "plain"), "--out", str(out)]) == 0
+    report = (out / "report.md").read_text()
+    table = report.split("(T+S), where it ran")[1]
+    assert "| task masks vs GD " in table and "| with T " in table and "| no T " not in table.split("**")[1]
 
 
 def test_two_runs_of_one_experiment_are_labelled_by_their_run_directories(tmp_path, capsys) -> None:

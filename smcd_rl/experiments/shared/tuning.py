@@ -173,6 +173,7 @@ def tuned_specs(
     name: str,
     paper_noise: float | tuple[float, ...] | list[float],
     budgeted: Sequence[str] = (),
+    variants: Sequence[str] = VARIANTS,
 ) -> dict[str, Any]:
     """Every variant's spec and time per observation from :func:`smcd_rl.tune` and the two references.
 
@@ -186,6 +187,8 @@ def tuned_specs(
         paper_noise: the fixed likelihood noise of ``S(paper)``.
         budgeted: variants of :data:`TUNED` that also get a spec tuned under ``config.budget_ms``,
             labelled ``"G@10ms"`` and so on.
+        variants: the variants (:data:`VARIANTS`) to tune: only the kinds they need are tuned
+            (``C`` needs ``G`` and ``S``), and a reference only when asked for; ``N`` always is.
 
     Returns:
         ``{"specs", "ms", "tables", "seconds", "candidates"}``; the unbudgeted result becomes
@@ -207,6 +210,7 @@ def tuned_specs(
         "seed": seed,
         "progress": ex.progress,
     }
+    common["strategies"] = _kinds(variants)
     free = smcd_rl.tune(model, episodes, **common)
     budget = smcd_rl.tune(model, episodes, budget_ms=config.budget_ms, reuse=free, **common)
     specs: dict[str, dict[str, Any]] = {}
@@ -221,20 +225,25 @@ def tuned_specs(
             # The same strategy: one time, not two noisy ones.
             same = variant in specs and specs[label] == specs[variant]
             ms[label] = ms[variant] if same else budget.best_of[kind].ms_per_step
-    evidence = calibrate(
-        model,
-        episodes,
-        base=smcd_rl.SMCD(num_particles=config.particles),
-        flip_probs=config.calibrate_flips,
-        criterion="evidence",
-        seed=seed,
-        progress=ex.progress,
-    )
-    specs["S(evidence)"] = {"kind": "smcd", "settings": {**evidence.strategy.config(), "seed": seed, "device": device}}
-    noise = list(paper_noise) if isinstance(paper_noise, (tuple, list)) else float(paper_noise)
-    paper = {"num_particles": config.particles, "noise_std": noise, "flip_prob": config.flip_prob}
-    specs["S(paper)"] = {"kind": "smcd", "settings": {**paper, "seed": seed, "device": device}}
+    if "S(evidence)" in variants:
+        evidence = calibrate(
+            model,
+            episodes,
+            base=smcd_rl.SMCD(num_particles=config.particles),
+            flip_probs=config.calibrate_flips,
+            criterion="evidence",
+            seed=seed,
+            progress=ex.progress,
+        )
+        settings = {**evidence.strategy.config(), "seed": seed, "device": device}
+        specs["S(evidence)"] = {"kind": "smcd", "settings": settings}
+    if "S(paper)" in variants:
+        noise = list(paper_noise) if isinstance(paper_noise, (tuple, list)) else float(paper_noise)
+        paper = {"num_particles": config.particles, "noise_std": noise, "flip_prob": config.flip_prob}
+        specs["S(paper)"] = {"kind": "smcd", "settings": {**paper, "seed": seed, "device": device}}
     for variant in ("S(evidence)", "S(paper)"):
+        if variant not in specs:
+            continue
         spec = specs[variant]
         ms[variant] = ms_per_observation(model, build_strategy(spec["kind"], spec["settings"]), episodes[0])
     model.tuning = free.to_dict()  # the unbudgeted choice is the model's own
@@ -250,6 +259,20 @@ def tuned_specs(
     }
 
 
+def _kinds(variants: Sequence[str]) -> list[str]:
+    """The kinds of :func:`smcd_rl.tune` that ``variants`` need, ``"none"`` always (the table's reference row).
+
+    Example:
+        >>> _kinds(["G"]), _kinds(["C"]), _kinds(["S(paper)"])
+        (['none', 'gradient_descent'], ['none', 'gradient_descent', 'smcd', 'combination'], ['none'])
+    """
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise ValueError(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
+    needed = {"N", *variants, *(("G", "S") if "C" in variants else ())}
+    return [kind for variant, kind in TUNED.items() if variant in needed]
+
+
 def tune(
     ex: Experiment,
     model: smcd_rl.AdaptiveModel,
@@ -259,6 +282,7 @@ def tune(
     name: str = "M",
     paper_noise_std: float | Sequence[float] | None = None,
     options: bool = True,
+    variants: Sequence[str] = VARIANTS,
 ) -> Tuning:
     """Tune ``model``'s strategies on ``episodes`` (held-out training-task episodes), or reuse a rerun's result.
 
@@ -271,7 +295,9 @@ def tune(
         name: the model's name in the method labels.
         paper_noise_std: the fixed likelihood noise of ``S(paper)`` (default ``config.noise_std``).
         options: also trace the tuned SMCD with each of :data:`OPTIONS` and with a Student-t
-            likelihood of its own calibration (diagnosis only: no method uses them).
+            likelihood of its own calibration (diagnosis only: no method uses them), where ``S`` is tuned.
+        variants: the variants to tune (default all of :data:`VARIANTS`); an experiment passes
+            those its methods use, so a network that only runs ``G`` is not calibrated for SMCD.
     """
     paper_noise = config.noise_std if paper_noise_std is None else paper_noise_std
     paper_noise = tuple(float(v) for v in paper_noise) if isinstance(paper_noise, Sequence) else float(paper_noise)
@@ -280,6 +306,7 @@ def tune(
         "episodes": content_digest(episodes),
         "paper_noise": paper_noise,
         "options": options,
+        "variants": sorted(variants),
         "settings": {
             k: getattr(config, k)
             for k in (
@@ -297,7 +324,9 @@ def tune(
     with ex.stage(f"tune {name}"):
         found = ex.store.get(f"tuning-{name}", key)
         if found is None:
-            found = _tune(ex, model, episodes, config, name=name, paper_noise=paper_noise, options=options)
+            found = _tune(
+                ex, model, episodes, config, name=name, paper_noise=paper_noise, options=options, variants=variants
+            )
             ex.store.put(f"tuning-{name}", key, found)
     tuning = Tuning(
         name=name,
@@ -324,12 +353,13 @@ def _tune(
     name: str,
     paper_noise: float | tuple[float, ...],
     options: bool,
+    variants: Sequence[str],
 ) -> dict[str, Any]:
     num_episodes, steps = episodes.batch_size
     seed = config.seed + 23
     timer = _Timer()
     with timer("tune"):
-        found = tuned_specs(ex, model, episodes, config, name=name, paper_noise=paper_noise)
+        found = tuned_specs(ex, model, episodes, config, name=name, paper_noise=paper_noise, variants=variants)
     timer.seconds["references"] = timer.seconds["tune"] - found["seconds"]
     timer.seconds["tune"] = found["seconds"]
     specs = {variant: found["specs"][variant] for variant in VARIANTS if variant in found["specs"]}
@@ -339,7 +369,7 @@ def _tune(
             strategy = build_strategy(spec["kind"], _reseeded(spec["kind"], spec["settings"], seed, str(ex.device)))
             traces[variant] = asdict(trace(model, episodes, strategy))
     traced: dict[str, dict[str, Any]] = {}
-    if options:
+    if options and "S" in specs:
         traced, seconds = trace_options(ex, model, episodes, config, specs["S"]["settings"], seed=seed)
         timer.seconds |= seconds
     return {
