@@ -30,6 +30,7 @@ from smcd_rl.experiments.shared.scoreboard_entry import (
     COLUMNS,
     CORE_COLUMNS,
     CORE_VERDICTS,
+    TASK_MASKS,
     VERDICT_LABELS,
     VERDICTS,
 )
@@ -122,9 +123,11 @@ def _write(
         verdicts = [[row["task"], *(row[f"{m} vs {a}"] for m, a in CORE_VERDICTS)] for row in rows]
         # Experiments tuned by smcd_rl.tune add SMCD by one-step error, the combination and the
         # time per observation: tables of their own, of the tasks that have them.
-        extra_columns = [c for c in COLUMNS if c not in CORE_COLUMNS]
+        extra_columns = [c for c in COLUMNS if c not in (*CORE_COLUMNS, TASK_MASKS)]
         tuned = [row for row in rows if any(math.isfinite(row[c]) for c in extra_columns)]
-        extra_verdicts = [v for v in VERDICTS if v not in CORE_VERDICTS]
+        extra_verdicts = [v for v in VERDICTS if v not in CORE_VERDICTS and TASK_MASKS not in v]
+        task_verdicts = [v for v in VERDICTS if v[0] == TASK_MASKS]
+        task_rows = [row for row in rows if math.isfinite(row[TASK_MASKS])]
         timed = [row for row in rows if row["ms"]]
         write_json(
             ex.out / "scoreboard.json",
@@ -159,6 +162,16 @@ def _write(
                     ["task", *extra_columns, *(VERDICT_LABELS[v] for v in extra_verdicts)],
                 )
                 if tuned
+                else "",
+                "SMCD on a network whose masks were trained to identify the task (T+S), where it ran: mean [95% CI] "
+                "and paired verdicts": format_table(
+                    [
+                        [row["task"], row[f"{TASK_MASKS} text"], *(row[f"{m} vs {a}"] for m, a in task_verdicts)]
+                        for row in task_rows
+                    ],
+                    ["task", TASK_MASKS, *(VERDICT_LABELS[v] for v in task_verdicts)],
+                )
+                if task_rows
                 else "",
                 # Not "none": a forward pass, a fraction of a millisecond everywhere (results.csv has it).
                 "Median time per observation (ms; one stream, one thread), where the experiment measured it": format_table(
@@ -322,6 +335,7 @@ _BAR_LABELS = {
     "SMCD (calibrated)": "SMCD\n(calibrated)",
     "SMCD (one-step)": "SMCD\n(one-step)",
     "combination": "combi-\nnation",
+    TASK_MASKS: "SMCD\n(task masks)",
 }
 
 

@@ -2,7 +2,7 @@
 
 Each experiment writes it into its ``results.json`` (:func:`scoreboard_entry`): the estimates of
 its methods for "none", "GD", "SMCD (paper)" and "SMCD (calibrated)" (and, where it ran them,
-"SMCD (one-step)" and "combination") and their paired verdicts;
+"SMCD (one-step)", "combination" and "SMCD (task masks)") and their paired verdicts;
 ``smcd-rl scoreboard`` reads the entries of many runs into one table.
 
 Example:
@@ -24,6 +24,8 @@ __all__ = [
     "COLUMNS",
     "CORE_COLUMNS",
     "HEADLINE",
+    "TASK_MASKS",
+    "TASK_MASKS_METHOD",
     "VERDICTS",
     "CORE_VERDICTS",
     "VERDICT_LABELS",
@@ -32,8 +34,11 @@ __all__ = [
 
 #: The scoreboard's strategies, in order: "SMCD (calibrated)" is SMCD calibrated by its evidence,
 #: "SMCD (one-step)" SMCD tuned by one-step error like GD (:func:`smcd_rl.tune`), "combination"
-#: the tuned combination of none, GD and SMCD; an experiment that did not run one reads "not run".
-COLUMNS = ("none", "GD", "SMCD (paper)", "SMCD (calibrated)", "SMCD (one-step)", "combination")
+#: the tuned combination of none, GD and SMCD, "SMCD (task masks)" one-step SMCD on a network whose
+#: masks were trained to identify the task; an experiment that did not run one reads "not run".
+COLUMNS = ("none", "GD", "SMCD (paper)", "SMCD (calibrated)", "SMCD (one-step)", "combination", "SMCD (task masks)")
+#: The column of SMCD on the task-mask network (``fit(mask_training="task")``), and its method label.
+TASK_MASKS, TASK_MASKS_METHOD = "SMCD (task masks)", "T+S"
 #: The columns every experiment's entry has.
 CORE_COLUMNS = COLUMNS[:4]
 #: Strategy -> the method suffix the experiments use for it (after ``M+``).
@@ -45,7 +50,7 @@ HEADLINE = {
     "SMCD (one-step)": "S",
     "combination": "C",
 }
-#: The paired verdicts shown: (method, against); the last two where those strategies ran.
+#: The paired verdicts shown: (method, against); the last four where those strategies ran.
 VERDICTS = (
     ("SMCD (calibrated)", "none"),
     ("SMCD (calibrated)", "GD"),
@@ -53,11 +58,16 @@ VERDICTS = (
     ("SMCD (paper)", "GD"),
     ("SMCD (one-step)", "GD"),
     ("combination", "GD"),
+    (TASK_MASKS, "GD"),
+    (TASK_MASKS, "SMCD (one-step)"),
 )
 #: The verdicts every experiment's entry has.
 CORE_VERDICTS = VERDICTS[:4]
 #: The verdicts' column headers.
-VERDICT_LABELS = {(m, a): f"{m.split(' ')[1][1:-1] if ' ' in m else m} vs {a}" for m, a in VERDICTS}
+VERDICT_LABELS = {
+    (m, a): " vs ".join(n.removeprefix("SMCD (").removesuffix(")") if n.startswith("SMCD (") else n for n in (m, a))
+    for m, a in VERDICTS
+}
 
 
 def scoreboard_entry(
@@ -94,6 +104,8 @@ def scoreboard_entry(
         chosen = {k: rows[0][k] for k in chosen}
     labels = {column: prefix + suffix for column, suffix in (HEADLINE if methods is None else methods).items()}
     found = {r["method"]: r for r in rows if _in_cell(r, chosen)}
+    if TASK_MASKS_METHOD in found:  # the task-mask network's SMCD, where the experiment ran it
+        labels[TASK_MASKS] = TASK_MASKS_METHOD
     estimates = {
         column: {
             "method": label,
