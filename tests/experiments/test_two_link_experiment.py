@@ -5,6 +5,7 @@ import json
 
 import pytest
 
+import smcd_rl
 from smcd_rl import cli
 from smcd_rl.experiments.shared.runtime import torch_threads
 from smcd_rl.experiments.two_link import run as two_link
@@ -186,6 +187,30 @@ def test_reptile_and_latent_methods_leave_the_multitask_rows_unchanged(tmp_path,
         len(list((tmp_path / "all").glob("reptile-*.ckpt"))) == len(list((tmp_path / "all").glob("latent-*.ckpt"))) == 1
     )
     assert not list((tmp_path / "m").glob("reptile-*.ckpt"))  # no Reptile method, no Reptile training
+
+
+def test_the_task_mask_network_is_paired_with_m_and_r_and_leaves_their_rows_unchanged(tmp_path, capsys) -> None:
+    """T trains its own network (mask_groups bits per layer) from its own seed: M's and R's rows do not move,
+    T+S is paired with M+S, M+G and R+G in a table of its own, and the scoreboard entry has its column."""
+    with torch_threads(1):
+        others = ["M+N", "M+G", "M+S", "R+G"]
+        assert cli.main(["two-link", "--out", str(tmp_path / "m"), *TINY, "--methods", *others]) == 0
+        methods = ["--methods", *others, "T+N", "T+S", "--mask-groups", "4"]
+        assert cli.main(["two-link", "--out", str(tmp_path / "t"), *TINY, *methods]) == 0
+    alone, together = _rows(tmp_path / "m"), _rows(tmp_path / "t")
+    assert alone and all(together[key] == value for key, value in alone.items())
+    task = smcd_rl.load(tmp_path / "t" / "task_model.pt")
+    assert task.net.mask_dim == 2 * 4  # two hidden layers of 4 bits
+    pairs = {(r["method"], r["against"]) for r in csv.DictReader(open(tmp_path / "t" / "comparisons.csv"))}
+    assert {("T+S", against) for against in ("M+S", "M+G", "R+G", "T+N")} <= pairs
+    report = (tmp_path / "t" / "report.md").read_text()
+    assert "T+S (masks trained to identify the task) paired with M+G, M+S, R+G, T+N" in report
+    entry = json.loads((tmp_path / "t" / "results.json").read_text())["scoreboard"]
+    assert entry["estimates"]["SMCD (task masks)"]["method"] == "T+S"
+    assert "SMCD (task masks) vs GD" in entry["verdicts"]
+    # R runs only G, so only GD is tuned for it.
+    tuned = json.loads((tmp_path / "t" / "results.json").read_text())["tuning"]
+    assert set(tuned["R"]["specs"]) == {"N", "G"} and set(tuned["T"]["specs"]) == {"N", "S"}
 
 
 def test_a_rerun_with_fewer_epochs_trains_that_many_instead_of_reusing_the_longer_model(tmp_path, capsys) -> None:

@@ -1,8 +1,9 @@
-"""What the two-link experiments share: motor-babbling data, the M and R networks, and the oracle.
+"""What the two-link experiments share: motor-babbling data, the M, R and T networks, and the oracle.
 
 ``smcd-rl two-link`` (Fig. 2) and ``smcd-rl telescoping`` (Fig. 8) both train a multi-task
-dropout network M and a Reptile network R on motor babbling of many two-link arms, and compare
-them with an oracle particle filter over the link lengths. Their configs derive from
+dropout network M, a Reptile network R and a network T whose masks were trained to identify the
+arm (:func:`smcd_rl.fit` with ``mask_training="task"``) on motor babbling of many two-link arms,
+and compare them with an oracle particle filter over the link lengths. Their configs derive from
 :class:`TwoLinkFamilyConfig`, which declares those settings once.
 
 Example:
@@ -31,6 +32,8 @@ __all__ = [
     "network",
     "fit_settings",
     "train_reptile",
+    "task_model",
+    "task_fit_settings",
     "reptile_model",
     "reptile_settings",
     "oracle",
@@ -77,6 +80,28 @@ def reptile_model(config: TwoLinkFamilyConfig, device: torch.device | str, *, in
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(init_seed)
         return smcd_rl.AdaptiveModel(network(config, device), in_keys=["q"], out_key="ee")
+
+
+def task_model(config: TwoLinkFamilyConfig, device: torch.device | str, *, init_seed: int) -> smcd_rl.AdaptiveModel:
+    """The untrained T network: M's architecture with ``config.mask_groups`` bits per layer, from ``init_seed``.
+
+    The global RNG is left as it was, so adding or dropping T methods changes nothing for the others.
+
+    Example:
+        >>> task_model(TwoLinkFamilyConfig(hidden=32, mask_groups=4), "cpu", init_seed=0).net.mask_dim
+        8
+    """
+    groups = config.mask_groups or None
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(init_seed)
+        hidden = (config.hidden,) * config.depth
+        net = smcd_rl.MaskedMLP(2, 2, hidden=hidden, dropout=config.dropout, mask_groups=groups, device=device)
+        return smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+
+
+def task_fit_settings(config: TwoLinkFamilyConfig) -> dict[str, Any]:
+    """The :func:`smcd_rl.fit` settings of the T network: M's, with masks tied to the arm (the data's ``"task"``)."""
+    return {**fit_settings(config), "mask_training": "task", "task_share": config.task_share}
 
 
 def reptile_settings(config: TwoLinkFamilyConfig) -> dict[str, Any]:

@@ -31,7 +31,7 @@ FAMILY_FULL = {
 
 @dataclass
 class TwoLinkFamilyConfig(AdaptationConfig):
-    """Settings of the two-link experiments: training arms, the M and R networks, the oracle, the strategies."""
+    """Settings of the two-link experiments: training arms, the M, R and T networks, the oracle, the strategies."""
 
     tasks: int = setting(200, "training arms (link-length draws)", low=1)
     episodes: int = setting(50, "motor-babbling episodes per training arm", low=1)
@@ -49,6 +49,15 @@ class TwoLinkFamilyConfig(AdaptationConfig):
     reptile_inner_lr: float = setting(0.02, "Reptile inner SGD learning rate (the paper's 0.02)", above=0.0)
     reptile_inner_epochs: int = setting(1, "Reptile inner epochs per task (the paper's 1)", low=1)
     reptile_tasks_per_batch: int = setting(1, "tasks per Reptile meta step", low=1)
+    task_share: float = setting(
+        0.5,
+        "share of samples the T network trains through a mask of its task's posterior (the rest random)",
+        low=0.0,
+        high=1.0,
+    )
+    mask_groups: int = setting(
+        16, "dropout bits per hidden layer of the T network, each for hidden/mask_groups units (0: one per unit)", low=0
+    )
     noise_std: float = setting(0.05, "likelihood noise std (m) of SMCD and the oracle", above=0.0)
     oracle_particles: int = setting(1000, "oracle particle count over link lengths", low=1)
     oracle_jitter: float = setting(0.005, "oracle random-walk std of link lengths per step", low=0.0)

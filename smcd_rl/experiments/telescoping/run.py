@@ -1,7 +1,7 @@
 """Closed-loop tracking with a telescoping link (paper appendix A.4, Fig. 8): ``smcd-rl telescoping``.
 
-Reads top to bottom: seed, make motor-babbling data, train a multi-task (M) and a Reptile (R)
-dropout model, then for every method run all trials at once: at each of the 100 steps the
+Reads top to bottom: seed, make motor-babbling data, train a multi-task (M), a Reptile (R) and a
+task-mask (T: masks trained to identify the arm) dropout model, then for every method run all trials at once: at each of the 100 steps the
 method observes the joint angles and the measured end effector, and the paper's PD law
 ``u = -K1 J^+ (x - x_g) - K2 q_dot`` (``K1 = 20, K2 = 5``) drives the arm toward a target moving
 on a circle, with ``J`` the Jacobian of the method's adapted kinematics at the current angles.
@@ -40,11 +40,14 @@ from smcd_rl.experiments.shared.outputs import format_table, save_figure, write_
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.shared.task_family import task_verdict_table
 from smcd_rl.experiments.shared.tuning import ms_column, tune
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
     fit_settings,
     network,
+    task_fit_settings,
+    task_model,
     train_reptile,
     tuning_episodes,
 )
@@ -57,9 +60,13 @@ __all__ = ["TelescopingConfig", "FULL", "METHODS", "DEFAULT_METHODS", "run", "ta
 #: Steps of each tuning episode (babbling of a fresh arm): twice the training episodes' 10.
 TUNING_STEPS = 20
 
-#: The adaptive methods, each compared (paired over the same episodes) with M+N and with each other.
+#: The adaptive methods, each compared (paired over the same episodes) with M+N and with each other
+#: (each as the method against those after it: T+S first, so its pairs read T+S minus the other).
 ADAPTIVE = (
+    "T+S",
     *(f"{network}+{variant}" for network in ("M", "R") for variant in ("S", "S(evidence)", "S(paper)", "C", "G")),
+    "T+G",
+    "T+N",
     "R+N",
     "O+P",
     "true",
@@ -85,13 +92,22 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
             assert data is not None
             models["R"], losses["R"] = train_reptile(ex, config, data, init_seed=config.seed + 1)
             models["R"].save(ex.out / "reptile.pt")
+        if "T" in families:
+            assert data is not None
+            models["T"] = task_model(config, ex.device, init_seed=config.seed + 29)
+            losses["T"] = ex.train("task", smcd_rl.fit, models["T"], data, **task_fit_settings(config))
+            models["T"].save(ex.out / "task_model.pt")
 
         # --- the fair protocol: SMCD and GD tuned on babbling of fresh training arms (never telescoping)
         held_out = tuning_episodes(config, ex.device, steps=TUNING_STEPS)
         tunings = {
-            family: tune(ex, models[family], held_out, config, name=family)
+            family: tune(ex, models[family], held_out, config, name=family, variants=variants)
             for family in sorted(families)
-            if any(_family(m) == family and not m.endswith("+N") for m in config.methods)
+            if (
+                variants := [
+                    m.partition("+")[2] for m in config.methods if _family(m) == family and not m.endswith("+N")
+                ]
+            )
         }
 
         # --- every method on the same episodes, cached by the digest of the model it adapts ---------
@@ -139,6 +155,7 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
                 f"x {config.feedback}; std over episodes; median ms per observation": table(rows, config),
                 "M+S paired with M+N, M+G, M+S(evidence) and M+S(paper) over the same episodes "
                 "(negative: M+S's error is lower)": verdict_table(headline, cell=("k",)),
+                **task_verdict_table(comparisons, cell=("k",), over="episodes"),
                 **{caption: text for t in tunings.values() for caption, text in t.tables().items()},
             },
             rows=rows,
@@ -245,8 +262,8 @@ def stage_costs(config: TelescopingConfig) -> dict[str, float]:
 
     Example:
         >>> costs = stage_costs(TelescopingConfig())
-        >>> list(costs)[:3], costs["evaluate M+S"] > costs["evaluate M+N"]
-        (['train', 'train reptile', 'tune M'], True)
+        >>> list(costs)[:4], costs["evaluate M+S"] > costs["evaluate M+N"]
+        (['train', 'train reptile', 'train task', 'tune M'], True)
     """
     flops = mlp_flops(2, (config.hidden,) * config.depth, 2)
     samples = config.tasks * config.episodes * config.steps
@@ -259,6 +276,10 @@ def stage_costs(config: TelescopingConfig) -> dict[str, float]:
         inner = config.reptile_epochs * config.reptile_inner_epochs
         steps = inner * config.tasks * -(-config.episodes * config.steps // config.reptile_batch_size)
         costs["train reptile"] = estimate(steps=steps, forwards=3 * inner * samples, flops=flops)
+    if "T" in families:  # M's training, and from the second epoch each arm's mask posterior (16 x 100 forwards)
+        steps = config.epochs * -(-samples // config.batch_size)
+        posteriors = (config.epochs - 1) * config.tasks * 16 * 100
+        costs["train task"] = estimate(steps=steps, forwards=3 * config.epochs * samples + posteriors, flops=flops)
     for family in sorted(families):
         if any(_family(m) == family and not m.endswith("+N") for m in config.methods):
             tuning = tuning_cost(config, episodes=config.tuning_episodes, steps=TUNING_STEPS, flops=flops)
@@ -272,8 +293,8 @@ def stage_costs(config: TelescopingConfig) -> dict[str, float]:
 
 
 def _family(name: str) -> str:
-    """The trained model a method adapts: ``"M"``, ``"R"``, or ``""`` (true kinematics, oracle)."""
-    return name[0] if name[0] in "MR" else ""
+    """The trained model a method adapts: ``"M"``, ``"R"``, ``"T"``, or ``""`` (true kinematics, oracle)."""
+    return name[0] if name[0] in "MRT" and name[1:2] == "+" else ""
 
 
 def _train_m(

@@ -3,6 +3,8 @@
 Example:
     >>> TwoLinkConfig().burn_in, FULL["tasks"], "R+S" in DEFAULT_METHODS, "R+S" in FULL["methods"]
     ((1, 5, 10), 1000, False, True)
+    >>> [m for m in DEFAULT_METHODS if m.startswith("T+")]
+    ['T+N', 'T+G', 'T+S']
 """
 
 from __future__ import annotations
@@ -15,18 +17,33 @@ from smcd_rl.experiments.shared.two_link_family_config import FAMILY_FULL, TwoLi
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "REPTILE_METHODS"]
 
 #: Method labels that this command runs: Fig. 2's, with S SMCD tuned by one-step error, S(evidence)
-#: SMCD calibrated by its evidence, S(paper) SMCD at the paper's settings and C the combination.
+#: SMCD calibrated by its evidence, S(paper) SMCD at the paper's settings and C the combination,
+#: and the network T trained for mask adaptation (``fit(mask_training="task")``).
 METHODS = (
     "O+P",
     *(f"{network}+{variant}" for network in ("M", "R") for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C")),
+    *(f"T+{variant}" for variant in ("N", "G", "S")),
     "LV+N",
 )
 #: The Reptile network's methods (``--full`` runs them; R+S(paper) only on request).
 REPTILE_METHODS = ("R+N", "R+G", "R+S", "R+S(evidence)", "R+C")
-#: What runs by default: the multi-task network's methods and the baselines. The Reptile network
-#: doubles the run's training and tuning (about 3.5 minutes on 2 cores), so it runs with ``--full``
-#: or on request (``--methods ... R+N R+G R+S``).
-DEFAULT_METHODS = ("O+P", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "LV+N")
+#: What runs by default: the multi-task network's methods, the baselines, the task-trained network's
+#: methods and Reptile's gradient descent (the method T+S is to be compared with). Reptile's other
+#: methods run with ``--full`` or on request (``--methods ... R+N R+S``).
+DEFAULT_METHODS = (
+    "O+P",
+    "M+N",
+    "M+G",
+    "M+S",
+    "M+S(evidence)",
+    "M+S(paper)",
+    "M+C",
+    "R+G",
+    "T+N",
+    "T+G",
+    "T+S",
+    "LV+N",
+)
 
 
 @dataclass
@@ -44,7 +61,7 @@ class TwoLinkConfig(TwoLinkFamilyConfig):
         DEFAULT_METHODS,
         "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G (tuned GD), S (SMCD tuned by "
         "one-step error), S(evidence) (SMCD calibrated by its evidence), S(paper) or C (combination of N, G "
-        "and S); LV+N (VRNN)",
+        "and S); T (masks trained to identify the arm) + N, G or S; LV+N (VRNN)",
         choices=METHODS,
     )
     tuning_options: bool = setting(
@@ -72,7 +89,7 @@ FULL = {
     "trials": 1000,
     "chunk": 25,
     "burn_in": (1, 5, 10, 20),
-    "methods": (*DEFAULT_METHODS[:-1], *REPTILE_METHODS, DEFAULT_METHODS[-1]),
+    "methods": tuple(dict.fromkeys((*DEFAULT_METHODS[:-1], *REPTILE_METHODS, DEFAULT_METHODS[-1]))),
     "tuning_options": True,
     "lv_epochs": 200,
     "lv_batch_size": 64,

@@ -1,7 +1,8 @@
 """Two-link arm look-ahead prediction (paper section 4.1, Fig. 2): ``smcd-rl two-link``.
 
 Reads top to bottom: seed, make data, train the models on the same data (a multi-task dropout
-network M, the same architecture trained with Reptile R, and the latent-variable VRNN LV), then
+network M, the same architecture trained with Reptile R, a network T whose dropout masks were
+trained to identify the arm, and the latent-variable VRNN LV), then
 for every method adapt for T burn-in steps on a held-out arm and predict the end effector H steps
 ahead with no further observations. Writes ``results.csv`` (the table), ``trials.csv`` (every
 trial's RMSE), ``results.json`` (settings, table, training losses, timings, machine) and
@@ -23,6 +24,7 @@ from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.shared.task_family import task_verdict_table
 from smcd_rl.experiments.shared.tuning import Tuning, method_variant, ms_column, strategy_for, tune
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
@@ -31,6 +33,8 @@ from smcd_rl.experiments.shared.two_link_family import (
     oracle,
     reptile_model,
     reptile_settings,
+    task_fit_settings,
+    task_model,
     tuning_episodes,
 )
 from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED, lookahead_errors, test_arms
@@ -38,9 +42,13 @@ from smcd_rl.experiments.two_link.config import DEFAULT_METHODS, FULL, METHODS, 
 
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "run", "table"]
 
-#: The adaptive methods, each compared (paired over the same arms) with M+N and with each other.
+#: The adaptive methods, each compared (paired over the same arms) with M+N and with each other
+#: (each as the method against those after it: T+S first, so its pairs read T+S minus the other).
 ADAPTIVE = (
+    "T+S",
     *(f"{network}+{variant}" for network in ("M", "R") for variant in ("S", "S(evidence)", "S(paper)", "G", "C")),
+    "T+G",
+    "T+N",
     "R+N",
     "LV+N",
     "O+P",
@@ -54,10 +62,12 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         # --- seed, data, models -----------------------------------------------------------------
         data = babbling_data(config, ex)
         model = smcd_rl.AdaptiveModel(network(config, ex.device), in_keys=["q"], out_key="ee")
-        reptile, latent = _baselines(config, ex.device)
+        reptile, task, latent = _baselines(config, ex.device)
         trainings: dict[str, Any] = {"train": (smcd_rl.fit, model, data, fit_settings(config))}
         if reptile is not None:
             trainings["reptile"] = (smcd_rl.fit_reptile, reptile, data, reptile_settings(config))
+        if task is not None:
+            trainings["task"] = (smcd_rl.fit, task, data, task_fit_settings(config))
         if latent is not None:
             trainings["latent"] = (fit_latent, latent, data, _latent_settings(config))
         trained = ex.train_all(trainings)  # independent: side by side with --workers
@@ -65,22 +75,22 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         model.save(ex.out / "model.pt")
         if reptile is not None:
             reptile.save(ex.out / "reptile_model.pt")
+        if task is not None:
+            task.save(ex.out / "task_model.pt")
 
         # --- the fair protocol: SMCD and GD tuned on held-out babbling of fresh training arms -------
         episodes = tuning_episodes(config, ex.device, steps=max(2, *config.burn_in))  # calibration needs 2 steps
+        networks = {"M": model, "R": reptile, "T": task}
         tunings = {
-            name: tune(ex, trained, episodes, config, name=name, options=config.tuning_options)
-            for name, trained in (("M", model), ("R", reptile))
-            if any(m.startswith(name + "+") and m[2:] != "N" for m in config.methods) and trained is not None
+            name: tune(ex, trained, episodes, config, name=name, options=config.tuning_options, variants=variants)
+            for name, trained in networks.items()
+            if trained is not None and (variants := _variants(name, config))
         }
 
         # --- every method on the same held-out arms -------------------------------------------------
         q, ee, ee_true, lengths = test_arms(config, ex.device, count=config.trials, seed=config.seed + TEST_ARMS_SEED)
-        methods = {
-            name: functools.partial(_method, name, model, reptile, latent, tunings, config) for name in config.methods
-        }
-        trained = {"M": model, "R": reptile, "LV": latent}
-        content = {name: model_digest(m) for name, m in trained.items() if m is not None}
+        methods = {name: functools.partial(_method, name, networks, latent, tunings, config) for name in config.methods}
+        content = {name: model_digest(m) for name, m in {**networks, "LV": latent}.items() if m is not None}
         done = ex.evaluate(methods, functools.partial(_errors, q, ee, ee_true, config, progress), content=content)
 
         # --- results: per-arm RMSE per (T, H), CIs, paired verdicts ---------------------------------
@@ -113,6 +123,7 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
                 ),
                 "M+S paired with M+N, M+G, M+S(evidence) and M+S(paper) over the same arms "
                 "(negative: M+S's error is lower)": verdict_table(headline, cell=("burn_in", "horizon")),
+                **task_verdict_table(comparisons, cell=("burn_in", "horizon"), over="arms"),
                 **{caption: text for t in tunings.values() for caption, text in t.tables().items()},
             },
             rows=rows,
@@ -145,6 +156,7 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
 _REFERENCE_SECONDS = {
     "train": 53.0,
     "train reptile": 51.0,
+    "train task": 80.0,  # M's training and, from the second epoch, each arm's mask posterior
     "train latent": 58.0,
     "tune": 93.0,  # calibration, GD grid and diagnosis of one network; the options add as much again
     "evaluate G": 45.0,  # per method over 500 arms at T = 1, 5, 10
@@ -160,16 +172,18 @@ def stage_costs(config: TwoLinkConfig) -> dict[str, float]:
 
     Example:
         >>> costs = stage_costs(TwoLinkConfig())
-        >>> list(costs)[:4], costs["evaluate M+S"] > costs["evaluate M+N"]
-        (['train', 'train latent', 'tune M', 'evaluate O+P'], True)
+        >>> list(costs)[:5], costs["evaluate M+S"] > costs["evaluate M+N"]
+        (['train', 'train reptile', 'train task', 'train latent', 'tune M'], True)
     """
     ref = _REFERENCE_SECONDS
     data = config.tasks * config.episodes * config.steps / 100_000 * (config.hidden / 512) ** 2 * config.depth / 2
     filtering = config.trials / 500 * sum(config.burn_in) / 16
-    networks = [n for n in ("M", "R") if any(m.startswith(n + "+") and m[2:] != "N" for m in config.methods)]
+    networks = [n for n in ("M", "R", "T") if _variants(n, config)]
     costs = {"train": ref["train"] * config.epochs / 20 * data}
     if any(m.startswith("R+") for m in config.methods):
         costs["train reptile"] = ref["train reptile"] * config.reptile_epochs / 20 * data
+    if any(m.startswith("T+") for m in config.methods):
+        costs["train task"] = ref["train task"] * config.epochs / 20 * data
     if "LV+N" in config.methods:
         costs["train latent"] = ref["train latent"] * config.lv_epochs / 20 * config.tasks * config.episodes / 10_000
     tuning = config.tuning_episodes / 32 * max(config.burn_in) / 10 * (2 if config.tuning_options else 1)
@@ -202,22 +216,34 @@ def table(rows: list[dict[str, Any]], config: TwoLinkConfig, ms: dict[str, float
     return format_table(body, header)
 
 
+def _variants(network: str, config: TwoLinkConfig) -> list[str]:
+    """The tuned variants of ``network``'s methods in the run (``N`` needs no tuning).
+
+    Example:
+        >>> _variants("T", TwoLinkConfig(methods=("M+S", "T+N", "T+G"))), _variants("R", TwoLinkConfig(methods=("R+N",)))
+        (['G'], [])
+    """
+    return [m.partition("+")[2] for m in config.methods if m.startswith(network + "+") and not m.endswith("+N")]
+
+
 def _baselines(
     config: TwoLinkConfig, device: torch.device
-) -> tuple[smcd_rl.AdaptiveModel | None, LatentVariableModel | None]:
-    """The untrained Reptile network and VRNN that the chosen methods need (``None`` where none does).
+) -> tuple[smcd_rl.AdaptiveModel | None, smcd_rl.AdaptiveModel | None, LatentVariableModel | None]:
+    """The untrained Reptile and task-mask networks and VRNN that the chosen methods need (``None`` where none does).
 
     Their initial weights come from seeds of their own, and the global RNG is left as it was,
     so adding or dropping these methods changes nothing for the others.
     """
-    reptile = latent = None
+    reptile = task = latent = None
     if any(name.startswith("R+") for name in config.methods):
         reptile = reptile_model(config, device, init_seed=config.seed + 17)
+    if any(name.startswith("T+") for name in config.methods):
+        task = task_model(config, device, init_seed=config.seed + 29)
     if "LV+N" in config.methods:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed + 19)
             latent = LatentVariableModel(2, 2, in_keys=["q"], out_key="ee", width=config.lv_width, device=device)
-    return reptile, latent
+    return reptile, task, latent
 
 
 def _latent_settings(config: TwoLinkConfig) -> dict[str, Any]:
@@ -226,8 +252,7 @@ def _latent_settings(config: TwoLinkConfig) -> dict[str, Any]:
 
 def _method(
     name: str,
-    model: smcd_rl.AdaptiveModel,
-    reptile: smcd_rl.AdaptiveModel | None,
+    networks: dict[str, smcd_rl.AdaptiveModel | None],
     latent: LatentVariableModel | None,
     tunings: dict[str, Tuning],
     config: TwoLinkConfig,
@@ -236,8 +261,8 @@ def _method(
         return latent
     if name == "O+P":
         return oracle(config, "cpu")
-    # M and R differ only in how the network was trained; they adapt with identical strategies.
-    trained = {"M": model, "R": reptile}[method_variant(name)[0]]
+    # M, R and T differ only in how the network was trained; they adapt with identical strategies.
+    trained = networks[method_variant(name)[0]]
     assert trained is not None
     return trained.with_adaptation(strategy_for(name, tunings, seed=config.seed + 11, device=config.device))
 

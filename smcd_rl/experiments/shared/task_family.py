@@ -1,0 +1,47 @@
+"""The T family: methods on a network whose dropout masks were trained to identify the task.
+
+``T`` is the experiments' name for a network trained by :func:`smcd_rl.fit` with
+``mask_training="task"``; ``T+S`` adapts it with SMCD tuned by one-step error. Its report table
+pairs T+S with what it is meant to beat (:data:`TASK_AGAINST`) over the same trials.
+
+Example:
+    >>> c = {"k": 1, "method": "T+S", "against": "M+G", "difference": -0.1, "low": -0.2, "high": -0.05,
+    ...      "verdict": "better"}
+    >>> list(task_verdict_table([c], cell=["k"], over="episodes"))
+    ["T+S (masks trained to identify the task) paired with M+G over the same episodes (negative: T+S's error is lower)"]
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from smcd_rl.experiments.shared.stats import verdict_table
+
+__all__ = ["TASK_AGAINST", "task_verdict_table"]
+
+#: What T+S is paired with in its table: SMCD and GD on the multi-task network, GD on Reptile's,
+#: and the task-mask network's own GD and no adaptation.
+TASK_AGAINST = ("M+S", "M+G", "R+G", "T+G", "T+N")
+
+
+def task_verdict_table(
+    comparisons: Sequence[Mapping[str, Any]],
+    *,
+    cell: Sequence[str],
+    over: str,
+    against: Sequence[str] = TASK_AGAINST,
+    lower_is_better: bool = True,
+) -> dict[str, str]:
+    """Caption -> Markdown of T+S's paired verdicts against ``against``; empty where T+S did not run.
+
+    The comparisons must hold T+S as the method (list it first among the adaptive methods).
+    ``against`` names the methods as the experiment labels them (:data:`TASK_AGAINST` by default).
+    """
+    verdicts = [c for c in comparisons if c["method"] == "T+S" and c["against"] in against]
+    if not verdicts:
+        return {}
+    names = ", ".join(sorted({c["against"] for c in verdicts}))
+    sign = "negative: T+S's error is lower" if lower_is_better else "positive: T+S scores higher"
+    caption = f"T+S (masks trained to identify the task) paired with {names} over the same {over} ({sign})"
+    return {caption: verdict_table(verdicts, cell=cell)}
