@@ -58,8 +58,10 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
         assert (out / name).is_file(), name
     rows = list(csv.DictReader((out / "results.csv").open()))
     methods = ["N", "G", "S", "S(evidence)", "S(paper)", "C", "G@1000ms", "S@1000ms", "C@1000ms"]
+    other = ["T+N", "T+G", "T+S", "R+G"]  # the pendulum family's task-mask and Reptile networks
     cells = {(r["family"], r["regime"], r["method"]) for r in rows}
-    assert cells == {(f, r, m) for f in FAMILIES for r in regime_names((1, 3), f) for m in methods}
+    expected = {(f, r, m) for f in FAMILIES for r in regime_names((1, 3), f) for m in methods}
+    assert cells == expected | {("pendulum", r, m) for r in regime_names((1, 3), "pendulum") for m in other}
     assert "every n-th" in regime_names((1, 3), "pendulum") and "every n-th" not in regime_names((1, 3), "two-link")
     # every method's time per observation is measured, once per network, and the same in every regime
     for row in rows:
@@ -72,11 +74,38 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
     result = json.loads((out / "results.json").read_text())
     assert len(result["scoreboard"]) == 3 * 3  # per family T=3, the switch and the outlier (T=30 did not run)
     assert "S vs G" in printed and "Median time per observation" in printed
+    assert "pendulum: T+S (masks trained to identify the task) paired with G, R+G, S, T+G, T+N" in printed
+    # T and R tune only what their methods need: no SMCD for R, no GD budget view for either.
+    tuned = result["tuning"]
+    assert set(tuned["pendulum-reptile"]["specs"]) == {"G"} and set(tuned["pendulum-task"]["specs"]) == {"N", "G", "S"}
+    pendulum_t3 = [e for e in result["scoreboard"] if e["task"] == "pendulum T=3"][0]
+    assert pendulum_t3["estimates"]["SMCD (task masks)"]["method"] == "T+S"
+    assert "SMCD (task masks)" in pendulum_t3["ms_per_observation"]
 
     board = scoreboard(ScoreboardConfig(runs=(str(out),), out=str(tmp_path / "board")), progress=False)
     assert len(board["results"]) == 9
     report = (tmp_path / "board" / "report.md").read_text()
     assert "one-step vs GD" in report and "Median time per observation" in report
+
+
+def test_the_pendulums_other_networks_leave_every_other_row_unchanged(tmp_path, capsys) -> None:
+    """T and R train from seeds of their own on the pendulum network's data, after it: M's rows do not move."""
+    tiny = {**TINY, "families": ("two-link", "pendulum"), "burn_in": (3,)}
+    methods = ("N", "G", "S")
+    assert cli.main(["regimes", "--out", str(tmp_path / "m"), *options({**tiny, "methods": methods})]) == 0
+    with_t = {**tiny, "methods": (*methods, "T+S", "R+G")}
+    assert cli.main(["regimes", "--out", str(tmp_path / "t"), *options(with_t)]) == 0
+
+    def rows(run: str) -> dict:
+        found = csv.DictReader((tmp_path / run / "results.csv").open())
+        return {(r["family"], r["regime"], r["method"]): r["rmse_mean"] for r in found}
+
+    alone, together = rows("m"), rows("t")
+    assert all(together[key] == value for key, value in alone.items())
+    assert {m for _, _, m in together} - {m for _, _, m in alone} == {"T+S", "R+G"}
+    assert not any(f == "two-link" and "+" in m for f, _, m in together)
+    # T's masks come in mask_groups bits per layer.
+    assert smcd_rl.load(tmp_path / "t" / "model-pendulum-task.pt").net.mask_dim == 2 * 16
 
 
 def test_outlier_regime_moves_one_target_by_the_scale_times_the_residual() -> None:

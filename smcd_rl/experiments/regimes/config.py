@@ -13,7 +13,17 @@ from dataclasses import dataclass
 from smcd_rl.experiments.shared.config import setting
 from smcd_rl.experiments.shared.two_link_family_config import FAMILY_FULL, TwoLinkFamilyConfig
 
-__all__ = ["RegimesConfig", "FULL", "FAMILIES", "SEQUENTIAL", "METHODS", "BUDGETED", "REGIMES", "regime_names"]
+__all__ = [
+    "RegimesConfig",
+    "FULL",
+    "FAMILIES",
+    "SEQUENTIAL",
+    "METHODS",
+    "OTHER_NETWORK_METHODS",
+    "BUDGETED",
+    "REGIMES",
+    "regime_names",
+]
 
 #: The task families: two-link arms (new joint configurations of an arm of unknown link lengths),
 #: telescoping arms (the second link changes as the stream goes on) and pendulums of unknown mass
@@ -28,6 +38,11 @@ SEQUENTIAL = ("pendulum",)
 #: S(evidence) SMCD calibrated by the filter's evidence; S(paper) SMCD at the paper's noise and
 #: flips; C the combination of N, G and S.
 METHODS = ("N", "G", "S", "S(evidence)", "S(paper)", "C")
+#: Methods on the pendulum family's two other networks, trained on the same data: T, whose dropout
+#: masks were trained to identify the pendulum (``fit(mask_training="task")``), with no adaptation,
+#: gradient descent or SMCD, and R, trained by Reptile, with gradient descent. The arm families
+#: have no such networks (``smcd-rl two-link`` and ``smcd-rl telescoping`` run them).
+OTHER_NETWORK_METHODS = ("T+N", "T+G", "T+S", "R+G")
 #: The methods tuned again under ``--budget-ms`` per observation (the budgeted view).
 BUDGETED = ("G", "S", "C")
 #: The regimes besides ``T=<t>``: a switch to a new task, the switch back, one corrupted
@@ -54,7 +69,11 @@ class RegimesConfig(TwoLinkFamilyConfig):
 
     out: str = setting("runs/regimes", "output directory (results, plots, report, trained models)")
     families: tuple[str, ...] = setting(FAMILIES, "task families to run", choices=FAMILIES)
-    methods: tuple[str, ...] = setting(METHODS, "methods (see the command's page)", choices=METHODS)
+    methods: tuple[str, ...] = setting(
+        (*METHODS, *OTHER_NETWORK_METHODS),
+        "methods (see the command's page); T+ and R+ ones run on the pendulum family only",
+        choices=(*METHODS, *OTHER_NETWORK_METHODS),
+    )
     hidden: int = setting(256, "width of each hidden layer of both networks", low=1)
     trials: int = setting(50, "test tasks per family (every method sees the same ones)", low=2)
     tuning_episodes: int = setting(

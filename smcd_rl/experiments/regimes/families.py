@@ -37,8 +37,20 @@ from smcd_rl.envs.pendulum_family import pendulum_transitions, sample_pendulum_p
 from smcd_rl.envs.two_link_arm import motor_babbling, sample_link_lengths, two_link_fk
 from smcd_rl.envs.two_link_telescoping import telescoping_length
 from smcd_rl.experiments.regimes.config import RegimesConfig
+from smcd_rl.experiments.shared.two_link_family import reptile_settings
 
-__all__ = ["Family", "FAMILIES", "NETWORKS", "network_of", "build_model", "training_data", "tuning_episodes"]
+__all__ = [
+    "Family",
+    "FAMILIES",
+    "NETWORKS",
+    "OTHER_NETWORKS",
+    "network_of",
+    "method_network",
+    "build_model",
+    "other_network",
+    "training_data",
+    "tuning_episodes",
+]
 
 #: family -> the network it uses.
 NETWORKS = {"two-link": "arm", "telescoping": "arm", "pendulum": "pendulum"}
@@ -46,9 +58,28 @@ NETWORKS = {"two-link": "arm", "telescoping": "arm", "pendulum": "pendulum"}
 TUNING_SEED, TEST_SEED = 2_000_003, 1_000_003
 
 
+#: Method prefix -> the pendulum family's other network: masks trained to identify the task, or Reptile.
+OTHER_NETWORKS = {"T": "pendulum-task", "R": "pendulum-reptile"}
+
+
 def network_of(family: str) -> str:
-    """The network a family's methods adapt (``"arm"`` or ``"pendulum"``)."""
+    """The network a family's unprefixed methods adapt (``"arm"`` or ``"pendulum"``)."""
     return NETWORKS[family]
+
+
+def method_network(family: str, method: str) -> tuple[str, str]:
+    """``(network, variant)`` of a method of ``family``: ``"T+S"`` is ``S`` on the task-mask network.
+
+    Example:
+        >>> method_network("pendulum", "T+S"), method_network("two-link", "G@10ms")
+        (('pendulum-task', 'S'), ('arm', 'G@10ms'))
+    """
+    prefix, plus, variant = method.partition("+")
+    if not plus:
+        return network_of(family), method
+    if family != "pendulum":
+        raise ValueError(f"{method} runs on the pendulum family only, not on {family}")
+    return OTHER_NETWORKS[prefix], variant
 
 
 def build_model(network: str, config: RegimesConfig, device: torch.device | str) -> smcd_rl.AdaptiveModel:
@@ -59,6 +90,30 @@ def build_model(network: str, config: RegimesConfig, device: torch.device | str)
         return smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
     net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=hidden, dropout=config.dropout, device=device)
     return smcd_rl.AdaptiveDynamicsModel(net)
+
+
+def other_network(
+    network: str, config: RegimesConfig, data: TensorDictBase, device: torch.device | str
+) -> tuple[smcd_rl.AdaptiveModel, Any, TensorDictBase, dict[str, Any]]:
+    """One of :data:`OTHER_NETWORKS`, untrained, with its training function, data and settings.
+
+    Both train on the pendulum network's own ``data`` (batch ``[tasks, episodes, steps]``); their
+    initial weights come from seeds of their own and the global RNG is left as it was, so adding
+    them changes nothing for the other methods.
+    """
+    task = network == "pendulum-task"
+    groups = (config.mask_groups or None) if task else None  # Reptile's network is M's
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed + (29 if task else 17))
+        hidden = (config.hidden,) * config.depth
+        net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=hidden, dropout=config.dropout, mask_groups=groups, device=device)
+    model = smcd_rl.AdaptiveDynamicsModel(net)
+    common = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
+    if task:
+        tasks = torch.arange(data.batch_size[0], device=data.device).view(-1, 1, 1).expand(data.batch_size)
+        settings = {**common, "mask_training": "task", "task_share": config.task_share}
+        return model, smcd_rl.fit, data.clone(recurse=False).set("task", tasks), settings
+    return model, smcd_rl.fit_reptile, data, reptile_settings(config)
 
 
 def training_data(network: str, config: RegimesConfig, generator: torch.Generator) -> TensorDictBase:

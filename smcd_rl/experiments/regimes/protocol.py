@@ -60,8 +60,14 @@ def tune_network(
     *,
     name: str,
     methods: Sequence[str],
+    variants: Sequence[str] | None = None,
+    budgeted: Sequence[str] = BUDGETED,
 ) -> dict[str, Any]:
     """Each method's spec, time per observation and the tuning tables of one network (or a rerun's).
+
+    ``variants`` (default all) are the kinds of method to tune (``"G"``, ``"S"``...: only what
+    they need runs) and ``budgeted`` those tuned again under the budget; ``methods`` selects the
+    specs returned.
 
     Returns:
         ``{"specs": method -> {"kind", "settings"}, "ms": method -> ms per observation,
@@ -71,19 +77,31 @@ def tune_network(
         "model": model_digest(model),
         "episodes": content_digest(episodes),
         "settings": config.settings(exclude=("methods", "families", "trials")),
+        **({"variants": sorted(variants)} if variants is not None else {}),
+        **({"budgeted": sorted(budgeted)} if tuple(budgeted) != BUDGETED else {}),
     }
     with ex.stage(f"tune {name}"):
         found = ex.store.get(f"tuning-{name}", key)
         if found is None:
-            found = _tune(ex, model, episodes, config, name=name)
+            found = _tune(ex, model, episodes, config, name=name, variants=variants, budgeted=budgeted)
             ex.store.put(f"tuning-{name}", key, found)
     ex.timings[f"tune {name}"] = found["seconds"]
-    wanted = {*methods, *(budgeted_label(m, config) for m in BUDGETED if m in methods)}
+    wanted = {*methods, *(budgeted_label(m, config) for m in budgeted if m in methods)}
     return {**found, "specs": {m: s for m, s in found["specs"].items() if m in wanted}}
 
 
 def _tune(
-    ex: Experiment, model: smcd_rl.AdaptiveModel, episodes: TensorDictBase, config: RegimesConfig, *, name: str
+    ex: Experiment,
+    model: smcd_rl.AdaptiveModel,
+    episodes: TensorDictBase,
+    config: RegimesConfig,
+    *,
+    name: str,
+    variants: Sequence[str] | None,
+    budgeted: Sequence[str],
 ) -> dict[str, Any]:
-    found = tuned_specs(ex, model, episodes, config, name=name, paper_noise=config.noise_std, budgeted=BUDGETED)
+    chosen = {} if variants is None else {"variants": variants}
+    found = tuned_specs(
+        ex, model, episodes, config, name=name, paper_noise=config.noise_std, budgeted=budgeted, **chosen
+    )
     return {**found, "residual": residual_of(model, episodes).tolist()}

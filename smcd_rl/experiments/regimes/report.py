@@ -13,10 +13,17 @@ from pathlib import Path
 from typing import Any
 
 from smcd_rl.experiments.regimes.config import RegimesConfig, regime_names
-from smcd_rl.experiments.regimes.families import FAMILIES, network_of
+from smcd_rl.experiments.regimes.families import FAMILIES, OTHER_NETWORKS, network_of
 from smcd_rl.experiments.regimes.protocol import budgeted_label
 from smcd_rl.experiments.shared.outputs import format_table, save_figure
-from smcd_rl.experiments.shared.scoreboard_entry import HEADLINE, paired_verdict, scoreboard_entry
+from smcd_rl.experiments.shared.scoreboard_entry import (
+    HEADLINE,
+    TASK_MASKS,
+    TASK_MASKS_METHOD,
+    paired_verdict,
+    scoreboard_entry,
+)
+from smcd_rl.experiments.shared.task_family import task_verdict_table
 
 __all__ = ["tables", "plot", "scoreboard_entries", "best_single", "SCOREBOARD_REGIMES"]
 
@@ -26,6 +33,8 @@ SCOREBOARD_REGIMES = ("T=3", "T=30", "switch: new task", "outlier")
 TIE = "tie"
 #: The single methods the combination is held against (afterwards, on the test tasks).
 SINGLES = ("N", "G", "S")
+#: What T+S is paired with in its table (the pendulum network's methods carry no prefix).
+TASK_AGAINST = ("S", "G", "R+G", "T+G", "T+N")
 
 
 def best_single(rows: Sequence[Mapping[str, Any]], family: str, regime: str) -> str:
@@ -75,8 +84,11 @@ def tables(
         ] = format_table(
             verdicts, ["regime", "S vs G", "S vs S(evidence)", "C vs best single", f"S vs G within {budget}"]
         )
+        of_family = [c for c in comparisons if c["family"] == family]
+        task = task_verdict_table(of_family, cell=("regime",), over="tasks", against=TASK_AGAINST)
+        out |= {f"{family}: {caption}": text for caption, text in task.items()}
     networks = list(ms)
-    timing = [[m, *(_ms(ms[net].get(m)) for net in networks)] for m in methods]
+    timing = [[m, *(_ms(_ms_of(ms, m, net)) for net in networks)] for m in methods]
     note = f"; observations refused by diverging GD: {dict(refused)}" if refused else ""
     caption = (
         f"Median time per observation (ms; one stream, {config.threads} torch thread(s)), per network; "
@@ -84,6 +96,14 @@ def tables(
     )
     out[caption] = format_table(timing, ["method", *networks])
     return out
+
+
+def _ms_of(ms: Mapping[str, Mapping[str, float]], method: str, network: str) -> float | None:
+    """``method``'s time on ``network``: ``T+S`` is ``S`` on the task-mask network, nothing on the others."""
+    prefix, plus, variant = method.partition("+")
+    if plus:
+        return ms[network].get(variant) if OTHER_NETWORKS[prefix] == network else None
+    return None if network in OTHER_NETWORKS.values() else ms[network].get(method)
 
 
 def _mean(row: Mapping[str, Any] | None) -> str:
@@ -128,7 +148,7 @@ def scoreboard_entries(
             )
             entry["ms_per_observation"] = {
                 column: row["ms_per_observation"]
-                for column, method in HEADLINE.items()
+                for column, method in {**HEADLINE, TASK_MASKS: TASK_MASKS_METHOD}.items()
                 for row in rows
                 if row["family"] == family
                 and row["regime"] == regime

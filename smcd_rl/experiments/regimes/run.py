@@ -1,7 +1,8 @@
 """Where each adaptation method wins: ``smcd-rl regimes``.
 
 Reads top to bottom: train the arm network and the pendulum network (each a multi-task dropout
-network, as every experiment trains its M), tune every method on held-out episodes of the
+network, as every experiment trains its M) and, on the pendulum's data, a network T whose masks
+were trained to identify the pendulum and a Reptile network R; tune every method on held-out episodes of the
 training tasks with :func:`smcd_rl.tune` (one criterion, the one-step error; again under a
 per-observation budget), then run every method over the same regimes of the same test tasks of
 each family (few and many observations, a task switch and back, one corrupted observation,
@@ -21,8 +22,11 @@ from smcd_rl.digests import model_digest
 from smcd_rl.experiments.regimes.config import BUDGETED, FULL, RegimesConfig, regime_names
 from smcd_rl.experiments.regimes.families import (
     FAMILIES,
+    OTHER_NETWORKS,
     build_model,
+    method_network,
     network_of,
+    other_network,
     training_data,
     tuning_episodes,
 )
@@ -43,16 +47,28 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
         networks = sorted({network_of(f) for f in config.families})
         models = {net: build_model(net, config, ex.device) for net in networks}
         settings = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
-        losses = ex.train_all(
-            {net: (smcd_rl.fit, models[net], training_data(net, config, ex.generator), settings) for net in networks}
-        )
+        data = {net: training_data(net, config, ex.generator) for net in networks}
+        jobs = {net: (smcd_rl.fit, models[net], data[net], settings) for net in networks}
+        other = _other_variants(config)
+        for net in other:  # T and R train on the pendulum network's data
+            models[net], fit, net_data, net_settings = other_network(net, config, data["pendulum"], ex.device)
+            jobs[net] = (fit, models[net], net_data, net_settings)
+        losses = ex.train_all(jobs)
         for net, model in models.items():
             model.save(ex.out / f"model-{net}.pt")
 
         # --- the fair protocol: every method tuned on held-out training-task episodes --------------
         # Alone in the main process, so that the measured time per observation is a quiet one.
         tunings = {
-            net: tune_network(ex, model, tuning_episodes(net, config), config, name=net, methods=config.methods)
+            net: tune_network(
+                ex,
+                model,
+                tuning_episodes("pendulum" if net in other else net, config),
+                config,
+                name=net,
+                methods=other.get(net, config.methods),
+                **({"variants": other[net], "budgeted": ()} if net in other else {}),
+            )
             for net, model in models.items()
         }
 
@@ -61,24 +77,30 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
             family: make_plan(family, config, residual=torch.tensor(tunings[network_of(family)]["residual"]))
             for family in config.families
         }
-        methods = {
-            f"{family} {method}": functools.partial(
-                _built, models[network_of(family)], spec, plans[family], FAMILIES[family].target
-            )
+        labels = _labels(config)
+        runs = {
+            f"{family} {method}": method_network(family, method)
             for family in config.families
-            for method, spec in tunings[network_of(family)]["specs"].items()
+            for method in labels
+            if family == "pendulum" or "+" not in method
+        }
+        runs = {name: (net, variant) for name, (net, variant) in runs.items() if variant in tunings[net]["specs"]}
+        methods = {
+            name: functools.partial(
+                _built, models[net], tunings[net]["specs"][variant], plans[name.split(" ")[0]], _target(name)
+            )
+            for name, (net, variant) in runs.items()
         }
         done = ex.evaluate(
             methods,
             _evaluate,
             content=lambda name: {
-                "model": model_digest(models[network_of(name.split(" ")[0])]),
-                "spec": tunings[network_of(name.split(" ")[0])]["specs"][name.split(" ", 1)[1]],
+                "model": model_digest(models[runs[name][0]]),
+                "spec": tunings[runs[name][0]]["specs"][runs[name][1]],
             },
         )
 
         # --- results: per-task RMSE per (family, regime), CIs, paired verdicts ---------------------
-        labels = _labels(config)
         scores = {
             (family, regime): {
                 method: done[f"{family} {method}"]["errors"][regime]
@@ -92,13 +114,15 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
             scores,
             cell=("family", "regime"),
             baseline="N" if "N" in labels else None,
-            adaptive=[m for m in labels if m != "N"],
+            # T+S first: its pairs read T+S minus the other
+            adaptive=sorted((m for m in labels if m != "N"), key=lambda m: m != "T+S"),
             metric="rmse",
             seed=config.seed,
         )
         ms = {net: t["ms"] for net, t in tunings.items()}
         for row in rows:
-            row["ms_per_observation"] = ms[network_of(row["family"])].get(row["method"])
+            net, variant = method_network(row["family"], row["method"])
+            row["ms_per_observation"] = ms[net].get(variant)
         refused = {name: r["refused"] for name, r in done.items() if r["refused"]}
         trial_rows = [
             {"family": family, "regime": regime, "method": method, "task": k, "rmse": float(v)}
@@ -131,6 +155,27 @@ def _labels(config: RegimesConfig) -> list[str]:
     return [*config.methods, *(budgeted_label(m, config) for m in BUDGETED if m in config.methods)]
 
 
+def _other_variants(config: RegimesConfig) -> dict[str, list[str]]:
+    """The pendulum family's other networks that the methods use -> the variants they run (``"T+S"``: ``"S"``).
+
+    Example:
+        >>> _other_variants(RegimesConfig(methods=("G", "T+N", "T+S")))
+        {'pendulum-task': ['N', 'S']}
+    """
+    if "pendulum" not in config.families:
+        return {}
+    found: dict[str, list[str]] = {}
+    for method in config.methods:
+        prefix, plus, variant = method.partition("+")
+        if plus:
+            found.setdefault(OTHER_NETWORKS[prefix], []).append(variant)
+    return found
+
+
+def _target(name: str) -> object:
+    return FAMILIES[name.split(" ")[0]].target
+
+
 def _built(model: smcd_rl.AdaptiveModel, spec: dict[str, Any], plan: Any, target: Any) -> tuple[Any, ...]:
     return model.with_adaptation(strategy_of(spec)), plan, target
 
@@ -145,6 +190,8 @@ def _evaluate(name: str, built: tuple[Any, ...]) -> dict[str, Any]:
 _REFERENCE_SECONDS = {
     "train arm": 60.0,
     "train pendulum": 30.0,
+    "train pendulum-task": 60.0,  # the pendulum network's training and each pendulum's mask posterior
+    "train pendulum-reptile": 30.0,
     "tune": 510.0,  # per network: the GD grid, its extensions, two calibrations, the combination
     "evaluate N": 0.05,  # per family, 50 tasks; the methods' tuned settings set their cost
     "evaluate G": 70.0,
@@ -160,16 +207,24 @@ def stage_costs(config: RegimesConfig) -> dict[str, float]:
 
     Example:
         >>> costs = stage_costs(RegimesConfig())
-        >>> costs["evaluate pendulum S"] > costs["evaluate pendulum N"]
-        True
+        >>> costs["evaluate pendulum S"] > costs["evaluate pendulum N"], "evaluate two-link T+S" in costs
+        (True, False)
+        >>> [stage for stage in costs if stage.startswith("train")]
+        ['train arm', 'train pendulum', 'train pendulum-task', 'train pendulum-reptile']
     """
     scale = config.trials / 50 * config.particles / 1000
-    networks = sorted({network_of(f) for f in config.families})
+    other = _other_variants(config)
+    networks = [*sorted({network_of(f) for f in config.families}), *other]
     costs = {f"train {net}": _REFERENCE_SECONDS[f"train {net}"] * config.epochs / 20 for net in networks}
     tuning = config.tuning_episodes / 20 * config.tuning_steps / 30
-    costs.update({f"tune {net}": _REFERENCE_SECONDS["tune"] * tuning for net in networks})
+    # The other networks tune only the kinds of their methods, without the references.
+    share = {net: 0.5 * len({v for v in variants if v != "N"}) for net, variants in other.items()}
+    costs.update({f"tune {net}": _REFERENCE_SECONDS["tune"] * tuning * share.get(net, 1.0) for net in networks})
     for family in config.families:
         for method in _labels(config):
-            kind = method[0] + ("@" if "@" in method and method[0] != "S" else "")
+            if "+" in method and family != "pendulum":
+                continue
+            variant = method.partition("+")[2] or method
+            kind = variant[0] + ("@" if "@" in variant and variant[0] != "S" else "")
             costs[f"evaluate {family} {method}"] = _REFERENCE_SECONDS[f"evaluate {kind}"] * scale
     return costs
