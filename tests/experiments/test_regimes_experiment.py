@@ -108,6 +108,19 @@ def test_the_pendulums_other_networks_leave_every_other_row_unchanged(tmp_path, 
     assert smcd_rl.load(tmp_path / "t" / "model-pendulum-task.pt").net.mask_dim == 2 * 16
 
 
+def test_a_budget_label_with_a_plus_is_no_network_prefix() -> None:
+    """``--budget-ms 1e6`` labels G@1e+06ms: once read as a method of a network named 'G@1e'."""
+    from smcd_rl.experiments.regimes.families import method_network
+    from smcd_rl.experiments.regimes.run import stage_costs
+
+    assert method_network("pendulum", "G@1e+06ms") == ("pendulum", "G@1e+06ms")
+    costs = stage_costs(RegimesConfig(budget_ms=1e6))
+    assert {"evaluate two-link G@1e+06ms", "evaluate pendulum G@1e+06ms", "evaluate pendulum T+S"} <= set(costs)
+    assert "evaluate two-link T+S" not in costs
+    with pytest.raises(ValueError, match="--mask-groups 16 must divide --hidden 24"):
+        RegimesConfig(hidden=24).validate()
+
+
 def test_outlier_regime_moves_one_target_by_the_scale_times_the_residual() -> None:
     residual = torch.tensor([0.1, 0.2])
     clean = make_plan("two-link", RegimesConfig(**TINY, outlier_scale=0.0), residual=residual)

@@ -209,6 +209,9 @@ def test_help_and_bad_options(tmp_path, capsys) -> None:
         (["--dropout", "1"], "--dropout must be < 1"),
         (["--flip-prob", "1.5"], "--flip-prob must be <= 1"),
         (["--model", "missing.pt"], "--model missing.pt: no such file"),
+        # Once refused only by the T network's constructor, after M and R had trained.
+        (["--hidden", "24", "--mask-groups", "16"], "--mask-groups 16 must divide --hidden 24"),
+        (["--task-share", "1.5"], "--task-share must be <= 1"),
     ],
 )
 def test_bad_options_are_refused_before_any_training(tmp_path, capsys, option, message) -> None:

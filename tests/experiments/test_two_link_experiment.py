@@ -126,7 +126,11 @@ def test_help_and_bad_options(capsys) -> None:
 
 @pytest.mark.parametrize(
     ("option", "message"),
-    [(["--particles", "-5"], "--particles must be >= 1"), (["--epochs", "0"], "--epochs must be >= 1")],
+    [
+        (["--particles", "-5"], "--particles must be >= 1"),
+        (["--epochs", "0"], "--epochs must be >= 1"),
+        (["--hidden", "24", "--mask-groups", "16"], "--mask-groups 16 must divide --hidden 24"),
+    ],
 )
 def test_bad_options_are_refused_before_any_training(tmp_path, capsys, option, message) -> None:
     """Validation runs before any work: nothing is trained, not even the output directory made."""
@@ -211,6 +215,11 @@ def test_the_task_mask_network_is_paired_with_m_and_r_and_leaves_their_rows_unch
     # R runs only G, so only GD is tuned for it.
     tuned = json.loads((tmp_path / "t" / "results.json").read_text())["tuning"]
     assert set(tuned["R"]["specs"]) == {"N", "G"} and set(tuned["T"]["specs"]) == {"N", "S"}
+
+
+def test_mask_groups_that_do_not_divide_the_width_are_accepted_without_t_methods() -> None:
+    two_link.TwoLinkConfig(hidden=24, methods=("M+N", "M+S")).validate()
+    two_link.TwoLinkConfig(hidden=24, mask_groups=0).validate()  # one bit per unit
 
 
 def test_a_rerun_with_fewer_epochs_trains_that_many_instead_of_reusing_the_longer_model(tmp_path, capsys) -> None:

@@ -46,6 +46,7 @@ __all__ = [
     "OTHER_NETWORKS",
     "network_of",
     "method_network",
+    "split_method",
     "build_model",
     "other_network",
     "training_data",
@@ -67,6 +68,19 @@ def network_of(family: str) -> str:
     return NETWORKS[family]
 
 
+def split_method(method: str) -> tuple[str, str]:
+    """``(prefix, variant)``: ``("T", "S")`` for ``"T+S"``, ``("", method)`` for a method of a family's own network.
+
+    Only the prefixes of :data:`OTHER_NETWORKS` count, so a budgeted label such as ``"G@1e+06ms"`` is no prefix.
+
+    Example:
+        >>> split_method("R+G"), split_method("G@1e+06ms")
+        (('R', 'G'), ('', 'G@1e+06ms'))
+    """
+    prefix, plus, variant = method.partition("+")
+    return (prefix, variant) if plus and prefix in OTHER_NETWORKS else ("", method)
+
+
 def method_network(family: str, method: str) -> tuple[str, str]:
     """``(network, variant)`` of a method of ``family``: ``"T+S"`` is ``S`` on the task-mask network.
 
@@ -74,8 +88,8 @@ def method_network(family: str, method: str) -> tuple[str, str]:
         >>> method_network("pendulum", "T+S"), method_network("two-link", "G@10ms")
         (('pendulum-task', 'S'), ('arm', 'G@10ms'))
     """
-    prefix, plus, variant = method.partition("+")
-    if not plus:
+    prefix, variant = split_method(method)
+    if not prefix:
         return network_of(family), method
     if family != "pendulum":
         raise ValueError(f"{method} runs on the pendulum family only, not on {family}")

@@ -27,6 +27,7 @@ from smcd_rl.experiments.regimes.families import (
     method_network,
     network_of,
     other_network,
+    split_method,
     training_data,
     tuning_episodes,
 )
@@ -82,7 +83,7 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
             f"{family} {method}": method_network(family, method)
             for family in config.families
             for method in labels
-            if family == "pendulum" or "+" not in method
+            if family == "pendulum" or not split_method(method)[0]
         }
         runs = {name: (net, variant) for name, (net, variant) in runs.items() if variant in tunings[net]["specs"]}
         methods = {
@@ -166,8 +167,8 @@ def _other_variants(config: RegimesConfig) -> dict[str, list[str]]:
         return {}
     found: dict[str, list[str]] = {}
     for method in config.methods:
-        prefix, plus, variant = method.partition("+")
-        if plus:
+        prefix, variant = split_method(method)
+        if prefix:
             found.setdefault(OTHER_NETWORKS[prefix], []).append(variant)
     return found
 
@@ -215,16 +216,19 @@ def stage_costs(config: RegimesConfig) -> dict[str, float]:
     scale = config.trials / 50 * config.particles / 1000
     other = _other_variants(config)
     networks = [*sorted({network_of(f) for f in config.families}), *other]
-    costs = {f"train {net}": _REFERENCE_SECONDS[f"train {net}"] * config.epochs / 20 for net in networks}
+    epochs = {"pendulum-reptile": config.reptile_epochs}  # the others train config.epochs
+    costs = {
+        f"train {net}": _REFERENCE_SECONDS[f"train {net}"] * epochs.get(net, config.epochs) / 20 for net in networks
+    }
     tuning = config.tuning_episodes / 20 * config.tuning_steps / 30
     # The other networks tune only the kinds of their methods, without the references.
     share = {net: 0.5 * len({v for v in variants if v != "N"}) for net, variants in other.items()}
     costs.update({f"tune {net}": _REFERENCE_SECONDS["tune"] * tuning * share.get(net, 1.0) for net in networks})
     for family in config.families:
         for method in _labels(config):
-            if "+" in method and family != "pendulum":
+            prefix, variant = split_method(method)
+            if prefix and family != "pendulum":
                 continue
-            variant = method.partition("+")[2] or method
             kind = variant[0] + ("@" if "@" in variant and variant[0] != "S" else "")
             costs[f"evaluate {family} {method}"] = _REFERENCE_SECONDS[f"evaluate {kind}"] * scale
     return costs

@@ -9,6 +9,12 @@ Example:
     ...      "verdict": "better"}
     >>> list(task_verdict_table([c], cell=["k"], over="episodes"))
     ["T+S (masks trained to identify the task) paired with M+G over the same episodes (negative: T+S's error is lower)"]
+    >>> reversed = {**c, "method": "M+G", "against": "T+S", "difference": 0.1, "low": 0.05, "high": 0.2,
+    ...             "verdict": "worse"}
+    >>> print(task_verdict_table([reversed], cell=["k"], over="episodes").popitem()[1])
+    | k | method | against | difference [95% CI]     | verdict |
+    |---|--------|---------|-------------------------|---------|
+    | 1 | T+S    | M+G     | -0.100 [-0.200, -0.050] | better  |
 """
 
 from __future__ import annotations
@@ -35,13 +41,22 @@ def task_verdict_table(
 ) -> dict[str, str]:
     """Caption -> Markdown of T+S's paired verdicts against ``against``; empty where T+S did not run.
 
-    The comparisons must hold T+S as the method (list it first among the adaptive methods).
     ``against`` names the methods as the experiment labels them (:data:`TASK_AGAINST` by default).
+    A pair stored the other way round (the other method minus T+S, as when T+S stood in for a
+    baseline that did not run) is turned round, so every row reads T+S minus the other.
     """
     verdicts = [c for c in comparisons if c["method"] == "T+S" and c["against"] in against]
+    verdicts += [_turned(c) for c in comparisons if c["against"] == "T+S" and c["method"] in against]
     if not verdicts:
         return {}
     names = ", ".join(sorted({c["against"] for c in verdicts}))
     sign = "negative: T+S's error is lower" if lower_is_better else "positive: T+S scores higher"
     caption = f"T+S (masks trained to identify the task) paired with {names} over the same {over} ({sign})"
     return {caption: verdict_table(verdicts, cell=cell)}
+
+
+def _turned(c: Mapping[str, Any]) -> dict[str, Any]:
+    """Comparison ``c`` (other minus T+S) as T+S minus the other."""
+    verdict = {"better": "worse", "worse": "better"}.get(c["verdict"], c["verdict"])
+    turned = {"method": "T+S", "against": c["method"], "verdict": verdict}
+    return {**c, **turned, "difference": -c["difference"], "low": -c["high"], "high": -c["low"]}

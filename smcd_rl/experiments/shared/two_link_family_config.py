@@ -61,3 +61,14 @@ class TwoLinkFamilyConfig(AdaptationConfig):
     noise_std: float = setting(0.05, "likelihood noise std (m) of SMCD and the oracle", above=0.0)
     oracle_particles: int = setting(1000, "oracle particle count over link lengths", low=1)
     oracle_jitter: float = setting(0.005, "oracle random-walk std of link lengths per step", low=0.0)
+
+    def validate(self) -> None:
+        """The declared bounds, then that the T network's mask groups split its layers evenly, if a T method runs."""
+        super().validate()
+        runs_task = any(m.startswith("T+") for m in getattr(self, "methods", ()))
+        if runs_task and self.mask_groups and self.hidden % self.mask_groups:
+            raise ValueError(
+                f"--mask-groups {self.mask_groups} must divide --hidden {self.hidden}: each of the T network's mask "
+                "bits switches hidden/mask-groups units; pass a divisor of --hidden, 0 for one bit per unit, or "
+                "drop the T methods"
+            )
