@@ -14,7 +14,7 @@ from smcd_rl.experiments.panda import run as panda
 from smcd_rl.experiments.shared import stages, tuning
 from smcd_rl.experiments.shared.adaptation_config import VARIANTS
 from smcd_rl.experiments.shared.runtime import torch_threads
-from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, HEADLINE
+from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, HEADLINE, TASK_MASKS
 from tests.experiments.test_stages import planned_stages
 
 TINY = [
@@ -182,12 +182,12 @@ def test_results_json_has_the_tuning_and_the_scoreboard_entry(tmp_path, capsys) 
     board = payload["scoreboard"]
     assert board["task"] == "Panda reaching" and board["cell"] == {"interval": panda.HEADLINE_INTERVAL}
     assert board["metric"] == "success" and board["lower_is_better"] is False
-    assert set(board["estimates"]) == set(COLUMNS)
-    assert [board["estimates"][c]["method"] for c in COLUMNS] == [f"M+{HEADLINE[c]}" for c in COLUMNS]
+    assert set(board["estimates"]) == set(COLUMNS) - {TASK_MASKS}  # no task-mask network here
+    assert [board["estimates"][c]["method"] for c in HEADLINE] == [f"M+{HEADLINE[c]}" for c in HEADLINE]
     assert all(e["trials"] == 2 * 4 and 0.0 <= e["mean"] <= 1.0 for e in board["estimates"].values())
     assert "not compared" not in board["verdicts"].values()
     # Each strategy's time is its method's, measured on the tuning episodes.
-    assert board["ms_per_observation"] == {c: entry["ms_per_observation"][HEADLINE[c]] for c in COLUMNS}
+    assert board["ms_per_observation"] == {c: entry["ms_per_observation"][HEADLINE[c]] for c in HEADLINE}
     assert all(0 < ms < math.inf for ms in board["ms_per_observation"].values())
     # --gd-lr with one value is a one-point grid.
     assert cli.make_config("panda", {"gd_lr": (0.01,)}).gd_lr == (0.01,)

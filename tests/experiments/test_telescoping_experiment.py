@@ -72,7 +72,8 @@ def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, 
     assert cli.main(["telescoping", "--out", str(whole), *TINY]) == 0
     captured = capsys.readouterr()
     printed = captured.out
-    expected = ["train", "train reptile", "tune M", "tune R", *(f"evaluate {m}" for m in telescoping.DEFAULT_METHODS)]
+    trainings = ["train", "train reptile", "train task", "tune M", "tune R", "tune T"]
+    expected = [*trainings, *(f"evaluate {m}" for m in telescoping.DEFAULT_METHODS)]
     assert planned_stages(captured.err, "whole") == expected
     uninterrupted = first_table(printed)
     assert [line.split("|")[1].strip() for line in uninterrupted[2:]] == list(telescoping.DEFAULT_METHODS)
@@ -108,7 +109,7 @@ def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, 
     curves = list(csv.DictReader(open(whole / "curves.csv")))
     assert len(curves) == len(telescoping.DEFAULT_METHODS) * 13  # k = 0..12
     payload = json.loads((whole / "results.json").read_text())
-    assert payload["config"]["trials"] == 6 and set(payload["train_loss"]) == {"M", "R"}
+    assert payload["config"]["trials"] == 6 and set(payload["train_loss"]) == {"M", "R", "T"}
     assert set(payload["tuning"]["M"]["specs"]) == {"N", "G", "S", "S(evidence)", "S(paper)", "C"}
     # The scoreboard's entry: every strategy of M, each with its time per observation.
     board = payload["scoreboard"]

@@ -14,7 +14,7 @@ import smcd_rl
 from smcd_rl import cli
 from smcd_rl.calibration import calibrate
 from smcd_rl.experiments.scoreboard import run as scoreboard
-from smcd_rl.experiments.shared import tuning
+from smcd_rl.experiments.shared import tuned_methods, tuning
 from smcd_rl.experiments.shared.adaptations import AdaptationConfig
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
@@ -113,14 +113,14 @@ def test_unknown_variant_is_refused() -> None:
     with pytest.raises(ValueError, match="unknown strategy 'X'"):
         result.strategy("X", seed=0)
     # A method's strategy: N needs no tuning; the others come from their network's.
-    assert isinstance(tuning.strategy_for("R+N", {}, seed=0), smcd_rl.NoAdaptation)
-    assert tuning.strategy_for("M+G", {"M": result}, seed=0).lr == 0.1
+    assert isinstance(tuned_methods.strategy_for("R+N", {}, seed=0), smcd_rl.NoAdaptation)
+    assert tuned_methods.strategy_for("M+G", {"M": result}, seed=0).lr == 0.1
     with pytest.raises(ValueError, match="R was not tuned"):
-        tuning.strategy_for("R+S", {"M": result}, seed=0)
+        tuned_methods.strategy_for("R+S", {"M": result}, seed=0)
     # The seed given replaces the tuned one: two seeds, two filters.
     a, b = (result.strategy("S", seed=seed) for seed in (1, 2))
     assert a._generator.initial_seed() == 1 and b._generator.initial_seed() == 2
-    assert tuning.ms_column(["M+G", "M+N", "R+S", "O+P"], {"M": result}) == {"M+G": 1.0}
+    assert tuned_methods.ms_column(["M+G", "M+N", "R+S", "O+P"], {"M": result}) == {"M+G": 1.0}
 
 
 def test_an_empty_grid_is_refused_before_any_work(tmp_path) -> None:

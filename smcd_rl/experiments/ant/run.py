@@ -106,7 +106,8 @@ from smcd_rl.experiments.ant.report import (
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.tuning import VARIANTS, Tuning, ms_column, tune
+from smcd_rl.experiments.shared.tuned_methods import ms_column
+from smcd_rl.experiments.shared.tuning import VARIANTS, Tuning, tune
 from smcd_rl.experiments.shared.workers import computed
 
 __all__ = [

@@ -78,7 +78,8 @@ from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.tuning import ms_column, tune
+from smcd_rl.experiments.shared.tuned_methods import ms_column
+from smcd_rl.experiments.shared.tuning import tune
 from smcd_rl.experiments.shared.video import video_name
 from smcd_rl.experiments.shared.workers import computed
 

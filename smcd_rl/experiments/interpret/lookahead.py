@@ -45,7 +45,8 @@ from smcd_rl.envs.drone_operators import TrajectoryDataset, simulate_operators
 from smcd_rl.experiments.interpret.drone import SETS
 from smcd_rl.experiments.interpret.masks import padded
 from smcd_rl.experiments.shared.outputs import format_table, save_figure
-from smcd_rl.experiments.shared.tuning import Tuning, method_variant, strategy_for
+from smcd_rl.experiments.shared.tuned_methods import method_variant, strategy_for
+from smcd_rl.experiments.shared.tuning import Tuning
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.interpret.config import InterpretConfig
@@ -222,7 +223,7 @@ def table(rows: list[dict[str, Any]], config: InterpretConfig, ms: Mapping[str, 
     """Action RMSE, mean [95% CI] over test trajectories: rows set, method, burn-in ratio; columns horizon ratio.
 
     The last column is the method's median milliseconds per observation on the tuning flights
-    (``ms``, by :func:`~smcd_rl.experiments.shared.tuning.ms_column`; "-" for a method without one).
+    (``ms``, by :func:`~smcd_rl.experiments.shared.tuned_methods.ms_column`; "-" for a method without one).
     """
     ms = ms or {}
     lookup = {

@@ -66,7 +66,8 @@ from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import verdict_table
-from smcd_rl.experiments.shared.tuning import Tuning, method_variant, ms_column, tune
+from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column
+from smcd_rl.experiments.shared.tuning import Tuning, tune
 
 __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SIMULATED_LABELS", "run"]
 

@@ -24,7 +24,8 @@ from smcd_rl.envs.panda_reach import (
     sample_goals,
     sample_tool_lengths,
 )
-from smcd_rl.experiments.shared.tuning import Tuning, strategy_for
+from smcd_rl.experiments.shared.tuned_methods import strategy_for
+from smcd_rl.experiments.shared.tuning import Tuning
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.panda.config import PandaConfig

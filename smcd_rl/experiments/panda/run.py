@@ -83,7 +83,8 @@ from smcd_rl.experiments.shared.outputs import format_table
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.tuning import Tuning, ms_column, tune
+from smcd_rl.experiments.shared.tuned_methods import ms_column
+from smcd_rl.experiments.shared.tuning import Tuning, tune
 from smcd_rl.experiments.shared.video import video_name, write_gif
 
 __all__ = [

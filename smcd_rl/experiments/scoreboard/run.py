@@ -163,13 +163,18 @@ def _write(
                 )
                 if tuned
                 else "",
-                "SMCD on a network whose masks were trained to identify the task (T+S), where it ran: mean [95% CI] "
-                "and paired verdicts": format_table(
+                "SMCD on a network whose masks were trained to identify the task (T+S), where it ran: mean [95% CI], "
+                "paired verdicts and median ms per observation": format_table(
                     [
-                        [row["task"], row[f"{TASK_MASKS} text"], *(row[f"{m} vs {a}"] for m, a in task_verdicts)]
+                        [
+                            row["task"],
+                            row[f"{TASK_MASKS} text"],
+                            *(row[f"{m} vs {a}"] for m, a in task_verdicts),
+                            _ms(row["ms"].get(TASK_MASKS)),
+                        ]
                         for row in task_rows
                     ],
-                    ["task", TASK_MASKS, *(VERDICT_LABELS[v] for v in task_verdicts)],
+                    ["task", TASK_MASKS, *(VERDICT_LABELS[v] for v in task_verdicts), "ms / observation"],
                 )
                 if task_rows
                 else "",
@@ -319,8 +324,8 @@ def _csv_row(row: Mapping[str, Any]) -> dict[str, Any]:
     return {**flat, **{f"{column} ms": row["ms"].get(column) for column in COLUMNS}}
 
 
-#: The strategies whose times the report's table shows.
-TIMED = tuple(c for c in COLUMNS if c != "none")
+#: The strategies whose times the report's table shows (SMCD on task masks: in its own table).
+TIMED = tuple(c for c in COLUMNS if c not in ("none", TASK_MASKS))
 
 
 def _ms(value: float | None) -> str:

@@ -22,8 +22,8 @@ the posterior predictive mean instead of the MMSE mask) and of SMCD with a Stude
 calibrated by its own evidence is measured on the same episodes, never on the test tasks.
 
 Example:
-    >>> method_variant("M+S(paper)")
-    ('M', 'S(paper)')
+    >>> TUNED["S"]
+    'smcd'
 """
 
 from __future__ import annotations
@@ -56,9 +56,6 @@ __all__ = [
     "TUNED",
     "OPTIONS",
     "STUDENT",
-    "method_variant",
-    "strategy_for",
-    "ms_column",
 ]
 
 #: Variant -> the kind of :func:`smcd_rl.tune`'s result it takes.
@@ -131,37 +128,6 @@ class Tuning:
     def plot(self, path: Path) -> None:
         """``tuning-<name>.png``: one-step error, ESS share, log evidence and kept share over the steps."""
         plot_traces(self.name, self.traces, self.episodes, path)
-
-
-def method_variant(name: str) -> tuple[str, str]:
-    """``"M+S(paper)"`` -> ``("M", "S(paper)")``."""
-    model, _, variant = name.partition("+")
-    return model, variant
-
-
-def strategy_for(
-    name: str, tunings: Mapping[str, Tuning], *, seed: int, device: torch.device | str = "cpu"
-) -> smcd_rl.Adaptation:
-    """The strategy of method ``name`` (``"M+G"``, ``"R+S(paper)"``...) from its network's tuning.
-
-    ``N`` needs none (an experiment runs no tuning when only unadapted methods run).
-    """
-    network, variant = method_variant(name)
-    if variant == "N":
-        return smcd_rl.NoAdaptation()
-    if network not in tunings:
-        raise ValueError(f"{name} adapts with tuned settings, but {network} was not tuned")
-    return tunings[network].strategy(variant, seed=seed, device=device)
-
-
-def ms_column(methods: Sequence[str], tunings: Mapping[str, Tuning]) -> dict[str, float]:
-    """Method name -> its median ms per observation, for the methods whose network was tuned."""
-    found = {}
-    for name in methods:
-        network, variant = method_variant(name)
-        if network in tunings and variant in tunings[network].ms:
-            found[name] = tunings[network].ms[variant]
-    return found
 
 
 def tuned_specs(

@@ -41,7 +41,8 @@ from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.shared.task_family import task_verdict_table
-from smcd_rl.experiments.shared.tuning import ms_column, tune
+from smcd_rl.experiments.shared.tuned_methods import ms_column
+from smcd_rl.experiments.shared.tuning import tune
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
     fit_settings,

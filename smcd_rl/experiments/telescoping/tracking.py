@@ -26,7 +26,8 @@ from smcd_rl.envs.two_link_telescoping import (
     sample_initial_state,
     telescoping_link_lengths,
 )
-from smcd_rl.experiments.shared.tuning import Tuning, method_variant, strategy_for
+from smcd_rl.experiments.shared.tuned_methods import method_variant, strategy_for
+from smcd_rl.experiments.shared.tuning import Tuning
 from smcd_rl.experiments.shared.two_link_family import oracle
 
 if TYPE_CHECKING:

@@ -25,7 +25,8 @@ from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figur
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.shared.task_family import task_verdict_table
-from smcd_rl.experiments.shared.tuning import Tuning, method_variant, ms_column, strategy_for, tune
+from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column, strategy_for
+from smcd_rl.experiments.shared.tuning import Tuning, tune
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
     fit_settings,
