@@ -37,7 +37,8 @@ from smcd_rl.envs.pendulum_family import pendulum_transitions, sample_pendulum_p
 from smcd_rl.envs.two_link_arm import motor_babbling, sample_link_lengths, two_link_fk
 from smcd_rl.envs.two_link_telescoping import telescoping_length
 from smcd_rl.experiments.regimes.config import RegimesConfig
-from smcd_rl.experiments.shared.two_link_family import reptile_settings
+from smcd_rl.experiments.shared.two_link_family import network as arm_network
+from smcd_rl.experiments.shared.two_link_family import reptile_settings, task_fit_settings
 
 __all__ = [
     "Family",
@@ -96,13 +97,14 @@ def method_network(family: str, method: str) -> tuple[str, str]:
     return OTHER_NETWORKS[prefix], variant
 
 
-def build_model(network: str, config: RegimesConfig, device: torch.device | str) -> smcd_rl.AdaptiveModel:
+def build_model(
+    network: str, config: RegimesConfig, device: torch.device | str, *, mask_groups: int | None = None
+) -> smcd_rl.AdaptiveModel:
     """The untrained network ``network`` as an adaptive model (its strategy is set per method)."""
-    hidden = (config.hidden,) * config.depth
     if network == "arm":
-        net = smcd_rl.MaskedMLP(2, 2, hidden=hidden, dropout=config.dropout, device=device)
-        return smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
-    net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=hidden, dropout=config.dropout, device=device)
+        return smcd_rl.AdaptiveModel(arm_network(config, device), in_keys=["q"], out_key="ee")
+    hidden = (config.hidden,) * config.depth
+    net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=hidden, dropout=config.dropout, mask_groups=mask_groups, device=device)
     return smcd_rl.AdaptiveDynamicsModel(net)
 
 
@@ -119,14 +121,10 @@ def other_network(
     groups = (config.mask_groups or None) if task else None  # Reptile's network is M's
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed + (29 if task else 17))
-        hidden = (config.hidden,) * config.depth
-        net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=hidden, dropout=config.dropout, mask_groups=groups, device=device)
-    model = smcd_rl.AdaptiveDynamicsModel(net)
-    common = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
+        model = build_model("pendulum", config, device, mask_groups=groups)
     if task:
         tasks = torch.arange(data.batch_size[0], device=data.device).view(-1, 1, 1).expand(data.batch_size)
-        settings = {**common, "mask_training": "task", "task_share": config.task_share}
-        return model, smcd_rl.fit, data.clone(recurse=False).set("task", tasks), settings
+        return model, smcd_rl.fit, data.clone(recurse=False).set("task", tasks), task_fit_settings(config)
     return model, smcd_rl.fit_reptile, data, reptile_settings(config)
 
 

@@ -27,7 +27,7 @@ import smcd_rl
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.regimes.config import BUDGETED, RegimesConfig
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.experiments.shared.tuning import tuned_specs
+from smcd_rl.experiments.shared.tuning import VARIANTS, tuned_specs
 from smcd_rl.tuning import build_strategy
 
 __all__ = ["tune_network", "strategy_of", "residual_of", "budgeted_label"]
@@ -60,12 +60,12 @@ def tune_network(
     *,
     name: str,
     methods: Sequence[str],
-    variants: Sequence[str] | None = None,
+    variants: Sequence[str] = VARIANTS,
     budgeted: Sequence[str] = BUDGETED,
 ) -> dict[str, Any]:
     """Each method's spec, time per observation and the tuning tables of one network (or a rerun's).
 
-    ``variants`` (default all) are the kinds of method to tune (``"G"``, ``"S"``...: only what
+    ``variants`` (default all of :data:`VARIANTS`) are the kinds of method to tune (``"G"``, ``"S"``...: only what
     they need runs) and ``budgeted`` those tuned again under the budget; ``methods`` selects the
     specs returned.
 
@@ -77,8 +77,8 @@ def tune_network(
         "model": model_digest(model),
         "episodes": content_digest(episodes),
         "settings": config.settings(exclude=("methods", "families", "trials")),
-        **({"variants": sorted(variants)} if variants is not None else {}),
-        **({"budgeted": sorted(budgeted)} if tuple(budgeted) != BUDGETED else {}),
+        "variants": sorted(variants),
+        "budgeted": sorted(budgeted),
     }
     with ex.stage(f"tune {name}"):
         found = ex.store.get(f"tuning-{name}", key)
@@ -97,11 +97,10 @@ def _tune(
     config: RegimesConfig,
     *,
     name: str,
-    variants: Sequence[str] | None,
+    variants: Sequence[str],
     budgeted: Sequence[str],
 ) -> dict[str, Any]:
-    chosen = {} if variants is None else {"variants": variants}
     found = tuned_specs(
-        ex, model, episodes, config, name=name, paper_noise=config.noise_std, budgeted=budgeted, **chosen
+        ex, model, episodes, config, name=name, paper_noise=config.noise_std, budgeted=budgeted, variants=variants
     )
     return {**found, "residual": residual_of(model, episodes).tolist()}

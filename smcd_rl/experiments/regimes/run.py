@@ -36,6 +36,7 @@ from smcd_rl.experiments.regimes.report import plot, scoreboard_entries, tables
 from smcd_rl.experiments.regimes.streams import make_plan, regime_errors
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.stats import cell_statistics
+from smcd_rl.experiments.shared.two_link_family import fit_settings
 
 __all__ = ["RegimesConfig", "FULL", "run", "stage_costs"]
 
@@ -47,9 +48,8 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
         # --- one network per kind of task, trained on many tasks ------------------------------------
         networks = sorted({network_of(f) for f in config.families})
         models = {net: build_model(net, config, ex.device) for net in networks}
-        settings = {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed}
         data = {net: training_data(net, config, ex.generator) for net in networks}
-        jobs = {net: (smcd_rl.fit, models[net], data[net], settings) for net in networks}
+        jobs = {net: (smcd_rl.fit, models[net], data[net], fit_settings(config)) for net in networks}
         other = _other_variants(config)
         for net in other:  # T and R train on the pendulum network's data
             models[net], fit, net_data, net_settings = other_network(net, config, data["pendulum"], ex.device)

@@ -17,13 +17,23 @@ import smcd_rl
 if TYPE_CHECKING:
     from smcd_rl.experiments.shared.tuning import Tuning
 
-__all__ = ["method_variant", "strategy_for", "ms_column"]
+__all__ = ["method_variant", "tuned_variants", "strategy_for", "ms_column"]
 
 
 def method_variant(name: str) -> tuple[str, str]:
     """``"M+S(paper)"`` -> ``("M", "S(paper)")``."""
     model, _, variant = name.partition("+")
     return model, variant
+
+
+def tuned_variants(network: str, methods: Sequence[str]) -> list[str]:
+    """The variants of ``network``'s methods among ``methods`` that need its tuning (``N`` needs none).
+
+    Example:
+        >>> tuned_variants("T", ["M+S", "T+N", "T+G", "true"]), tuned_variants("R", ["R+N"])
+        (['G'], [])
+    """
+    return [method_variant(m)[1] for m in methods if m.startswith(network + "+") and not m.endswith("+N")]
 
 
 def strategy_for(

@@ -62,9 +62,12 @@ def tuning_episodes(config: TwoLinkFamilyConfig, device: torch.device | str, *, 
     return data.reshape(config.tuning_episodes, steps).select("q", "ee").to(device)
 
 
-def network(config: TwoLinkFamilyConfig, device: torch.device | str) -> smcd_rl.MaskedMLP:
-    """An untrained ``q (2) -> ee (2)`` dropout network of the config's width and depth."""
-    return smcd_rl.MaskedMLP(2, 2, hidden=(config.hidden,) * config.depth, dropout=config.dropout, device=device)
+def network(
+    config: TwoLinkFamilyConfig, device: torch.device | str, *, mask_groups: int | None = None
+) -> smcd_rl.MaskedMLP:
+    """An untrained ``q (2) -> ee (2)`` dropout network of the config's width and depth (``mask_groups``: T's bits)."""
+    hidden = (config.hidden,) * config.depth
+    return smcd_rl.MaskedMLP(2, 2, hidden=hidden, dropout=config.dropout, mask_groups=mask_groups, device=device)
 
 
 def fit_settings(config: TwoLinkFamilyConfig) -> dict[str, Any]:
@@ -91,11 +94,9 @@ def task_model(config: TwoLinkFamilyConfig, device: torch.device | str, *, init_
         >>> task_model(TwoLinkFamilyConfig(hidden=32, mask_groups=4), "cpu", init_seed=0).net.mask_dim
         8
     """
-    groups = config.mask_groups or None
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(init_seed)
-        hidden = (config.hidden,) * config.depth
-        net = smcd_rl.MaskedMLP(2, 2, hidden=hidden, dropout=config.dropout, mask_groups=groups, device=device)
+        net = network(config, device, mask_groups=config.mask_groups or None)
         return smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
 
 

@@ -41,7 +41,7 @@ from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.shared.task_family import task_verdict_table
-from smcd_rl.experiments.shared.tuned_methods import ms_column
+from smcd_rl.experiments.shared.tuned_methods import ms_column, tuned_variants
 from smcd_rl.experiments.shared.tuning import tune
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
@@ -104,11 +104,7 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
         tunings = {
             family: tune(ex, models[family], held_out, config, name=family, variants=variants)
             for family in sorted(families)
-            if (
-                variants := [
-                    m.partition("+")[2] for m in config.methods if _family(m) == family and not m.endswith("+N")
-                ]
-            )
+            if (variants := tuned_variants(family, config.methods))
         }
 
         # --- every method on the same episodes, cached by the digest of the model it adapts ---------
@@ -282,7 +278,7 @@ def stage_costs(config: TelescopingConfig) -> dict[str, float]:
         posteriors = (config.epochs - 1) * config.tasks * 16 * 100
         costs["train task"] = estimate(steps=steps, forwards=3 * config.epochs * samples + posteriors, flops=flops)
     for family in sorted(families):
-        if any(_family(m) == family and not m.endswith("+N") for m in config.methods):
+        if tuned_variants(family, config.methods):
             tuning = tuning_cost(config, episodes=config.tuning_episodes, steps=TUNING_STEPS, flops=flops)
             costs[f"tune {family}"] = tuning
     for name in config.methods:

@@ -25,7 +25,7 @@ from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figur
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.shared.task_family import task_verdict_table
-from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column, strategy_for
+from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column, strategy_for, tuned_variants
 from smcd_rl.experiments.shared.tuning import Tuning, tune
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
@@ -85,7 +85,7 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         tunings = {
             name: tune(ex, trained, episodes, config, name=name, options=config.tuning_options, variants=variants)
             for name, trained in networks.items()
-            if trained is not None and (variants := _variants(name, config))
+            if trained is not None and (variants := tuned_variants(name, config.methods))
         }
 
         # --- every method on the same held-out arms -------------------------------------------------
@@ -179,7 +179,7 @@ def stage_costs(config: TwoLinkConfig) -> dict[str, float]:
     ref = _REFERENCE_SECONDS
     data = config.tasks * config.episodes * config.steps / 100_000 * (config.hidden / 512) ** 2 * config.depth / 2
     filtering = config.trials / 500 * sum(config.burn_in) / 16
-    networks = [n for n in ("M", "R", "T") if _variants(n, config)]
+    networks = [n for n in ("M", "R", "T") if tuned_variants(n, config.methods)]
     costs = {"train": ref["train"] * config.epochs / 20 * data}
     if any(m.startswith("R+") for m in config.methods):
         costs["train reptile"] = ref["train reptile"] * config.reptile_epochs / 20 * data
@@ -215,16 +215,6 @@ def table(rows: list[dict[str, Any]], config: TwoLinkConfig, ms: dict[str, float
         for t in config.burn_in
     ]
     return format_table(body, header)
-
-
-def _variants(network: str, config: TwoLinkConfig) -> list[str]:
-    """The tuned variants of ``network``'s methods in the run (``N`` needs no tuning).
-
-    Example:
-        >>> _variants("T", TwoLinkConfig(methods=("M+S", "T+N", "T+G"))), _variants("R", TwoLinkConfig(methods=("R+N",)))
-        (['G'], [])
-    """
-    return [m.partition("+")[2] for m in config.methods if m.startswith(network + "+") and not m.endswith("+N")]
 
 
 def _baselines(
