@@ -160,7 +160,10 @@ def test_summary_is_mean_std_min_over_the_other_parameters() -> None:
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--study", "ablation"], "--study: unknown value 'ablation'; choose from ['training', 'smcd', 'drone']"),
+        (
+            ["--study", "ablation"],
+            "--study: unknown value 'ablation'; choose from ['training', 'smcd', 'drone', 'masks']",
+        ),
         (["--grid", "latent=64"], "unknown parameter 'latent' for study 'training'; its parameters: hidden, dropout"),
         (["--grid", "particles=10"], "unknown parameter 'particles' for study 'training'"),
         (["--study", "smcd", "--grid", "lr=0.1"], "unknown parameter 'lr' for study 'smcd'"),
@@ -186,6 +189,10 @@ def test_summary_is_mean_std_min_over_the_other_parameters() -> None:
         ),
         (["--threads", "-2"], "--threads must be >= 0"),
         (["--study", "drone", "--dataset", "missing.npz"], "--dataset missing.npz: no such file"),
+        (["--study", "masks", "--grid", "mask_groups=0,3"], "mask_groups 3 does not divide --hidden 256"),
+        (["--study", "masks", "--mask-groups", "5", "--grid", "mask_groups=5"], "mask_groups 5 does not divide"),
+        (["--study", "masks", "--grid", "task_share=0,1.5"], "--grid task_share=1.5: --task-share must be <= 1.0"),
+        (["--study", "masks", "--grid", "hidden=8"], "unknown parameter 'hidden' for study 'masks'"),
     ],
 )
 def test_bad_options_are_refused_before_any_work(tmp_path, capsys, argv, message) -> None:

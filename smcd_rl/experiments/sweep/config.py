@@ -2,7 +2,7 @@
 
 Example:
     >>> SweepConfig().study, STUDIES, FULL["arms"]
-    ('training', ('training', 'smcd', 'drone'), 1000)
+    ('training', ('training', 'smcd', 'drone', 'masks'), 1000)
 """
 
 from __future__ import annotations
@@ -16,10 +16,22 @@ from typing import Any
 
 from smcd_rl.experiments.shared.config import ExperimentConfig, setting
 
-__all__ = ["SweepConfig", "FULL", "STUDIES", "DESIGNS", "PARAMETERS", "GRIDS", "FULL_GRIDS", "resolve_grid"]
+__all__ = [
+    "SweepConfig",
+    "FULL",
+    "STUDIES",
+    "FILTER_STUDIES",
+    "DESIGNS",
+    "PARAMETERS",
+    "GRIDS",
+    "FULL_GRIDS",
+    "resolve_grid",
+]
 
-#: The studies (``--study``): Figs. 5, 6 and 12.
-STUDIES = ("training", "smcd", "drone")
+#: The studies (``--study``): Figs. 5, 6 and 12 of the paper, and the networks trained for mask adaptation.
+STUDIES = ("training", "smcd", "drone", "masks")
+#: The studies that filter held-out two-link arms with each trained network (the others report its training loss).
+FILTER_STUDIES = ("smcd", "masks")
 #: How the grid is laid out (``--design``): every combination, or one parameter at a time.
 DESIGNS = ("factorial", "one-at-a-time")
 
@@ -35,12 +47,16 @@ class SweepConfig(ExperimentConfig):
     device: str = setting(
         "cpu", "torch device of each trial: cpu, cuda, cuda:1 or auto (cuda needs --gpus-per-trial > 0)"
     )
-    study: str = setting("training", "training (Fig. 5), smcd (Fig. 6) or drone (Fig. 12)", choices=STUDIES)
+    study: str = setting(
+        "training",
+        "training (Fig. 5), smcd (Fig. 6), drone (Fig. 12) or masks (networks trained for mask adaptation)",
+        choices=STUDIES,
+    )
     grid: tuple[str, ...] = setting(
         (),
         "replace a parameter's values, NAME=V1,V2,... (e.g. hidden=64,256 dropout=0.5); the others keep the study's "
         "grid. Names: training and drone: hidden dropout lr batch_size epochs; smcd: hidden dropout flip_prob "
-        "noise_std particles",
+        "noise_std particles; masks: task_share mask_groups tasks particles",
     )
     design: str = setting(
         "factorial", "factorial (every combination, as the paper's figures) or one-at-a-time", choices=DESIGNS
@@ -55,6 +71,16 @@ class SweepConfig(ExperimentConfig):
     flip_prob: float = setting(0.01, "SMCD bit-flip probability per step", low=0.0, high=1.0)
     noise_std: float = setting(0.05, "SMCD likelihood noise std (m)", above=0.0, below=math.inf)
     particles: int = setting(500, "SMCD mask particles", low=1)
+    # The masks study's networks: smcd_rl.fit(mask_training="task") (the concepts page "Mask training").
+    task_share: float = setting(
+        0.5,
+        "masks study: share of samples trained through a mask of their arm's posterior (0: random dropout)",
+        low=0.0,
+        high=1.0,
+    )
+    mask_groups: int = setting(
+        16, "masks study: dropout bits per hidden layer, each for hidden/mask_groups units (0: one per unit)", low=0
+    )
     # The smcd study's reference M+G on each trained network (not swept).
     gd_lr: float = setting(
         0.01, "smcd study: M+G's online gradient-descent learning rate (normalised units)", above=0.0
@@ -120,6 +146,13 @@ class SweepConfig(ExperimentConfig):
                 f"--gpus-per-trial {self.gpus_per_trial:g} exceeds the local Ray's {gpus} GPUs; no trial could ever "
                 "be scheduled (use --gpus-per-trial 0 on a machine without a GPU)"
             )
+        if self.study == "masks":
+            groups = resolve_grid(self).get("mask_groups", (self.mask_groups,))
+            if uneven := [g for g in groups if g and self.hidden % g]:
+                raise ValueError(
+                    f"mask_groups {uneven[0]} does not divide --hidden {self.hidden}: each mask bit switches "
+                    "hidden/mask_groups units; use divisors of --hidden, or 0 for one bit per unit"
+                )
         if self.study == "drone" and self.dataset and not Path(self.dataset).is_file():
             raise FileNotFoundError(f"--dataset {self.dataset}: no such file; give a .npz dataset or leave it empty")
 
@@ -146,9 +179,11 @@ PARAMETERS: dict[str, tuple[str, ...]] = {
     "training": ("hidden", "dropout", "lr", "batch_size", "epochs"),
     "smcd": ("hidden", "dropout", "flip_prob", "noise_std", "particles"),
     "drone": ("hidden", "dropout", "lr", "batch_size", "epochs"),
+    "masks": ("task_share", "mask_groups", "tasks", "particles"),
 }
 
-#: Default grids: factorial and small enough for minutes on 2 CPU cores (36, 162 and 36 grid points).
+#: Default grids: factorial and small enough for minutes on 2 CPU cores (36, 162 and 36 grid points);
+#: the masks study trains 24 networks factorially, 7 with ``--design one-at-a-time``.
 GRIDS: dict[str, dict[str, tuple[Any, ...]]] = {
     "training": {
         "hidden": (64, 256, 512),
@@ -170,6 +205,12 @@ GRIDS: dict[str, dict[str, tuple[Any, ...]]] = {
         "lr": (1e-3, 1e-4),
         "batch_size": (64, 256),
         "epochs": (10, 25, 50),
+    },
+    "masks": {
+        "task_share": (0.0, 0.25, 0.5, 1.0),
+        "mask_groups": (0, 16, 64),
+        "tasks": (25, 100),
+        "particles": (100, 500),
     },
 }
 
@@ -197,6 +238,12 @@ FULL_GRIDS: dict[str, dict[str, tuple[Any, ...]]] = {
         "lr": (1e-2, 1e-3, 1e-4),
         "batch_size": (32, 64, 128, 256),
         "epochs": (25, 50, 75, 100),
+    },
+    "masks": {
+        "task_share": (0.0, 0.1, 0.25, 0.5, 0.75, 1.0),
+        "mask_groups": (0, 8, 16, 64, 256),
+        "tasks": (25, 100, 300, 1000),
+        "particles": (100, 500, 1000, 5000),
     },
 }
 

@@ -27,13 +27,16 @@ from smcd_rl.experiments.sweep.config import PARAMETERS, SweepConfig, resolve_gr
 
 __all__ = ["EVALUATION_KEYS", "trial_configs"]
 
+_FILTERING = (
+    "seed", "depth", "tasks", "episodes", "steps", "measurement_noise", "lr", "batch_size", "epochs",
+    "arms", "chunk", "burn_in", "horizons", "hidden", "dropout", "flip_prob", "noise_std", "particles",
+)  # fmt: skip
+
 #: Settings besides the swept parameters that a study's results depend on.
 _SETTINGS: dict[str, tuple[str, ...]] = {
     "training": ("seed", "depth", "tasks", "episodes", "steps", "measurement_noise", *PARAMETERS["training"]),
-    "smcd": (
-        "seed", "depth", "tasks", "episodes", "steps", "measurement_noise", "lr", "batch_size", "epochs",
-        "arms", "chunk", "burn_in", "horizons", *PARAMETERS["smcd"],
-    ),
+    "smcd": _FILTERING,
+    "masks": (*_FILTERING, "task_share", "mask_groups"),
     "drone": (
         "seed", "depth", "dataset", "operators", "trajectories_per_operator", "subset", *PARAMETERS["drone"],
     ),
@@ -44,6 +47,7 @@ EVALUATION_KEYS: dict[str, tuple[str, ...]] = {
     "training": ("epochs",),
     "smcd": ("flip_prob", "noise_std", "particles", "arms", "chunk", "burn_in", "horizons"),
     "drone": ("epochs",),
+    "masks": ("flip_prob", "noise_std", "particles", "arms", "chunk", "burn_in", "horizons"),
 }
 
 

@@ -24,11 +24,14 @@ __all__ = [
     "LABELS",
     "FIGURES",
     "MODEL_PARAMETERS",
+    "NETWORKS",
+    "title",
     "summarise",
     "table",
     "smcd_statistics",
     "verdict_counts",
     "headline",
+    "model_parameters",
     "reference_table",
     "plot",
 ]
@@ -42,12 +45,17 @@ LABELS = {
     "flip_prob": "bit-flip probability",
     "noise_std": "likelihood noise (m)",
     "particles": "particles N",
+    "task_share": "task-mask share (0: random dropout)",
+    "mask_groups": "mask bits per layer (0: one per unit)",
+    "tasks": "training arms",
 }
 
-#: The paper figure of each study.
+#: The paper figure of each study (the masks study has none).
 FIGURES = {"training": 5, "smcd": 6, "drone": 12}
-#: The trained model's parameters in the smcd study (the others are the filter's).
-MODEL_PARAMETERS = ("hidden", "dropout")
+#: The trained model's parameters in each filter study (the others are the filter's).
+MODEL_PARAMETERS = {"smcd": ("hidden", "dropout"), "masks": ("task_share", "mask_groups", "tasks")}
+#: The network each filter study trains, as the methods' prefix: M (random dropout) or T (task masks).
+NETWORKS = {"smcd": "M", "masks": "T"}
 
 
 def summarise(
@@ -108,25 +116,29 @@ def smcd_statistics(
     pairs: Sequence[tuple[int, int]],
     *,
     seed: int,
+    study: str = "smcd",
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Add 95 % CIs to the grid points' rows; compare SMCD with M+N and M+G, paired over the arms.
+    """Add 95 % CIs to the grid points' rows; compare SMCD with N and G on its network, paired over the arms.
 
     Args:
         rows: one row per grid point (its parameters and metric means); gains ``{metric}_low`` and
             ``{metric}_high`` columns after each metric.
         arms: per grid point, metric -> per-arm MSE.
-        references: the model's parameter values (:data:`MODEL_PARAMETERS` present in
-            ``parameters``) -> method (``M+N``, ``M+G``) -> metric -> per-arm MSE.
+        references: the model's parameter values (the study's :data:`MODEL_PARAMETERS` present
+            in ``parameters``) -> method (``M+N``, ``M+G``; ``T+...`` in the masks study) ->
+            metric -> per-arm MSE.
         parameters: the grid's parameters.
         pairs: the (burn-in T, horizon H) of each metric, in the metrics' order.
         seed: the bootstrap seed.
+        study: the filter study, which names the network (:data:`NETWORKS`).
 
     Returns:
         ``(reference_rows, comparisons)``: the reference methods' mean and 95 % CI per model and
         (T, H), and one row per paired comparison (``M+S`` against ``M+N`` and ``M+G`` per grid
         point and (T, H); ``M+G`` against ``M+N`` per model, with the filter's parameters empty).
     """
-    model = [p for p in parameters if p in MODEL_PARAMETERS]
+    model = model_parameters(parameters, study)
+    none, gd, smcd = (f"{NETWORKS[study]}+{kind}" for kind in "NGS")
     cell = (*parameters, "burn_in", "horizon")
     metrics = [f"mse_T{t}_H{h}" for t, h in pairs]
     against_none: dict[tuple[Any, ...], dict[str, torch.Tensor]] = {}
@@ -135,21 +147,21 @@ def smcd_statistics(
         reference = references[tuple(row[p] for p in model)]
         for (t, h), metric in zip(pairs, metrics, strict=True):
             key = (*(row[p] for p in parameters), t, h)
-            against_none[key] = {"M+N": reference["M+N"][metric], "M+S": scores[metric]}
-            against_gd[key] = {"M+G": reference["M+G"][metric], "M+S": scores[metric]}
+            against_none[key] = {none: reference[none][metric], smcd: scores[metric]}
+            against_gd[key] = {gd: reference[gd][metric], smcd: scores[metric]}
     estimates, smcd_none = cell_statistics(
-        against_none, cell=cell, baseline="M+N", adaptive=["M+S"], metric="mse", seed=seed
+        against_none, cell=cell, baseline=none, adaptive=[smcd], metric="mse", seed=seed
     )
-    _, smcd_gd = cell_statistics(against_gd, cell=cell, baseline="M+G", adaptive=["M+S"], metric="mse", seed=seed)
+    _, smcd_gd = cell_statistics(against_gd, cell=cell, baseline=gd, adaptive=[smcd], metric="mse", seed=seed)
     model_scores = {
-        (*values, t, h): {name: by_method[name][metric] for name in ("M+N", "M+G")}
+        (*values, t, h): {name: by_method[name][metric] for name in (none, gd)}
         for values, by_method in references.items()
         for (t, h), metric in zip(pairs, metrics, strict=True)
     }
     reference_rows, gd_none = cell_statistics(
-        model_scores, cell=(*model, "burn_in", "horizon"), baseline="M+N", adaptive=["M+G"], metric="mse", seed=seed
+        model_scores, cell=(*model, "burn_in", "horizon"), baseline=none, adaptive=[gd], metric="mse", seed=seed
     )
-    interval = {tuple(e[c] for c in cell): (e["mse_low"], e["mse_high"]) for e in estimates if e["method"] == "M+S"}
+    interval = {tuple(e[c] for c in cell): (e["mse_low"], e["mse_high"]) for e in estimates if e["method"] == smcd}
     for i, row in enumerate(rows):
         point = tuple(row[p] for p in parameters)
         rows[i] = {p: row[p] for p in parameters}
@@ -160,8 +172,8 @@ def smcd_statistics(
     return reference_rows, smcd_none + smcd_gd + [{**filters, **c} for c in gd_none]
 
 
-def verdict_counts(comparisons: Sequence[Mapping[str, Any]]) -> str:
-    """SMCD's verdicts against each reference, counted over the grid points, per (T, H).
+def verdict_counts(comparisons: Sequence[Mapping[str, Any]], smcd: str = "M+S") -> str:
+    """SMCD's (``smcd``'s) verdicts against each reference, counted over the grid points, per (T, H).
 
     Example:
         >>> print(verdict_counts([{"burn_in": 1, "horizon": 5, "method": "M+S", "against": "M+N", "verdict": "better"}]))
@@ -171,20 +183,40 @@ def verdict_counts(comparisons: Sequence[Mapping[str, Any]]) -> str:
     """
     counts: dict[tuple[Any, Any, str], dict[str, int]] = {}
     for c in comparisons:
-        if c["method"] == "M+S":
+        if c["method"] == smcd:
             tally = counts.setdefault((c["burn_in"], c["horizon"], c["against"]), dict.fromkeys(_VERDICTS, 0))
             tally[c["verdict"]] += 1
     body = [[t, h, against, *tally.values()] for (t, h, against), tally in counts.items()]
-    return format_table(body, ["T", "H", "M+S against", *_VERDICTS])
+    return format_table(body, ["T", "H", f"{smcd} against", *_VERDICTS])
 
 
 _VERDICTS = ("better", "no significant difference", "worse")
 
 
-def headline(comparisons: Sequence[Mapping[str, Any]], base: Mapping[str, Any]) -> str | None:
-    """The verdict table of SMCD at the ``base`` grid point against M+N and M+G, or ``None`` if it is not one."""
-    chosen = [c for c in comparisons if c["method"] == "M+S" and all(c[k] == v for k, v in base.items())]
+def headline(comparisons: Sequence[Mapping[str, Any]], base: Mapping[str, Any], smcd: str = "M+S") -> str | None:
+    """The verdict table of SMCD (``smcd``) at the ``base`` grid point against N and G, or ``None`` if it is not one."""
+    chosen = [c for c in comparisons if c["method"] == smcd and all(c[k] == v for k, v in base.items())]
     return verdict_table(chosen, cell=("burn_in", "horizon")) if chosen else None
+
+
+def model_parameters(parameters: Sequence[str], study: str) -> list[str]:
+    """The grid's parameters that change the trained network in a filter study (the others are the filter's).
+
+    Example:
+        >>> model_parameters(["task_share", "particles"], "masks")
+        ['task_share']
+    """
+    return [p for p in parameters if p in MODEL_PARAMETERS[study]]
+
+
+def title(study: str) -> str:
+    """The study's name in reports and plots, with the paper figure it reproduces.
+
+    Example:
+        >>> title("smcd"), title("masks")
+        ('study smcd (cf. paper Fig. 6)', 'study masks')
+    """
+    return f"study {study} (cf. paper Fig. {FIGURES[study]})" if study in FIGURES else f"study {study}"
 
 
 def reference_table(reference_rows: Sequence[Mapping[str, Any]], model: Sequence[str]) -> str:
@@ -240,11 +272,10 @@ def plot(
         ax.set_xlabel(LABELS[name])
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel("training loss (normalised MSE)" if study != "smcd" else "look-ahead MSE (m$^2$)")
+    filtering = study in MODEL_PARAMETERS
+    axes[0][0].set_ylabel("look-ahead MSE (m$^2$)" if filtering else "training loss (normalised MSE)")
     axes[0][-1].legend(fontsize=7, title="dotted: min", title_fontsize=7)
-    fig.suptitle(
-        f"Sweep, study {study} (cf. paper Fig. {FIGURES[study]}): mean ± std and min over the other parameters"
-    )
+    fig.suptitle(f"Sweep, {title(study)}: mean ± std and min over the other parameters")
     fig.tight_layout()
     save_figure(fig, path, dpi=120)
     plt.close(fig)

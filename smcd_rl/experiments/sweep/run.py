@@ -1,6 +1,6 @@
 """Hyper-parameter ablations (paper appendices A.1, A.2 and B.2; Figs. 5, 6 and 12): ``smcd-rl sweep``.
 
-Three studies, chosen with ``--study``:
+Four studies, chosen with ``--study``:
 
 * ``training`` (Fig. 5): training loss of the two-link forward-kinematics model by latent
   dimension, dropout p, learning rate, batch size and epochs;
@@ -8,7 +8,13 @@ Three studies, chosen with ``--study``:
   bit-flip probability, likelihood noise and particle count, at every (burn-in T, horizon H) pair;
 * ``drone`` (Fig. 12): training loss of the drone behaviour-cloning model (state -> operator's
   velocity command) by latent dimension, dropout p, learning rate, batch size and epochs, on
-  simulated operators (:func:`smcd_rl.envs.drone_operators.simulate_operators`) or ``--dataset``.
+  simulated operators (:func:`smcd_rl.envs.drone_operators.simulate_operators`) or ``--dataset``;
+* ``masks``: networks trained for mask adaptation (``smcd_rl.fit(mask_training="task")``), by the
+  share of samples trained through their arm's mask posterior (0: random dropout, the control),
+  mask bits per layer (groups of units, or one per unit), training arms and particles. Each is
+  scored as the smcd study scores SMCD (T+S against T+N and T+G on the same network), and reports
+  how concentrated its posteriors are (:mod:`.posteriors`): per epoch on the training arms
+  (``posteriors.csv``, ``posteriors.png``) and after ``max(burn_in)`` observations of a held-out arm.
 
 The grid is full factorial, as in the paper's figures: each panel shows, for every value of one
 parameter, the spread over all combinations of the others. ``--design one-at-a-time`` instead varies
@@ -40,22 +46,36 @@ Example:
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
 
+import smcd_rl
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.outputs import write_csv
 from smcd_rl.experiments.shared.result_store import ResultStore
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops
-from smcd_rl.experiments.sweep.config import FULL, FULL_GRIDS, GRIDS, PARAMETERS, STUDIES, SweepConfig, resolve_grid
+from smcd_rl.experiments.sweep import posteriors
+from smcd_rl.experiments.sweep.config import (
+    FILTER_STUDIES,
+    FULL,
+    FULL_GRIDS,
+    GRIDS,
+    PARAMETERS,
+    STUDIES,
+    SweepConfig,
+    resolve_grid,
+)
 from smcd_rl.experiments.sweep.grid import trial_configs
+from smcd_rl.experiments.sweep.posteriors import POSTERIOR_METRICS
 from smcd_rl.experiments.sweep.results import (
     FIGURES,
-    MODEL_PARAMETERS,
+    NETWORKS,
     headline,
+    model_parameters,
     plot,
     reference_table,
     smcd_statistics,
@@ -102,39 +122,52 @@ def run(config: SweepConfig, *, progress: bool = True) -> dict[str, Any]:
                 with ray_session(config) as ray:
                     work.run(ray, progress=progress)
 
-        # --- results: the summary per parameter value; in the smcd study, CIs and paired verdicts ---
+        # --- results: the summary per parameter value; in the filter studies, CIs and paired verdicts ---
         with ex.stage("statistics"):
+            metrics = [m for m in work.results[0]["metrics"] if m not in POSTERIOR_METRICS]
             rows = [
-                {**{p: point[p] for p in parameters}, **work.results[i]["metrics"]} for i, point in enumerate(points)
+                {**{p: point[p] for p in parameters}, **{m: work.results[i]["metrics"][m] for m in metrics}}
+                for i, point in enumerate(points)
             ]
-            metrics = list(work.results[0]["metrics"])
             # A parameter with one value is a fixed setting here: it has no panel (unless nothing varies).
             varied = [p for p in parameters if len(grid[p]) > 1 or config.design == "one-at-a-time"] or parameters
             summary = summarise(rows, varied, metrics)
-            what = "Look-ahead MSE (m^2)" if config.study == "smcd" else "Last epoch's training loss (normalised MSE)"
+            filtering = config.study in FILTER_STUDIES
+            what = "Look-ahead MSE (m^2)" if filtering else "Last epoch's training loss (normalised MSE)"
             tables = {
                 f"{what} per parameter value: mean, std and min over the other parameters' grid points": table(summary)
             }
             trials: list[dict[str, Any]] = []
             comparisons: list[dict[str, Any]] = []
             extra: dict[str, Any] = {}
-            if config.study == "smcd":
+            plots = {"sweep.png": lambda path: plot(rows, summary, varied, metrics, config.study, path)}
+            files = ["summary.csv"]
+            if filtering:
+                model = model_parameters(parameters, config.study)
+                network = NETWORKS[config.study]
                 references = {
-                    tuple(work.run_configs[key][p] for p in MODEL_PARAMETERS): {
-                        m: work.references[key, m]["arms"] for m in REFERENCES
+                    tuple(work.run_configs[key][p] for p in model): {
+                        network + m[1:]: work.references[key, m]["arms"] for m in REFERENCES
                     }
                     for key in work.groups
                 }
                 arms = [work.results[i]["arms"] for i in range(len(points))]
                 pairs = [(t, h) for t in config.burn_in for h in config.horizons]
                 extra["references"], comparisons = smcd_statistics(
-                    rows, arms, references, parameters, pairs, seed=config.seed
+                    rows, arms, references, parameters, pairs, seed=config.seed, study=config.study
                 )
-                trials = _trial_rows(rows, arms, references, parameters)
+                trials = _trial_rows(rows, arms, references, parameters, config.study)
                 tables |= _smcd_tables(config, parameters, comparisons, extra["references"], len(points))
+            if config.study == "masks":
+                runs = [({p: work.run_configs[key][p] for p in model}, work.posteriors[key]) for key in work.groups]
+                tables |= _posterior_tables(config, runs, rows, arms, parameters)
+                extra["posteriors"] = [{**where, **epoch} for where, epochs in runs for epoch in epochs]
+                write_csv(ex.out / "posteriors.csv", extra["posteriors"])
+                plots["posteriors.png"] = lambda path: posteriors.plot(runs, path)
+                files.append("posteriors.csv")
         write_csv(ex.out / "summary.csv", summary)
         ex.write(
-            experiment=f"hyper-parameter sweep, study {config.study} (paper Fig. {FIGURES[config.study]})",
+            experiment=f"hyper-parameter sweep, {_what(config.study)}",
             tables=tables,
             rows=rows,
             trials=trials,
@@ -151,8 +184,8 @@ def run(config: SweepConfig, *, progress: bool = True) -> dict[str, Any]:
                 "summary": summary,
                 **extra,
             },
-            plots={"sweep.png": lambda path: plot(rows, summary, varied, metrics, config.study, path)},
-            files=["summary.csv"],
+            plots=plots,
+            files=files,
         )
         print(f"{len(points)} grid points ({len(points) - work.reused} computed, {work.reused} from the cache)")
     return ex.result
@@ -160,6 +193,10 @@ def run(config: SweepConfig, *, progress: bool = True) -> dict[str, Any]:
 
 #: Mean steps of a simulated drone landing (as ``smcd-rl interpret`` counts them).
 LANDING_STEPS = 60
+#: The observations and particles per arm of ``fit(mask_training="task")``'s task posteriors (its defaults).
+TASK_OBSERVATIONS, TASK_PARTICLES = (
+    inspect.signature(smcd_rl.fit).parameters[name].default for name in ("mask_observations", "mask_particles")
+)
 
 
 def stage_costs(
@@ -197,16 +234,31 @@ def stage_costs(
             samples = int(point["tasks"]) * int(point["episodes"]) * int(point["steps"])
         steps = epochs * -(-samples // int(point["batch_size"]))
         trials += estimate(steps=steps, forwards=3 * epochs * samples, flops=flops)
-        if point["study"] == "smcd":
+        if point["study"] == "masks":  # each later epoch's task posteriors, on the arm's and on dealt samples
+            inference = 2 * int(point["tasks"]) * TASK_OBSERVATIONS * TASK_PARTICLES
+            trials += estimate(
+                steps=2 * (epochs - 1) * TASK_OBSERVATIONS, forwards=(epochs - 1) * inference, flops=flops
+            )
+            for i in indices:  # the held-out arms' posteriors, on their own and on dealt samples
+                forwards = 2 * int(point["arms"]) * max(point["burn_in"]) * int(points[i]["particles"])
+                trials += estimate(steps=2 * max(point["burn_in"]), forwards=forwards, flops=flops)
+        if point["study"] in FILTER_STUDIES:
             runs = [int(points[i]["particles"]) for i in indices] + [1, 3 * config.gd_steps * config.gd_window]
             burn = max(point["burn_in"]) + max(point["horizons"])
             chunks = -(-int(point["arms"]) // int(point["chunk"]))
             for per_arm in runs:
                 trials += estimate(steps=chunks * burn, forwards=int(point["arms"]) * burn * per_arm, flops=flops)
     workers = max(1, (config.cpus or os.cpu_count() or 1) // config.cpus_per_trial)
-    pairs = len(config.burn_in) * len(config.horizons) if config.study == "smcd" else 0
+    pairs = len(config.burn_in) * len(config.horizons) if config.study in FILTER_STUDIES else 0
     ray_start = 30.0  # starting Ray and its workers (each imports torch): about half a minute on 2 CPUs
     return {"trials": ray_start + trials / workers, "statistics": estimate(steps=300 + 30 * pairs * len(points))}
+
+
+def _what(study: str) -> str:
+    """The study as the report's title names it."""
+    if study in FIGURES:
+        return f"study {study} (paper Fig. {FIGURES[study]})"
+    return f"study {study} (networks trained for mask adaptation, fit(mask_training='task'))"
 
 
 def _smcd_tables(
@@ -216,22 +268,41 @@ def _smcd_tables(
     references: list[dict[str, Any]],
     points: int,
 ) -> dict[str, str]:
+    network = NETWORKS[config.study]
+    smcd, none, gd = (f"{network}+{kind}" for kind in "SNG")
     base = {p: getattr(config, p) for p in parameters}
     tables = {
-        f"SMCD (M+S) paired with M+N and M+G over the same arms: verdicts (95% CI of the difference) over the {points} grid points": verdict_counts(
-            comparisons
+        f"SMCD ({smcd}) paired with {none} and {gd} over the same arms: verdicts (95% CI of the difference) over the {points} grid points": verdict_counts(
+            comparisons, smcd
         )
     }
-    at_base = headline(comparisons, base)
+    at_base = headline(comparisons, base, smcd)
     if at_base is not None:
         setting_text = ", ".join(f"{k}={v}" for k, v in base.items())
-        tables[f"SMCD at the base setting ({setting_text}) minus M+N and M+G (negative: SMCD's error is lower)"] = (
+        tables[f"SMCD at the base setting ({setting_text}) minus {none} and {gd} (negative: SMCD's error is lower)"] = (
             at_base
         )
     tables["The references on each trained network: look-ahead MSE (m^2), mean [95% CI] over the arms"] = (
-        reference_table(references, [p for p in parameters if p in MODEL_PARAMETERS])
+        reference_table(references, model_parameters(parameters, config.study))
     )
     return tables
+
+
+def _posterior_tables(
+    config: SweepConfig,
+    runs: list[tuple[dict[str, Any], list[dict[str, float]]]],
+    rows: list[dict[str, Any]],
+    arms: list[dict[str, torch.Tensor]],
+    parameters: list[str],
+) -> dict[str, str]:
+    steps = max(config.burn_in)
+    return {
+        "Training arms' mask posteriors, mean over the arms, at the first and last epoch that infers them (identity "
+        "gap: log evidence per observation of one arm's samples minus that of samples dealt at random; about 0 "
+        "when masks do not carry the arm)": posteriors.training_table(runs),
+        f"Held-out arms' SMCD posteriors after {steps} observations: identity gap and ESS share, mean [95% CI] over "
+        "the arms": posteriors.test_table(rows, arms, parameters),
+    }
 
 
 def _trial_rows(
@@ -239,10 +310,12 @@ def _trial_rows(
     arms: list[dict[str, torch.Tensor]],
     references: dict[tuple[Any, ...], dict[str, dict[str, torch.Tensor]]],
     parameters: list[str],
+    study: str,
 ) -> list[dict[str, Any]]:
-    """One row per held-out arm of every grid point (M+S) and every reference on every trained network."""
-    model = [p for p in parameters if p in MODEL_PARAMETERS]
-    scored = [({p: row[p] for p in parameters}, "M+S", scores) for row, scores in zip(rows, arms, strict=True)]
+    """One row per held-out arm of every grid point (SMCD) and every reference on every trained network."""
+    model = model_parameters(parameters, study)
+    smcd = f"{NETWORKS[study]}+S"
+    scored = [({p: row[p] for p in parameters}, smcd, scores) for row, scores in zip(rows, arms, strict=True)]
     filters = {p: None for p in parameters if p not in model}
     for values, by_method in references.items():
         scored += [({**dict(zip(model, values, strict=True)), **filters}, m, s) for m, s in by_method.items()]

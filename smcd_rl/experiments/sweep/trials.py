@@ -25,6 +25,8 @@ from tensordict import TensorDict
 import smcd_rl
 from smcd_rl.experiments.shared.runtime import seed_everything, torch_threads
 from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED, lookahead_errors, test_arms
+from smcd_rl.experiments.sweep.config import FILTER_STUDIES
+from smcd_rl.experiments.sweep.posteriors import held_out_posteriors, training_posteriors
 from smcd_rl.experiments.two_link.config import TwoLinkConfig
 
 __all__ = ["REFERENCES", "trial", "train", "evaluate", "evaluate_arms", "arm_means", "timed_evaluate", "training_data"]
@@ -46,7 +48,11 @@ def trial(config: Mapping[str, Any]) -> dict[str, float]:
 
 
 def train(config: Mapping[str, Any]) -> dict[str, Any]:
-    """Train the grid point's model: ``{"losses", "seconds", "checkpoint"}`` (a checkpoint only for smcd).
+    """Train the grid point's model: ``{"losses", "seconds", "checkpoint", "posteriors"}``.
+
+    The filter studies keep the checkpoint; the masks study trains with
+    ``fit(mask_training="task")`` and records its training posteriors per epoch
+    (:func:`~smcd_rl.experiments.sweep.posteriors.training_posteriors`), an empty list elsewhere.
 
     Example:
         >>> from smcd_rl.experiments.sweep.config import SweepConfig
@@ -60,6 +66,14 @@ def train(config: Mapping[str, Any]) -> dict[str, Any]:
         data = training_data(config, generator)
         model = _model(config, data)
         started = time.perf_counter()
+        posteriors: list[dict[str, float]] = []
+        masks: dict[str, Any] = {}
+        if config["study"] == "masks":  # masks tied to the arm, and how concentrated each epoch's posteriors are
+            masks = {
+                "mask_training": "task",
+                "task_share": float(config["task_share"]),
+                "mask_callback": lambda epoch, found: posteriors.append(training_posteriors(epoch, found)),
+            }
         losses = smcd_rl.fit(
             model,
             data.to(config["device"]),
@@ -68,10 +82,11 @@ def train(config: Mapping[str, Any]) -> dict[str, Any]:
             lr=float(config["lr"]),
             seed=int(config["seed"]),
             progress=False,
+            **masks,
         )
         seconds = time.perf_counter() - started
-    checkpoint = model.checkpoint() if config["study"] == "smcd" else None
-    return {"losses": losses, "seconds": seconds, "checkpoint": checkpoint}
+    checkpoint = model.checkpoint() if config["study"] in FILTER_STUDIES else None
+    return {"losses": losses, "seconds": seconds, "checkpoint": checkpoint, "posteriors": posteriors}
 
 
 def evaluate(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict[str, float]:
@@ -86,7 +101,7 @@ def evaluate(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict[str,
         >>> evaluate(point, {"losses": [0.5, 0.25]})
         {'train_loss': 0.5}
     """
-    if config["study"] != "smcd":
+    if config["study"] not in FILTER_STUDIES:
         epochs = int(config["epochs"])
         if len(trained["losses"]) < epochs:
             raise ValueError(f"the trained model ran {len(trained['losses'])} epochs; this grid point needs {epochs}")
@@ -100,11 +115,13 @@ def arm_means(arms: Mapping[str, torch.Tensor]) -> dict[str, float]:
 
 
 def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict[str, torch.Tensor]:
-    """smcd study: each held-out arm's look-ahead MSE, ``mse_T{t}_H{h} -> [arms]``, of one method.
+    """Filter studies: each held-out arm's look-ahead MSE, ``mse_T{t}_H{h} -> [arms]``, of one method.
 
     The method is SMCD with the point's filter settings, or ``config["method"]`` (one of
     :data:`REFERENCES`) on the same trained model and arms. The arms and their evaluation are
-    two-link's own, so the numbers are comparable to Fig. 2's.
+    two-link's own, so the numbers are comparable to Fig. 2's. In the masks study SMCD also
+    reports how its posterior on each arm concentrates
+    (:func:`~smcd_rl.experiments.sweep.posteriors.held_out_posteriors`).
     """
     device = torch.device(config["device"])
     with torch_threads(int(config["threads"])):
@@ -122,9 +139,16 @@ def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict
         q, ee, ee_true, _ = test_arms(lookahead, device, count=lookahead.trials, seed=lookahead.seed + TEST_ARMS_SEED)
         method = model.with_adaptation(_adaptation(config, device))
         errors = lookahead_errors(method, q, ee, ee_true, lookahead, desc="smcd", progress=False)
-    return {
-        f"mse_T{t}_H{h}": errors[:, i, :h].mean(-1) for i, t in enumerate(lookahead.burn_in) for h in lookahead.horizons
-    }
+        scores = {
+            f"mse_T{t}_H{h}": errors[:, i, :h].mean(-1)
+            for i, t in enumerate(lookahead.burn_in)
+            for h in lookahead.horizons
+        }
+        if config["study"] == "masks" and config.get("method", "M+S") == "M+S":
+            steps = max(lookahead.burn_in)
+            shuffle = torch.Generator().manual_seed(int(config["seed"]) + 13)
+            scores |= held_out_posteriors(method, q[:, :steps], ee[:, :steps], chunk=lookahead.chunk, generator=shuffle)
+    return scores
 
 
 def timed_evaluate(config: Mapping[str, Any], trained: Mapping[str, Any]) -> tuple[dict[str, torch.Tensor], float]:
@@ -212,5 +236,6 @@ def _model(config: Mapping[str, Any], data: TensorDict | None) -> smcd_rl.Adapti
             device=device,
         )
         return smcd_rl.AdaptiveModel(net, in_keys=["state"], out_key="action")
-    net = smcd_rl.MaskedMLP(2, 2, hidden=hidden, dropout=float(config["dropout"]), device=device)
+    groups = (int(config["mask_groups"]) or None) if config["study"] == "masks" else None
+    net = smcd_rl.MaskedMLP(2, 2, hidden=hidden, dropout=float(config["dropout"]), mask_groups=groups, device=device)
     return smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")

@@ -2,8 +2,8 @@
 
 Work is shared without changing any result: grid points that differ only in ``epochs`` are one
 training run (:func:`smcd_rl.fit` is deterministic per (seed, epoch) with no schedule, so a shorter
-run's losses are a prefix of a longer run's), and the smcd study trains each model once and
-evaluates every filter setting, and the reference methods, as separate Ray tasks on it.
+run's losses are a prefix of a longer run's), and the filter studies (smcd, masks) train each model
+once and evaluate every filter setting, and the reference methods, as separate Ray tasks on it.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from tqdm.auto import tqdm
 
 from smcd_rl.digests import content_digest
 from smcd_rl.experiments.shared.result_store import ResultStore
+from smcd_rl.experiments.sweep.config import FILTER_STUDIES
 from smcd_rl.experiments.sweep.grid import EVALUATION_KEYS
 from smcd_rl.experiments.sweep.trials import REFERENCES, arm_means, evaluate, timed_evaluate, train
 
@@ -71,14 +72,16 @@ class SweepWork:
 
     Attributes:
         results: grid point index -> ``{"metrics": {name: mean}}``, with ``"arms"`` (per-arm
-            scores) in the smcd study.
+            scores) in the filter studies.
         references: ``(training run, method)`` -> ``{"metrics", "arms"}`` of :data:`REFERENCES`.
+        posteriors: training run -> its training posteriors per epoch (masks study).
         reused: grid points finished before this run.
     """
 
     def __init__(self, config: SweepConfig, points: list[dict[str, Any]], store: ResultStore) -> None:
         self.config, self.points, self.store = config, points, store
-        self.smcd = config.study == "smcd"
+        self.filtering = config.study in FILTER_STUDIES
+        self.masks = config.study == "masks"
         self.groups: dict[str, list[int]] = {}  # training run's digest -> its grid points
         self.run_configs: dict[str, dict[str, Any]] = {}
         for index, point in enumerate(points):
@@ -91,12 +94,16 @@ class SweepWork:
             if (done := store.get("point", point)) is not None:
                 self.results[index] = done
         self.reused = len(self.results)
+        self.posteriors: dict[str, list[dict[str, float]]] = {}
+        for key in self.groups if self.masks else ():
+            if (done := store.get("train", self.run_configs[key])) is not None:
+                self.posteriors[key] = done["posteriors"]
         self.references: dict[tuple[str, str], dict[str, Any]] = {}
-        for key in self.groups if self.smcd else ():
+        for key in self.groups if self.filtering else ():
             for method in REFERENCES:
                 if (done := store.get("reference", self.reference_config(key, method))) is not None:
                     self.references[key, method] = done
-        if not self.smcd:  # new epoch counts of a stored training run are read off its losses, no Ray needed
+        if not self.filtering:  # new epoch counts of a stored training run are read off its losses, no Ray needed
             for key in self.groups:
                 done = store.get("train", self.run_configs[key])
                 if done is not None and len(done["losses"]) >= self._epochs(key):
@@ -106,8 +113,8 @@ class SweepWork:
 
     @property
     def finished(self) -> bool:
-        """Whether every grid point (and, in the smcd study, every reference) has its result."""
-        return len(self.results) == len(self.points) and not any(self._missing_references(k) for k in self.groups)
+        """Whether every grid point (and, in the filter studies, every reference; masks: posteriors) has its result."""
+        return not any(self._missing_points(k) or self._missing_references(k) for k in self.groups)
 
     def reference_config(self, key: str, method: str) -> dict[str, Any]:
         """What a reference method's result on training run ``key`` depends on."""
@@ -123,19 +130,21 @@ class SweepWork:
         remote_train = ray.remote(train).options(**resources)
         remote_evaluate = ray.remote(timed_evaluate).options(**resources)
         pending: dict[Any, tuple[str, Any]] = {}  # object ref -> (what it computes, which)
-        for key, indices in self.groups.items():
-            missing = [i for i in indices if i not in self.results]
+        for key in self.groups:
+            missing = self._missing_points(key)
             references = self._missing_references(key)
             if not missing and not references:
                 continue
             epochs = self._epochs(key)
             done = self.store.get("train", self.run_configs[key])
-            if self.smcd and done is not None and len(done["losses"]) >= epochs:  # evaluate on the stored model
+            if self.filtering and done is not None and len(done["losses"]) >= epochs:  # evaluate on the stored model
                 source = ray.put(done)
             else:
                 source = remote_train.remote({**self.run_configs[key], "epochs": epochs})
                 pending[source] = ("train", key)
-            if self.smcd:  # each filter setting and reference is its own task on the (possibly still training) model
+            if (
+                self.filtering
+            ):  # each filter setting and reference is its own task on the (possibly still training) model
                 for index in missing:
                     pending[remote_evaluate.remote(self.points[index], source)] = ("point", index)
                 for method in references:
@@ -162,8 +171,14 @@ class SweepWork:
                             self.store.put("reference", self.reference_config(*what), record)
                     bar.update()
 
+    def _missing_points(self, key: str) -> list[int]:
+        """The training run's grid points without a result; all of them while its posteriors are missing."""
+        if self.masks and key not in self.posteriors:
+            return list(self.groups[key])
+        return [i for i in self.groups[key] if i not in self.results]
+
     def _missing_references(self, key: str) -> list[str]:
-        return [m for m in REFERENCES if (key, m) not in self.references] if self.smcd else []
+        return [m for m in REFERENCES if (key, m) not in self.references] if self.filtering else []
 
     def _epochs(self, key: str) -> int:
         """Epochs of a training run: the most any of its grid points needs."""
@@ -171,8 +186,10 @@ class SweepWork:
 
     def _store_run(self, key: str, result: dict[str, Any]) -> None:
         self.train_seconds.append(result["seconds"])
-        self.store.put("train", self.run_configs[key], result)  # with the smcd study's model, for a rerun
-        if not self.smcd:
+        self.store.put("train", self.run_configs[key], result)  # with the filter study's model, for a rerun
+        if self.masks:
+            self.posteriors[key] = result["posteriors"]
+        if not self.filtering:
             self._read_losses(key, result)
 
     def _read_losses(self, key: str, run: Mapping[str, Any]) -> None:
