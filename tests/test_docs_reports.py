@@ -35,6 +35,7 @@ REPORTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "sweep/training/report.md": ("sweep", ()),
     "sweep/smcd/report.md": ("sweep", ("study",)),
     "sweep/drone/report.md": ("sweep", ("study",)),
+    "sweep/masks/report.md": ("sweep", ("study",)),
     "scoreboard/report.md": ("scoreboard", ("runs",)),
 }
 

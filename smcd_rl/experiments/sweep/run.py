@@ -239,9 +239,10 @@ def stage_costs(
             trials += estimate(
                 steps=2 * (epochs - 1) * TASK_OBSERVATIONS, forwards=(epochs - 1) * inference, flops=flops
             )
-            for i in indices:  # the held-out arms' posteriors, on their own and on dealt samples
-                forwards = 2 * int(point["arms"]) * max(point["burn_in"]) * int(points[i]["particles"])
-                trials += estimate(steps=2 * max(point["burn_in"]), forwards=forwards, flops=flops)
+            for i in indices:  # the held-out arms' posteriors, then every arm's future under every arm's mask
+                forwards = int(point["arms"]) * max(point["burn_in"]) * int(points[i]["particles"])
+                forwards += int(point["arms"]) ** 2 * max(point["horizons"])
+                trials += estimate(steps=max(point["burn_in"]) + int(point["arms"]), forwards=forwards, flops=flops)
         if point["study"] in FILTER_STUDIES:
             runs = [int(points[i]["particles"]) for i in indices] + [1, 3 * config.gd_steps * config.gd_window]
             burn = max(point["burn_in"]) + max(point["horizons"])
@@ -300,8 +301,11 @@ def _posterior_tables(
         "Training arms' mask posteriors, mean over the arms, at the first and last epoch that infers them (identity "
         "gap: log evidence per observation of one arm's samples minus that of samples dealt at random; about 0 "
         "when masks do not carry the arm)": posteriors.training_table(runs),
-        f"Held-out arms' SMCD posteriors after {steps} observations: identity gap and ESS share, mean [95% CI] over "
-        "the arms": posteriors.test_table(rows, arms, parameters),
+        f"Held-out arms' SMCD posteriors after {steps} observations: how much worse the other arms' MMSE masks "
+        f"predict an arm's next {max(config.horizons)} positions than its own (mask specificity; about 0 when every "
+        "arm gets the same sub-network) and the ESS share, mean [95% CI] over the arms": posteriors.held_out_table(
+            rows, arms, parameters
+        ),
     }
 
 

@@ -145,9 +145,7 @@ def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict
             for h in lookahead.horizons
         }
         if config["study"] == "masks" and config.get("method", "M+S") == "M+S":
-            steps = max(lookahead.burn_in)
-            shuffle = torch.Generator().manual_seed(int(config["seed"]) + 13)
-            scores |= held_out_posteriors(method, q[:, :steps], ee[:, :steps], chunk=lookahead.chunk, generator=shuffle)
+            scores |= held_out_posteriors(method, q, ee, ee_true, steps=max(lookahead.burn_in), chunk=lookahead.chunk)
     return scores
 
 
