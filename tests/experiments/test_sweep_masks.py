@@ -68,13 +68,14 @@ def test_training_posteriors_are_means_over_the_arms() -> None:
     found = {
         "log_likelihood": torch.tensor([1.0, 3.0]),
         "shuffled_log_likelihood": torch.tensor([0.0, 2.0]),
+        "mean_masks": torch.tensor([[0.8, 0.8], [1.0, 1.0]]),  # one still spread as the prior, one settled
         "ess_share": torch.tensor([0.5, 0.25]),
         "distinct_share": torch.tensor([0.5, 0.5]),
     }
     # each arm's own log likelihood against the dealt mean 1.0: 1 is not ahead, 3 is
-    assert training_posteriors(4, found) == {
-        "epoch": 4, "identity_gap": 1.0, "arms_ahead": 0.5, "ess_share": 0.375, "distinct_share": 0.5
-    }  # fmt: skip
+    assert training_posteriors(4, found, keep_prob=0.8) == pytest.approx(
+        {"epoch": 4, "identity_gap": 1.0, "arms_ahead": 0.5, "spread": 0.5, "ess_share": 0.375, "distinct_share": 0.5}
+    )
 
 
 def _two_mask_arms(arms: int, *, both: bool) -> tuple[smcd_rl.AdaptiveModel, torch.Tensor, torch.Tensor, float]:
@@ -104,8 +105,10 @@ def test_mask_specificity_is_positive_only_when_arms_need_different_masks(both) 
     method = model.with_adaptation(smcd_rl.SMCD(num_particles=64, flip_prob=0.01, noise_std=0.05,
                                                 generator=torch.Generator().manual_seed(2)))  # fmt: skip
     found = held_out_posteriors(method, q, ee, ee, steps=10, chunk=8)
-    assert found["test_specificity"].shape == found["test_ess_share"].shape == (20,)
+    assert found["test_specificity"].shape == found["test_spread"].shape == found["test_ess_share"].shape == (20,)
     assert bool(((found["test_ess_share"] > 0) & (found["test_ess_share"] <= 1)).all())
+    # After 10 observations of a mask's outputs the particles have settled: far less spread than the prior.
+    assert float(found["test_spread"].max()) < 0.5
     specificity = float(found["test_specificity"].mean())
     if both:  # ten of the other 19 arms' masks are the wrong one: about 10/19 of the wrong mask's error
         assert specificity > 0.3 * wrong

@@ -10,15 +10,18 @@ evidence beats the dealt mixes' mean (about half by chance).
 On held-out arms, after a few observations, the *specificity* of each arm's MMSE mask: how much
 worse the other arms' masks predict this arm's next positions than its own mask does.
 
-Both places also give the effective sample size (ESS) of the last update, as a share of the
-particles: low when the weights sit on a few masks.
+Both places give how spread the posterior still is (:func:`mask_spread`: 1 for the prior, 0
+when the particles of weight agree on one mask) and the effective sample size (ESS) of the last
+update, as a share of the particles: low when the weights sit on a few masks, and high both when
+the likelihood cannot tell the particles apart and when they have settled on one mask.
 
 Example:
     >>> import torch
     >>> found = {"log_likelihood": torch.tensor([1.0, 2.0]), "shuffled_log_likelihood": torch.tensor([0.5, 0.5]),
+    ...          "mean_masks": torch.tensor([[0.5, 0.5], [1.0, 0.0]]),
     ...          "ess_share": torch.tensor([0.25, 0.5]), "distinct_share": torch.tensor([0.25, 0.25])}
-    >>> training_posteriors(3, found)
-    {'epoch': 3, 'identity_gap': 1.0, 'arms_ahead': 1.0, 'ess_share': 0.375, 'distinct_share': 0.25}
+    >>> training_posteriors(3, found, keep_prob=0.5)
+    {'epoch': 3, 'identity_gap': 1.0, 'arms_ahead': 1.0, 'spread': 0.5, 'ess_share': 0.375, 'distinct_share': 0.25}
 """
 
 from __future__ import annotations
@@ -43,10 +46,24 @@ __all__ = [
 ]
 
 #: The per-arm metrics :func:`held_out_posteriors` adds to a masks-study grid point.
-POSTERIOR_METRICS = ("test_specificity", "test_ess_share")
+POSTERIOR_METRICS = ("test_specificity", "test_spread", "test_ess_share")
 
 
-def training_posteriors(epoch: int, found: Mapping[str, torch.Tensor]) -> dict[str, float]:
+def mask_spread(mean_mask: torch.Tensor, keep_prob: float) -> torch.Tensor:
+    """How spread a mask posterior still is: its bits' mean variance ``m (1 - m)`` over the prior's ``k (1 - k)``.
+
+    1 for the prior (independent Bernoulli(``keep_prob``) bits), 0 when every particle of weight
+    carries the same mask; one value per row of ``mean_mask [..., mask_dim]`` (the MMSE mask).
+
+    Example:
+        >>> mask_spread(torch.tensor([[0.5, 0.5], [1.0, 0.0]]), 0.5)
+        tensor([1., 0.], dtype=torch.float64)
+    """
+    m = mean_mask.double()
+    return (m * (1 - m)).mean(-1) / (keep_prob * (1 - keep_prob))
+
+
+def training_posteriors(epoch: int, found: Mapping[str, torch.Tensor], keep_prob: float) -> dict[str, float]:
     """One epoch's training posteriors (``fit``'s ``mask_callback``): means over the training arms, and
     the share of arms whose own log likelihood beats the mean of the dealt ones (``arms_ahead``)."""
     own, dealt = found["log_likelihood"].double(), found["shuffled_log_likelihood"].double()
@@ -54,6 +71,7 @@ def training_posteriors(epoch: int, found: Mapping[str, torch.Tensor]) -> dict[s
         "epoch": epoch,
         "identity_gap": float((own - dealt).mean()),
         "arms_ahead": float((own > dealt.mean()).double().mean()),
+        "spread": float(mask_spread(found["mean_masks"], keep_prob).mean()),
         "ess_share": float(found["ess_share"].double().mean()),
         "distinct_share": float(found["distinct_share"].double().mean()),
     }
@@ -63,7 +81,7 @@ def training_posteriors(epoch: int, found: Mapping[str, torch.Tensor]) -> dict[s
 def held_out_posteriors(
     model: Any, q: torch.Tensor, ee: torch.Tensor, ee_true: torch.Tensor, *, steps: int, chunk: int
 ) -> dict[str, torch.Tensor]:
-    """Per held-out arm, after its filter observed ``steps`` samples: the mask's specificity and the ESS share.
+    """Per held-out arm, after its filter observed ``steps`` samples: the mask's specificity, spread and ESS share.
 
     ``model`` is an :class:`smcd_rl.AdaptiveModel` with an SMCD strategy; ``q, ee, ee_true`` are
     ``[arms, steps + H, 2]`` (measured and true positions). Each arm's filter observes its first
@@ -73,7 +91,7 @@ def held_out_posteriors(
     when it found one that belongs to this arm. Paired per arm, so an arm's own difficulty cancels.
     """
     arms = q.shape[0]
-    masks, ess = [], []
+    masks, ess = [], []  # the MMSE masks and ESS, chunk by chunk
     for begin in range(0, arms, chunk):
         rows = slice(begin, begin + chunk)
         batch = q[rows].shape[0]
@@ -92,7 +110,11 @@ def held_out_posteriors(
         errors[k] = (predicted - future_ee[k]).square().sum(-1).mean(-1).double().cpu()
     own = errors.diagonal()
     others = (errors.sum(1) - own) / max(arms - 1, 1)
-    return {"test_specificity": others - own, "test_ess_share": torch.cat(ess) / model.adaptation.num_particles}
+    return {
+        "test_specificity": others - own,
+        "test_spread": mask_spread(mask, model.net.keep_prob).cpu(),
+        "test_ess_share": torch.cat(ess) / model.adaptation.num_particles,
+    }
 
 
 def training_table(runs: Sequence[tuple[Mapping[str, Any], Sequence[Mapping[str, float]]]]) -> str:
@@ -105,13 +127,11 @@ def training_table(runs: Sequence[tuple[Mapping[str, Any], Sequence[Mapping[str,
             [
                 *parameters.values(),
                 f"{first['identity_gap']:.3g} -> {last['identity_gap']:.3g}",
-                f"{first['arms_ahead']:.3g} -> {last['arms_ahead']:.3g}",
-                f"{first['ess_share']:.3g} -> {last['ess_share']:.3g}",
-                f"{first['distinct_share']:.3g} -> {last['distinct_share']:.3g}",
+                *(f"{first[k]:.3g} -> {last[k]:.3g}" for k in ("arms_ahead", "spread", "ess_share")),
             ]
         )
     span = f"epoch {runs[0][1][0]['epoch']} -> {runs[0][1][-1]['epoch']}"
-    header = [*names, f"identity gap ({span})", "arms ahead", "ESS share", "distinct-mask share"]
+    header = [*names, f"identity gap ({span})", "arms ahead", "spread", "ESS share"]
     return format_table(body, header)
 
 
@@ -124,27 +144,42 @@ def held_out_table(
         [*(row[n] for n in names), *(str(mean_ci(scores[m].double(), indices=indices)) for m in POSTERIOR_METRICS)]
         for row, scores in zip(rows, arms, strict=True)
     ]
-    return format_table(body, [*names, "mask specificity (m^2)", "ESS share"])
+    return format_table(body, [*names, "mask specificity (m^2)", "spread", "ESS share"])
 
 
 def plot(runs: Sequence[tuple[Mapping[str, Any], Sequence[Mapping[str, float]]]], path: Path) -> None:
-    """The training posteriors over epochs, one line per training run: identity gap, arms ahead, ESS share."""
+    """The training posteriors over epochs, one line per training run: identity gap, arms ahead, spread.
+
+    The runs' first parameter sets the colour, the second the line style, the third the width.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
-    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+    names = list(runs[0][0])[:3]
+    values = [list(dict.fromkeys(parameters[n] for parameters, _ in runs)) for n in names]
+    cmap = plt.get_cmap("viridis")
+    styles = {
+        "color": lambda i, n: cmap(0.85 * i / max(n - 1, 1)),
+        "linestyle": lambda i, n: ("-", "--", ":", "-.")[i % 4],
+        "linewidth": lambda i, n: 0.9 + 1.2 * i / max(n - 1, 1),
+    }
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.4))
     panels = {
         "identity_gap": "identity gap per observation",
         "arms_ahead": "share of arms ahead of a dealt mix",
-        "ess_share": "ESS share of the last update",
+        "spread": "posterior spread (1: the prior)",
     }
     for parameters, epochs in runs:
-        label = ", ".join(f"{k}={v}" for k, v in parameters.items())
+        look = {
+            key: style(vs.index(parameters[n]), len(vs))
+            for (key, style), n, vs in zip(styles.items(), names, values, strict=False)
+        }
         xs = [e["epoch"] for e in epochs]
         for ax, name in zip(axes, panels, strict=True):
-            ax.plot(xs, [e[name] for e in epochs], marker=".", label=label)
+            ax.plot(xs, [e[name] for e in epochs], **look)
     axes[0].axhline(0.0, color="0.5", lw=0.8)
     axes[1].axhline(0.5, color="0.5", lw=0.8)
     for ax, text in zip(axes, panels.values(), strict=True):
@@ -152,8 +187,13 @@ def plot(runs: Sequence[tuple[Mapping[str, Any], Sequence[Mapping[str, float]]]]
         ax.set_xlabel("epoch")
         ax.xaxis.get_major_locator().set_params(integer=True)
         ax.grid(alpha=0.3)
-    axes[2].legend(fontsize=6)
+    handles = [
+        Line2D([], [], **{"color": "0.3", key: style(i, len(vs))}, label=f"{n}={v}")
+        for (key, style), n, vs in zip(styles.items(), names, values, strict=False)
+        for i, v in enumerate(vs)
+    ]
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 9), fontsize=8, frameon=False)
     fig.suptitle("Training arms' mask posteriors over epochs (masks study)")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(fig, path, dpi=120)
     plt.close(fig)

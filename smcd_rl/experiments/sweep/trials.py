@@ -72,7 +72,9 @@ def train(config: Mapping[str, Any]) -> dict[str, Any]:
             masks = {
                 "mask_training": "task",
                 "task_share": float(config["task_share"]),
-                "mask_callback": lambda epoch, found: posteriors.append(training_posteriors(epoch, found)),
+                "mask_callback": lambda epoch, found: posteriors.append(
+                    training_posteriors(epoch, found, model.net.keep_prob)
+                ),
             }
         losses = smcd_rl.fit(
             model,
