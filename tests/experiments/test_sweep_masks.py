@@ -114,3 +114,23 @@ def test_mask_specificity_is_positive_only_when_arms_need_different_masks(both) 
         assert specificity > 0.3 * wrong
     else:
         assert abs(specificity) < 0.05 * wrong
+
+
+def test_the_masks_study_never_scores_on_two_links_test_arms(monkeypatch) -> None:
+    """Its result may choose the experiments' T setting, so it is measured on arms of its own."""
+    from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED
+    from smcd_rl.experiments.sweep import trials
+
+    seeds = {}
+
+    def record(config, device, *, count, seed):
+        seeds[study] = seed
+        raise StopIteration
+
+    monkeypatch.setattr(trials, "test_arms", record)
+    for study in ("smcd", "masks"):
+        point = sweep.trial_configs(sweep.SweepConfig(study=study, hidden=16, mask_groups=4))[0]
+        model = trials._model(point, None)
+        with pytest.raises(StopIteration):
+            trials.evaluate_arms(point, {"checkpoint": model.checkpoint()})
+    assert seeds["smcd"] == TEST_ARMS_SEED and seeds["masks"] != TEST_ARMS_SEED

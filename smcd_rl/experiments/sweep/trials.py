@@ -31,6 +31,10 @@ from smcd_rl.experiments.two_link.config import TwoLinkConfig
 
 __all__ = ["REFERENCES", "trial", "train", "evaluate", "evaluate_arms", "arm_means", "timed_evaluate", "training_data"]
 
+#: Offset of the masks study's held-out arms from the seed: arms of their own, not two-link's test
+#: arms, so that the study can choose the settings of the experiments' T network.
+VALIDATION_ARMS_SEED = 2_000_003
+
 #: The smcd study's reference methods, run once per trained model on the same held-out arms:
 #: the network without adaptation and with online gradient descent.
 REFERENCES = ("M+N", "M+G")
@@ -120,8 +124,9 @@ def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict
     """Filter studies: each held-out arm's look-ahead MSE, ``mse_T{t}_H{h} -> [arms]``, of one method.
 
     The method is SMCD with the point's filter settings, or ``config["method"]`` (one of
-    :data:`REFERENCES`) on the same trained model and arms. The arms and their evaluation are
-    two-link's own, so the numbers are comparable to Fig. 2's. In the masks study SMCD also
+    :data:`REFERENCES`) on the same trained model and arms. The smcd study's arms and their
+    evaluation are two-link's own, so its numbers are comparable to Fig. 2's; the masks study
+    evaluates the same way on other arms (:data:`VALIDATION_ARMS_SEED`). In the masks study SMCD also
     reports how its posterior on each arm concentrates
     (:func:`~smcd_rl.experiments.sweep.posteriors.held_out_posteriors`).
     """
@@ -138,7 +143,8 @@ def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict
             measurement_noise=float(config["measurement_noise"]),
             device=str(device),
         )
-        q, ee, ee_true, _ = test_arms(lookahead, device, count=lookahead.trials, seed=lookahead.seed + TEST_ARMS_SEED)
+        offset = TEST_ARMS_SEED if config["study"] == "smcd" else VALIDATION_ARMS_SEED
+        q, ee, ee_true, _ = test_arms(lookahead, device, count=lookahead.trials, seed=lookahead.seed + offset)
         method = model.with_adaptation(_adaptation(config, device))
         errors = lookahead_errors(method, q, ee, ee_true, lookahead, desc="smcd", progress=False)
         scores = {
