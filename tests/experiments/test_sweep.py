@@ -193,6 +193,8 @@ def test_summary_is_mean_std_min_over_the_other_parameters() -> None:
         (["--study", "masks", "--mask-groups", "5", "--grid", "mask_groups=5"], "mask_groups 5 does not divide"),
         (["--study", "masks", "--grid", "task_share=0,1.5"], "--grid task_share=1.5: --task-share must be <= 1.0"),
         (["--study", "masks", "--grid", "hidden=8"], "unknown parameter 'hidden' for study 'masks'"),
+        (["--study", "masks", "--grid", "tasks=1,25"], "tasks 1: the masks study ties masks to training arms"),
+        (["--study", "masks", "--dropout", "0"], "the masks study needs --dropout > 0"),
     ],
 )
 def test_bad_options_are_refused_before_any_work(tmp_path, capsys, argv, message) -> None:

@@ -147,14 +147,25 @@ class SweepConfig(ExperimentConfig):
                 "be scheduled (use --gpus-per-trial 0 on a machine without a GPU)"
             )
         if self.study == "masks":
-            groups = resolve_grid(self).get("mask_groups", (self.mask_groups,))
-            if uneven := [g for g in groups if g and self.hidden % g]:
-                raise ValueError(
-                    f"mask_groups {uneven[0]} does not divide --hidden {self.hidden}: each mask bit switches "
-                    "hidden/mask_groups units; use divisors of --hidden, or 0 for one bit per unit"
-                )
+            self._check_masks(resolve_grid(self))
         if self.study == "drone" and self.dataset and not Path(self.dataset).is_file():
             raise FileNotFoundError(f"--dataset {self.dataset}: no such file; give a .npz dataset or leave it empty")
+
+    def _check_masks(self, grid: dict[str, tuple[Any, ...]]) -> None:
+        """The masks study's networks can be trained: groups divide the layers, two arms or more, dropout on."""
+        if uneven := [g for g in grid["mask_groups"] if g and self.hidden % g]:
+            raise ValueError(
+                f"mask_groups {uneven[0]} does not divide --hidden {self.hidden}: each mask bit switches "
+                "hidden/mask_groups units; use divisors of --hidden, or 0 for one bit per unit"
+            )
+        if single := [t for t in grid["tasks"] if t < 2]:
+            raise ValueError(
+                f"tasks {single[0]}: the masks study ties masks to training arms and needs at least 2 of them"
+            )
+        if self.dropout == 0:
+            raise ValueError(
+                "--dropout 0 leaves a single mask to train and filter; the masks study needs --dropout > 0"
+            )
 
 
 #: What ``--full`` changes besides the grid (options given explicitly still win).
