@@ -195,6 +195,9 @@ def test_summary_is_mean_std_min_over_the_other_parameters() -> None:
         (["--study", "masks", "--grid", "hidden=8"], "unknown parameter 'hidden' for study 'masks'"),
         (["--study", "masks", "--grid", "tasks=1,25"], "tasks 1: the masks study ties masks to training arms"),
         (["--study", "masks", "--dropout", "0"], "the masks study needs --dropout > 0"),
+        (["--study", "masks", "--epochs", "1"], "the masks study needs --epochs 2 or more"),
+        (["--study", "masks", "--design", "one-at-a-time", "--mask-groups", "24"], "mask_groups 24 does not divide"),
+        (["--study", "masks", "--design", "one-at-a-time", "--tasks", "1"], "tasks 1: the masks study ties masks"),
     ],
 )
 def test_bad_options_are_refused_before_any_work(tmp_path, capsys, argv, message) -> None:

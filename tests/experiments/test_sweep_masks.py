@@ -117,7 +117,8 @@ def test_mask_specificity_is_positive_only_when_arms_need_different_masks(both) 
 
 
 def test_the_masks_study_never_scores_on_two_links_test_arms(monkeypatch) -> None:
-    """Its result may choose the experiments' T setting, so it is measured on arms of its own."""
+    """Its result may choose the experiments' T setting, so it is measured on the tuning arms' draws."""
+    from smcd_rl.experiments.shared.two_link_family import TUNING_ARMS_SEED
     from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED
     from smcd_rl.experiments.sweep import trials
 
@@ -133,4 +134,4 @@ def test_the_masks_study_never_scores_on_two_links_test_arms(monkeypatch) -> Non
         model = trials._model(point, None)
         with pytest.raises(StopIteration):
             trials.evaluate_arms(point, {"checkpoint": model.checkpoint()})
-    assert seeds["smcd"] == TEST_ARMS_SEED and seeds["masks"] != TEST_ARMS_SEED
+    assert seeds["smcd"] == TEST_ARMS_SEED and seeds["masks"] == TUNING_ARMS_SEED != TEST_ARMS_SEED

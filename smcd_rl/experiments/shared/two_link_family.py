@@ -27,6 +27,7 @@ from smcd_rl.experiments.shared.two_link_family_config import TwoLinkFamilyConfi
 
 __all__ = [
     "TwoLinkFamilyConfig",
+    "TUNING_ARMS_SEED",
     "babbling_data",
     "tuning_episodes",
     "network",
@@ -38,6 +39,9 @@ __all__ = [
     "reptile_settings",
     "oracle",
 ]
+
+#: Offset of the tuning arms' seed from ``--seed`` (a stream of their own, disjoint from training and test).
+TUNING_ARMS_SEED = 2_000_003
 
 
 def babbling_data(config: TwoLinkFamilyConfig, ex: Experiment) -> TensorDictBase:
@@ -52,10 +56,10 @@ def tuning_episodes(config: TwoLinkFamilyConfig, device: torch.device | str, *, 
     """The fair protocol's held-out episodes: babbling of ``tuning_episodes`` fresh training-distribution arms.
 
     One episode of ``steps`` steps per arm, batch ``[E, steps]``, drawn exactly as the training
-    data is but from a generator of its own (seed ``config.seed + 2_000_003``), so neither the
-    training arms nor the test arms are among them.
+    data is but from a generator of its own (seed ``config.seed + TUNING_ARMS_SEED``), so neither
+    the training arms nor the test arms are among them.
     """
-    generator = torch.Generator().manual_seed(config.seed + 2_000_003)
+    generator = torch.Generator().manual_seed(config.seed + TUNING_ARMS_SEED)
     data = motor_babbling(
         config.tuning_episodes, 1, steps, measurement_noise=config.measurement_noise, generator=generator
     )

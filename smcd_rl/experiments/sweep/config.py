@@ -152,19 +152,28 @@ class SweepConfig(ExperimentConfig):
             raise FileNotFoundError(f"--dataset {self.dataset}: no such file; give a .npz dataset or leave it empty")
 
     def _check_masks(self, grid: dict[str, tuple[Any, ...]]) -> None:
-        """The masks study's networks can be trained: groups divide the layers, two arms or more, dropout on."""
-        if uneven := [g for g in grid["mask_groups"] if g and self.hidden % g]:
+        """The masks study's networks can be trained and report posteriors: groups divide the layers, two
+        arms or more, dropout on, two epochs or more. One-at-a-time also runs the options' own values."""
+        base = self.design == "one-at-a-time"
+        groups = (*grid["mask_groups"], *([self.mask_groups] if base else []))
+        tasks = (*grid["tasks"], *([self.tasks] if base else []))
+        if uneven := [g for g in groups if g and self.hidden % g]:
             raise ValueError(
                 f"mask_groups {uneven[0]} does not divide --hidden {self.hidden}: each mask bit switches "
                 "hidden/mask_groups units; use divisors of --hidden, or 0 for one bit per unit"
             )
-        if single := [t for t in grid["tasks"] if t < 2]:
+        if single := [t for t in tasks if t < 2]:
             raise ValueError(
                 f"tasks {single[0]}: the masks study ties masks to training arms and needs at least 2 of them"
             )
         if self.dropout == 0:
             raise ValueError(
                 "--dropout 0 leaves a single mask to train and filter; the masks study needs --dropout > 0"
+            )
+        if self.epochs < 2:
+            raise ValueError(
+                "--epochs 1: task masks are inferred from the second epoch on, so the masks study needs --epochs 2 "
+                "or more"
             )
 
 

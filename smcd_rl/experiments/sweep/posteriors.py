@@ -179,7 +179,7 @@ def plot(runs: Sequence[tuple[Mapping[str, Any], Sequence[Mapping[str, float]]]]
         }
         xs = [e["epoch"] for e in epochs]
         for ax, name in zip(axes, panels, strict=True):
-            ax.plot(xs, [e[name] for e in epochs], **look)
+            ax.plot(xs, [e[name] for e in epochs], marker="o" if len(xs) == 1 else None, **look)
     axes[0].axhline(0.0, color="0.5", lw=0.8)
     axes[1].axhline(0.5, color="0.5", lw=0.8)
     for ax, text in zip(axes, panels.values(), strict=True):

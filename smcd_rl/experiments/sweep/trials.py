@@ -24,16 +24,13 @@ from tensordict import TensorDict
 
 import smcd_rl
 from smcd_rl.experiments.shared.runtime import seed_everything, torch_threads
+from smcd_rl.experiments.shared.two_link_family import TUNING_ARMS_SEED
 from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED, lookahead_errors, test_arms
 from smcd_rl.experiments.sweep.config import FILTER_STUDIES
 from smcd_rl.experiments.sweep.posteriors import held_out_posteriors, training_posteriors
 from smcd_rl.experiments.two_link.config import TwoLinkConfig
 
 __all__ = ["REFERENCES", "trial", "train", "evaluate", "evaluate_arms", "arm_means", "timed_evaluate", "training_data"]
-
-#: Offset of the masks study's held-out arms from the seed: arms of their own, not two-link's test
-#: arms, so that the study can choose the settings of the experiments' T network.
-VALIDATION_ARMS_SEED = 2_000_003
 
 #: The smcd study's reference methods, run once per trained model on the same held-out arms:
 #: the network without adaptation and with online gradient descent.
@@ -125,8 +122,10 @@ def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict
 
     The method is SMCD with the point's filter settings, or ``config["method"]`` (one of
     :data:`REFERENCES`) on the same trained model and arms. The smcd study's arms and their
-    evaluation are two-link's own, so its numbers are comparable to Fig. 2's; the masks study
-    evaluates the same way on other arms (:data:`VALIDATION_ARMS_SEED`). In the masks study SMCD also
+    evaluation are two-link's own, so its numbers are comparable to Fig. 2's. The masks study
+    evaluates the same way on arms drawn from the seed of the two-link experiments' tuning arms
+    (their link lengths), never on the test arms, since its result may choose the experiments'
+    T setting, as the fair protocol's tuning does. In the masks study SMCD also
     reports how its posterior on each arm concentrates
     (:func:`~smcd_rl.experiments.sweep.posteriors.held_out_posteriors`).
     """
@@ -143,7 +142,7 @@ def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict
             measurement_noise=float(config["measurement_noise"]),
             device=str(device),
         )
-        offset = TEST_ARMS_SEED if config["study"] == "smcd" else VALIDATION_ARMS_SEED
+        offset = TEST_ARMS_SEED if config["study"] == "smcd" else TUNING_ARMS_SEED
         q, ee, ee_true, _ = test_arms(lookahead, device, count=lookahead.trials, seed=lookahead.seed + offset)
         method = model.with_adaptation(_adaptation(config, device))
         errors = lookahead_errors(method, q, ee, ee_true, lookahead, desc="smcd", progress=False)
