@@ -19,12 +19,14 @@ import torch
 
 from smcd_rl.experiments.shared.outputs import format_table, save_figure
 from smcd_rl.experiments.shared.stats import Estimate, cell_statistics, verdict_table
+from smcd_rl.experiments.sweep.config import FILTER_STUDIES
 
 __all__ = [
     "LABELS",
     "FIGURES",
     "MODEL_PARAMETERS",
     "NETWORKS",
+    "method",
     "title",
     "summarise",
     "table",
@@ -56,6 +58,16 @@ FIGURES = {"training": 5, "smcd": 6, "drone": 12}
 MODEL_PARAMETERS = {"smcd": ("hidden", "dropout"), "masks": ("task_share", "mask_groups", "tasks")}
 #: The network each filter study trains, as the methods' prefix: M (random dropout) or T (task masks).
 NETWORKS = {"smcd": "M", "masks": "T"}
+
+
+def method(study: str, kind: str) -> str:
+    """A method's label in a filter study: its network's letter, then ``kind`` (N, G or S).
+
+    Example:
+        >>> method("smcd", "S"), method("masks", "G")
+        ('M+S', 'T+G')
+    """
+    return f"{NETWORKS[study]}+{kind}"
 
 
 def summarise(
@@ -138,7 +150,7 @@ def smcd_statistics(
         point and (T, H); ``M+G`` against ``M+N`` per model, with the filter's parameters empty).
     """
     model = model_parameters(parameters, study)
-    none, gd, smcd = (f"{NETWORKS[study]}+{kind}" for kind in "NGS")
+    none, gd, smcd = (method(study, kind) for kind in "NGS")
     cell = (*parameters, "burn_in", "horizon")
     metrics = [f"mse_T{t}_H{h}" for t, h in pairs]
     against_none: dict[tuple[Any, ...], dict[str, torch.Tensor]] = {}
@@ -272,8 +284,7 @@ def plot(
         ax.set_xlabel(LABELS[name])
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
-    filtering = study in MODEL_PARAMETERS
-    axes[0][0].set_ylabel("look-ahead MSE (m$^2$)" if filtering else "training loss (normalised MSE)")
+    axes[0][0].set_ylabel("look-ahead MSE (m$^2$)" if study in FILTER_STUDIES else "training loss (normalised MSE)")
     axes[0][-1].legend(fontsize=7, title="dotted: min", title_fontsize=7)
     fig.suptitle(f"Sweep, {title(study)}: mean ± std and min over the other parameters")
     fig.tight_layout()

@@ -73,8 +73,8 @@ from smcd_rl.experiments.sweep.grid import trial_configs
 from smcd_rl.experiments.sweep.posteriors import POSTERIOR_METRICS
 from smcd_rl.experiments.sweep.results import (
     FIGURES,
-    NETWORKS,
     headline,
+    method,
     model_parameters,
     plot,
     reference_table,
@@ -144,10 +144,9 @@ def run(config: SweepConfig, *, progress: bool = True) -> dict[str, Any]:
             files = ["summary.csv"]
             if filtering:
                 model = model_parameters(parameters, config.study)
-                network = NETWORKS[config.study]
                 references = {
                     tuple(work.run_configs[key][p] for p in model): {
-                        network + m[1:]: work.references[key, m]["arms"] for m in REFERENCES
+                        method(config.study, m.split("+")[1]): work.references[key, m]["arms"] for m in REFERENCES
                     }
                     for key in work.groups
                 }
@@ -269,8 +268,7 @@ def _smcd_tables(
     references: list[dict[str, Any]],
     points: int,
 ) -> dict[str, str]:
-    network = NETWORKS[config.study]
-    smcd, none, gd = (f"{network}+{kind}" for kind in "SNG")
+    smcd, none, gd = (method(config.study, kind) for kind in "SNG")
     base = {p: getattr(config, p) for p in parameters}
     tables = {
         f"SMCD ({smcd}) paired with {none} and {gd} over the same arms: verdicts (95% CI of the difference) over the {points} grid points": verdict_counts(
@@ -318,13 +316,14 @@ def _trial_rows(
 ) -> list[dict[str, Any]]:
     """One row per held-out arm of every grid point (SMCD) and every reference on every trained network."""
     model = model_parameters(parameters, study)
-    smcd = f"{NETWORKS[study]}+S"
-    scored = [({p: row[p] for p in parameters}, smcd, scores) for row, scores in zip(rows, arms, strict=True)]
+    scored = [
+        ({p: row[p] for p in parameters}, method(study, "S"), scores) for row, scores in zip(rows, arms, strict=True)
+    ]
     filters = {p: None for p in parameters if p not in model}
     for values, by_method in references.items():
         scored += [({**dict(zip(model, values, strict=True)), **filters}, m, s) for m, s in by_method.items()]
     return [
-        {**where, "method": method, "arm": k, **{name: float(v[k]) for name, v in scores.items()}}
-        for where, method, scores in scored
+        {**where, "method": label, "arm": k, **{name: float(v[k]) for name, v in scores.items()}}
+        for where, label, scores in scored
         for k in range(len(next(iter(scores.values()))))
     ]
