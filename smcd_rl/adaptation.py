@@ -15,8 +15,8 @@ from typing import Any, ClassVar, Literal
 
 import torch
 from torch import Tensor
-from torch.func import functional_call, grad, vmap
 
+from smcd_rl import stream_weights
 from smcd_rl.checks import check_count, check_real
 from smcd_rl.filter import SMCDFilter, Transition, check_transition
 from smcd_rl.masked_mlp import MaskedMLP
@@ -506,7 +506,7 @@ class GradientDescent(Adaptation):
         self._batch_shape = batch_shape
         net = self.net
         flat = math.prod(batch_shape)
-        self._params = {k: v.detach().expand(flat, *v.shape).clone() for k, v in net.named_parameters()}
+        self._params = stream_weights.stream_copies(net, flat)
         weight = next(net.parameters())  # the buffers take the network's device and dtype
         self._inputs = weight.new_zeros(flat, self.window, net.in_features)
         self._targets = weight.new_zeros(flat, self.window, net.out_features)
@@ -523,25 +523,22 @@ class GradientDescent(Adaptation):
         self._count = self._count + 1
         # Slots filled so far count in the loss; the rest (after a reset) do not.
         filled = (torch.arange(self.window, device=rows.device) < self._count.unsqueeze(-1)).to(self._inputs.dtype)
-        net = self.net
-
-        huber, delta = self.loss == "huber", self.huber_delta
-
-        def loss(params: dict[str, Tensor], x: Tensor, z: Tensor, weight: Tensor) -> Tensor:
-            residual = functional_call(net, params, (x,)) - z
-            if huber:
-                size = residual.abs()
-                # Squared within delta, linear beyond: the gradient is capped at 2 * delta.
-                error = torch.where(size <= delta, residual.square(), 2 * delta * size - delta**2).mean(-1)
-            else:
-                error = residual.square().mean(-1)
-            return (error * weight).sum() / weight.sum()
-
-        gradient = vmap(grad(loss))
-        with torch.enable_grad():
-            for _ in range(self.steps):
-                grads = gradient(self._params, self._inputs, self._targets, filled)
-                self._params = {k: p - self.lr * grads[k] for k, p in self._params.items()}
+        params = self._params
+        for step in range(self.steps):
+            # The first step writes new tensors, so the weights before the observation stay for a
+            # refusal to put back; the later steps update those new tensors where they lie.
+            params = stream_weights.sgd_step(
+                self.net,
+                params,
+                self._inputs,
+                self._targets,
+                filled,
+                lr=self.lr,
+                loss=self.loss,
+                delta=self.huber_delta,
+                in_place=step > 0,
+            )
+        self._params = params
         if not self._predicts_finite(self._inputs, filled):
             # Put everything back, so that one outlier does not leave NaN weights for good.
             self._params, self._count = before[0], before[1]
@@ -560,9 +557,9 @@ class GradientDescent(Adaptation):
         weights, and after the model's de-normalisation (``* output_scale``), where a float32 value
         of 1e37 becomes inf.
         """
-        if not all(bool(torch.isfinite(p).all()) for p in self._params.values()):
+        if not stream_weights.all_finite(self._params):
             return False
-        prediction = vmap(lambda p, x: functional_call(self.net, p, (x,)))(self._params, inputs)
+        prediction = stream_weights.forward(self.net, self._params, inputs)
         observed = prediction[filled.to(torch.bool)]  # the empty slots after a reset hold no input
         return bool(torch.isfinite(observed * self._output_scale).all())
 
@@ -594,7 +591,7 @@ class GradientDescent(Adaptation):
     def predict(self, inputs: Tensor) -> Tensor:
         self._extra_dims(inputs)
         flat = inputs.reshape(math.prod(self._batch_shape), -1, inputs.shape[-1])
-        out = vmap(lambda p, x: functional_call(self.net, p, (x,)))(self._params, flat)
+        out = stream_weights.forward(self.net, self._params, flat)
         return out.reshape(*inputs.shape[:-1], out.shape[-1])
 
 

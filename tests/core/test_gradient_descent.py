@@ -11,6 +11,7 @@ from tensordict import TensorDict
 from torch.func import functional_call
 
 import smcd_rl
+from smcd_rl import stream_weights
 
 
 @pytest.fixture(scope="module")
@@ -149,3 +150,50 @@ def test_a_model_saved_before_the_loss_existed_loads_with_the_squared_error(mode
     for t in range(6):
         loaded.observe(TensorDict({"q": q[t], "ee": ee[t]}, []))
     assert torch.equal(loaded.predict(q), fresh.predict(q))
+
+
+@pytest.mark.parametrize("activation", ["relu", "tanh", "elu", "silu"])
+@pytest.mark.parametrize("loss", ["mse", "huber"])
+def test_the_batched_step_equals_autograd_per_stream(activation: str, loss: str) -> None:
+    """Each stream's step written out with batched products is SGD on that stream's weighted loss,
+    as autograd computes it: every activation, both losses, streams with different weights (one
+    with an empty slot) and three steps, the later ones in place."""
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(3, 2, hidden=(16, 8), activation=activation).double().eval()
+    streams, window, lr, delta = 4, 5, 0.05, 0.3
+    x = torch.randn(streams, window, 3, dtype=torch.float64)
+    z = torch.randn(streams, window, 2, dtype=torch.float64)
+    weight = torch.ones(streams, window, dtype=torch.float64)
+    weight[1, 3:] = 0.0  # a stream whose last slots are not filled yet
+    params = stream_weights.stream_copies(net, streams)
+    for step in range(3):
+        expected = {}
+        for b in range(streams):
+            mine = {k: v[b].clone().requires_grad_() for k, v in params.items()}
+            residual = functional_call(net, mine, (x[b],)) - z[b]
+            if loss == "huber":
+                size = residual.abs()
+                error = torch.where(size <= delta, residual.square(), 2 * delta * size - delta**2).mean(-1)
+            else:
+                error = residual.square().mean(-1)
+            grads = torch.autograd.grad((error * weight[b]).sum() / weight[b].sum(), list(mine.values()))
+            for (k, v), g in zip(mine.items(), grads, strict=True):
+                expected.setdefault(k, []).append((v - lr * g).detach())
+        params = stream_weights.sgd_step(net, params, x, z, weight, lr=lr, loss=loss, delta=delta, in_place=step > 0)
+        for k, v in params.items():
+            torch.testing.assert_close(v, torch.stack(expected[k]), rtol=1e-10, atol=1e-12)
+
+
+def test_a_refused_observation_leaves_the_weights_of_in_place_steps_untouched(model) -> None:
+    """The later steps of an observation update weights in place; a refusal must still restore the weights
+    from before that observation exactly."""
+    q, ee = shifted_task(4)
+    adaptive = adapted(model, smcd_rl.GradientDescent(lr=0.05, steps=3, window=3), q[:3], ee[:3])
+    before = adaptive.adaptation.state_dict()
+    with pytest.raises(ValueError, match="diverged"):
+        adaptive.observe(TensorDict({"q": q[3], "ee": ee[3] + 1e30}, []))
+    after = adaptive.adaptation.state_dict()
+    for key in ("inputs", "targets", "count"):
+        assert torch.equal(before[key], after[key]), key
+    for key, value in before["params"].items():
+        assert torch.equal(value, after["params"][key]), key
