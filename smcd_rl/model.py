@@ -994,7 +994,8 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
     """
     checkpoint = _read_checkpoint(path)
     try:
-        net = MaskedMLP(**checkpoint["net"])
+        # The architecture's config has no dtype: the saved weights carry it (a float64 model stays float64).
+        net = MaskedMLP(**checkpoint["net"], dtype=_saved_dtype(checkpoint))
         if adaptation is None:
             saved = checkpoint["adaptation"]
             if saved["name"] == "combination":
@@ -1010,6 +1011,13 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
     model = _assemble(cls, net, checkpoint["keys"], adaptation)
     model.load_checkpoint(checkpoint)
     return model
+
+
+def _saved_dtype(checkpoint: dict[str, Any]) -> torch.dtype | None:
+    """The floating dtype of the saved weights (``None``: no float weight saved, torch's default)."""
+    weights = checkpoint.get("state_dict")
+    found = [v.dtype for v in weights.values() if isinstance(v, Tensor) and v.is_floating_point()] if isinstance(weights, dict) else []
+    return found[0] if found else None
 
 
 def _assemble(cls: type[AdaptiveModel], net: MaskedMLP, keys: dict[str, Any], adaptation: Adaptation) -> AdaptiveModel:

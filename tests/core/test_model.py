@@ -529,3 +529,19 @@ def test_a_tuning_that_is_not_a_json_dict_is_refused_and_the_old_one_kept() -> N
         assert model.tuning == {"lr": 0.1}, name
     model.tuning = None
     assert model.tuning is None
+
+
+def test_a_float64_model_loads_as_float64(tmp_path) -> None:
+    """The saved architecture names no dtype; the weights carry it, so loading keeps a float64 model float64."""
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(2, 2, hidden=(8,), dtype=torch.float64)
+    model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+    model.fitted = True
+    model.save(tmp_path / "m.pt")
+    loaded = smcd_rl.load(tmp_path / "m.pt")
+    assert {v.dtype for v in loaded.state_dict().values() if v.is_floating_point()} == {torch.float64}
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), loaded.state_dict().values(), strict=True))
+    q = torch.rand(3, 2, dtype=torch.float64)
+    loaded.reset()
+    model.reset()
+    assert torch.equal(loaded.predict(q), model.predict(q))
