@@ -103,8 +103,9 @@ def fit(
     ``data``) to record :attr:`smcd_rl.AdaptiveModel.residual_scale`, the RMS residual per output,
     where :func:`smcd_rl.calibrate` starts its noise search; measured on ``data`` it is optimistic
     (the network has seen those samples). This pass draws no random numbers, so the weights and
-    losses are those of a run without it. A previous :attr:`~smcd_rl.AdaptiveModel.calibration`
-    and :attr:`~smcd_rl.AdaptiveModel.tuning` are cleared: they belonged to the old weights.
+    losses are those of a run without it. A previous :attr:`~smcd_rl.AdaptiveModel.calibration`,
+    :attr:`~smcd_rl.AdaptiveModel.tuning` and residual scale are cleared before the first step:
+    they belonged to the old weights, also when the run stops midway.
 
     Args:
         model: the model whose network is trained (its strategy is irrelevant here).
@@ -239,6 +240,7 @@ def fit(
         )
         train_epoch, before_epoch = task_epoch, task_epoch.start
 
+    _forget_fitted_records(model)
     history = _train(
         model,
         train_epoch,
@@ -411,6 +413,7 @@ def fit_reptile(
                     p.add_(s / len(chosen) - p, alpha=lr)
         return total / (num_tasks * n * inner_epochs)
 
+    _forget_fitted_records(model)
     history = _train(
         model,
         one_epoch,
@@ -467,8 +470,21 @@ def _check_validation(validation: Any, what: str) -> None:
     _require_samples(validation, f"{what}(validation=...)")
 
 
+def _forget_fitted_records(model: AdaptiveModel) -> None:
+    """Drop what belonged to the weights before training, as the weights are about to change.
+
+    Cleared before the first step, not after the last: a run stopped in between (Ctrl-C, an
+    exception in a callback) leaves new weights, and a calibration or tuning of the old ones
+    would mislead ``SMCD(noise_std="auto")`` and :func:`smcd_rl.calibrate`. The end of a run
+    records a fresh residual scale.
+    """
+    model.residual_scale = None
+    model.calibration = None
+    model.tuning = None
+
+
 def _record_residual_scale(model: AdaptiveModel, data: TensorDictBase | tuple[Tensor, Tensor]) -> None:
-    """Set ``model.residual_scale`` from the network with dropout off; clear a stale calibration and tuning.
+    """Set ``model.residual_scale`` from the network with dropout off.
 
     ``data`` is a TensorDict of transitions or the normalised ``(inputs, targets)`` already
     computed for training. Draws no random numbers and changes no weights.
@@ -492,8 +508,6 @@ def _record_residual_scale(model: AdaptiveModel, data: TensorDictBase | tuple[Te
     # A dimension the network fits exactly (a constant target) gets a small positive scale, not 0.
     floor = 1e-6 * model.output_norm.std.to(torch.float64)
     model.residual_scale = torch.maximum(rms, floor).to(torch.float32).cpu()
-    model.calibration = None
-    model.tuning = None
 
 
 def _normalised_pairs(model: Any, data: TensorDictBase, device: torch.device) -> tuple[Tensor, Tensor]:

@@ -313,6 +313,28 @@ def test_calibration_starts_from_the_fit_and_keeps_the_residual_proportions() ->
     assert model.calibration is None and model.residual_scale is not None
 
 
+@pytest.mark.parametrize("trainer", ["fit", "fit_reptile"])
+def test_a_training_run_stopped_midway_leaves_no_record_of_the_old_weights(trainer: str) -> None:
+    """A run stopped after the weights changed (an exception in a callback, Ctrl-C) must not leave the
+    calibration, tuning or residual scale of the weights it started from: SMCD(noise_std="auto") would
+    then filter the new weights with the old noise."""
+    model, _, data = tiny_fitted(validation=True)
+    smcd_rl.calibrate(model, data[4:], base=smcd_rl.SMCD(num_particles=32), progress=False)
+    model.tuning = {"chosen": "before"}
+    weights = {k: v.clone() for k, v in model.state_dict().items()}
+
+    def stop(epoch: int, loss: float) -> None:
+        raise KeyboardInterrupt
+
+    train = getattr(smcd_rl, trainer)
+    with pytest.raises(KeyboardInterrupt):
+        train(model, data[:4], epochs=3, batch_size=16, progress=False, callback=stop)
+    assert any(not torch.equal(v, model.state_dict()[k]) for k, v in weights.items()), "the run changed no weight"
+    assert model.calibration is None and model.tuning is None and model.residual_scale is None
+    with pytest.raises(ValueError, match="has none; run smcd_rl.calibrate"):
+        model.with_adaptation(smcd_rl.SMCD(num_particles=8, noise_std="auto", flip_prob="auto")).reset()
+
+
 def test_save_and_load_keep_the_residual_scale_and_calibration(tmp_path) -> None:  # noqa: ANN001
     model, _, data = tiny_fitted(validation=True)
     smcd_rl.calibrate(model, data[4:], base=smcd_rl.SMCD(num_particles=32), progress=False)
