@@ -88,7 +88,9 @@ class Combination(Adaptation):
         self.eta = _checked_eta(eta)
         self.share = _checked_share(share)
         self._members = _checked_members(members)
-        self._log_weights: Tensor | None = None  # [*B, K], normalised: logsumexp over K is 0
+        # [*B, K] in float64, normalised (logsumexp over K is 0): ``eta * loss`` of a large eta
+        # overflows float32, and -inf for every member would leave no weight at all.
+        self._log_weights: Tensor | None = None
         self._losses: Tensor | None = None  # [*B, K], cumulative squared error of each member
 
     # -------------------------------------------------------------- what it exposes
@@ -99,8 +101,8 @@ class Combination(Adaptation):
 
     @property
     def weights(self) -> Tensor:
-        """Current weight of each member, ``[*B, K]``, summing to 1 over ``K``."""
-        return self._state()[0].exp()
+        """Current weight of each member, ``[*B, K]``, summing to 1 over ``K`` (in the network's dtype)."""
+        return self._state()[0].exp().to(self._state()[1].dtype)
 
     @property
     def losses(self) -> Tensor:
@@ -129,7 +131,7 @@ class Combination(Adaptation):
         self._batch_shape = batch_shape
         like = next(self.net.parameters())  # the weights take the network's device and dtype
         count = len(self._members)
-        self._log_weights = like.new_full((*batch_shape, count), -math.log(count))
+        self._log_weights = like.new_full((*batch_shape, count), -math.log(count), dtype=torch.float64)
         self._losses = like.new_zeros((*batch_shape, count))
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
@@ -159,13 +161,14 @@ class Combination(Adaptation):
                     ) from err
                 raise
         self._losses = losses + step
-        self._log_weights = self._mixed(log_weights - self.eta * step)
+        self._log_weights = self._mixed(log_weights - self.eta * step.to(torch.float64))
 
     def predict(self, inputs: Tensor) -> Tensor:
         extra = self._extra_dims(inputs)
         log_weights, _ = self._state()
-        weights = log_weights.exp().reshape(*self._batch_shape, *([1] * extra), 1, len(self._members))
         predictions = torch.stack([member.predict(inputs) for member in self._members], dim=-1)  # [..., out, K]
+        weights = log_weights.exp().to(predictions.dtype)
+        weights = weights.reshape(*self._batch_shape, *([1] * extra), 1, len(self._members))
         return (predictions * weights).sum(-1)
 
     def summary(self) -> dict[str, Tensor]:
@@ -193,7 +196,9 @@ class Combination(Adaptation):
             )
         for member, member_state in zip(self._members, saved, strict=True):
             member.load_state_dict(member_state)
-        self._log_weights, self._losses = state["log_weights"].clone(), state["losses"].clone()
+        # A state saved while the weights were kept in the network's dtype loads in float64 too.
+        self._log_weights = state["log_weights"].to(torch.float64, copy=True)
+        self._losses = state["losses"].clone()
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         log_weights, losses = self._state()
@@ -231,13 +236,18 @@ def mixed_log_weights(log_scores: Tensor, share: float) -> Tensor:
     return torch.logaddexp(log_posterior + math.log1p(-share), torch.full_like(log_posterior, math.log(share / count)))
 
 
+#: The largest ``eta``: times the largest float32 loss it stays finite in float64.
+MAX_ETA = 1e100
+
+
 def _checked_eta(eta: Any) -> float:
     if isinstance(eta, bool) or not isinstance(eta, numbers.Real):
         raise TypeError(f"eta must be a real number, got {eta!r} ({type(eta).__name__})")
-    if not math.isfinite(float(eta)) or eta < 0:
+    if not math.isfinite(float(eta)) or not 0 <= eta <= MAX_ETA:
         raise ValueError(
-            f"eta must be a finite number >= 0, got {eta}: the learning rate of the weights (0 averages the members "
-            "uniformly, a larger one follows the best member sooner), e.g. eta=1.0"
+            f"eta must be a finite number in [0, {MAX_ETA:g}], got {eta}: the learning rate of the weights (0 averages "
+            "the members uniformly, a larger one follows the best member sooner; at 1e100 the first observation "
+            "already gives all the weight to the member that predicted it best), e.g. eta=1.0"
         )
     return float(eta)
 

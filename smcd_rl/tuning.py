@@ -608,16 +608,16 @@ def _combination_rmse(model: AdaptiveModel, predictions: Tensor, targets: Tensor
     accumulated as :func:`smcd_rl.diagnostics.trace` accumulates it.
     """
     num_episodes, steps, outputs, count = predictions.shape
-    log_weights = predictions.new_full((num_episodes, count), -math.log(count))
+    log_weights = predictions.new_full((num_episodes, count), -math.log(count), dtype=torch.float64)
     output_std = model.output_norm.std.to(torch.float64)
     squared = 0.0
     for t in range(steps):
         members = predictions[:, t]
         if t > 0:
-            combined = (members * log_weights.exp().reshape(num_episodes, 1, count)).sum(-1)
+            combined = (members * log_weights.exp().to(members.dtype).reshape(num_episodes, 1, count)).sum(-1)
             squared += float(((combined - targets[:, t]).to(torch.float64) * output_std).square().sum())
         step = (members - targets[:, t].unsqueeze(-1)).square().sum(-2)
-        log_weights = mixed_log_weights(log_weights - eta * step, share)
+        log_weights = mixed_log_weights(log_weights - eta * step.to(torch.float64), share)
     return math.sqrt(squared / (num_episodes * (steps - 1) * outputs))
 
 

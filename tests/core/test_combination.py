@@ -246,9 +246,10 @@ def _shared_inside() -> list[smcd_rl.Adaptation]:
         (_same, {}, ValueError, r"members\[1\] is the same NoAdaptation object as members\[0\]"),
         (_shared_inside, {}, ValueError, r"members\[1\].members\[0\] is the same NoAdaptation object"),
         *[
-            (lambda: [smcd_rl.NoAdaptation()], {"eta": eta}, ValueError, "eta must be a finite number >= 0")
+            (lambda: [smcd_rl.NoAdaptation()], {"eta": eta}, ValueError, r"eta must be a finite number in \[0, 1e\+100\]")
             for eta in (math.nan, math.inf, -0.5)
         ],
+        (lambda: [smcd_rl.NoAdaptation()], {"eta": 1e101}, ValueError, r"eta must be a finite number in \[0, 1e\+100\]"),
         (lambda: [smcd_rl.NoAdaptation()], {"eta": "1"}, TypeError, "eta must be a real number"),
         *[
             (lambda: [smcd_rl.NoAdaptation()], {"share": share}, ValueError, r"share must be in \[0, 1\)")
@@ -281,3 +282,19 @@ def test_a_model_saved_with_a_combination_loads_by_name(tmp_path) -> None:
     loaded = smcd_rl.load(tmp_path / "model.pt")
     assert isinstance(loaded.adaptation, smcd_rl.Combination)
     assert loaded.adaptation.config() == model.adaptation.config()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_huge_eta_gives_the_weight_to_the_best_member_instead_of_nan(dtype: torch.dtype) -> None:
+    """eta * loss beyond float32's range once made the weights NaN; the limit of a huge eta is all the
+    weight on the member with the smallest loss, from the first observation on, and it stays there."""
+    net = smcd_rl.MaskedMLP(1, 1, hidden=(4,), dtype=dtype)
+    for eta in (1e39, 1e100):
+        combination = smcd_rl.Combination([Constant(0.9), Constant(0.2), Constant(0.5)], eta=eta)
+        combination.bind(net, torch.ones(1, dtype=dtype))
+        combination.reset((2,))
+        for target in (0.0, 0.1, 0.6):  # the last target favours another member, whose cumulative loss is larger
+            combination.observe(torch.zeros(2, 1, dtype=dtype), torch.full((2, 1), target, dtype=dtype))
+            assert torch.equal(combination.weights, torch.tensor([[0.0, 1.0, 0.0]] * 2, dtype=dtype)), eta
+        prediction = combination.predict(torch.zeros(2, 1, dtype=dtype))
+        assert prediction.dtype == dtype and torch.equal(prediction, torch.full((2, 1), 0.2, dtype=dtype))
