@@ -6,7 +6,8 @@ state forked mid-flight), with the run's torch thread count. A job's result depe
 inputs, never on what ran before it in the same process, so the results are bit-identical to
 one process's (``--workers 1``) for the same seed and threads.
 
-Ctrl-C stops every worker at once (they ignore SIGINT; the parent terminates them); results
+Ctrl-C stops every worker at once (they ignore SIGINT; the parent terminates them), and a
+worker ends by itself when the parent dies otherwise (``kill -9``); results
 that finished before it were already handed to ``on_result``, which stores them, so the rerun
 resumes with the rest.
 
@@ -28,6 +29,8 @@ from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
 from tqdm.auto import tqdm
+
+from smcd_rl.experiments.shared.orphans import exit_with_parent
 
 __all__ = ["map_jobs", "computed", "auto_workers", "usable_cores", "AUTO_MIN_SECONDS"]
 
@@ -114,7 +117,10 @@ def map_jobs(
             ) from err
     context = multiprocessing.get_context("spawn")
     pool = concurrent.futures.ProcessPoolExecutor(
-        max_workers=min(workers, len(jobs)), mp_context=context, initializer=_start_worker, initargs=(threads,)
+        max_workers=min(workers, len(jobs)),
+        mp_context=context,
+        initializer=_start_worker,
+        initargs=(threads, os.getpid()),
     )
     bar = tqdm(total=len(jobs), desc="jobs", unit="job", disable=not progress)
     try:
@@ -133,10 +139,14 @@ def map_jobs(
     return {name: results[name] for name in jobs}
 
 
-def _start_worker(threads: int) -> None:
-    """A worker: the run's torch threads; Ctrl-C is the parent's to handle; no progress bars of its own."""
+def _start_worker(threads: int, parent: int) -> None:
+    """A worker: the run's torch threads; Ctrl-C is the parent's to handle; no progress bars of its own.
+
+    It ends when the parent dies, also of ``kill -9``, which no handler of the parent sees.
+    """
     import torch
 
+    exit_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if threads > 0:
         torch.set_num_threads(threads)

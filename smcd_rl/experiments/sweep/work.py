@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 from tqdm.auto import tqdm
 
 from smcd_rl.digests import content_digest
+from smcd_rl.experiments.shared.orphans import reaped
 from smcd_rl.experiments.shared.result_store import ResultStore
 from smcd_rl.experiments.sweep.config import FILTER_STUDIES
 from smcd_rl.experiments.sweep.grid import EVALUATION_KEYS
@@ -41,25 +42,30 @@ def ray_session(config: SweepConfig) -> Iterator[Any]:
             'smcd-rl sweep runs its trials on Ray, which is not installed; in a checkout install it with: pip install -e ".[ray]" (or bash bootstrap.sh, which installs every extra)'
         ) from err
     started = not ray.is_initialized()
-    if started:
-        if config.address:
-            ray.init(address=config.address, logging_level=logging.WARNING)
-        else:
-            # "local": always a fresh instance, never a cluster that `ray start` once left behind.
-            ray.init(
-                address="local", num_cpus=config.cpus or None, include_dashboard=False, logging_level=logging.WARNING
-            )
-    try:
-        available = ray.cluster_resources().get("CPU", 0)
-        if config.cpus_per_trial > available:
-            raise ValueError(
-                f"--cpus-per-trial {config.cpus_per_trial} exceeds the Ray cluster's {available:g} CPUs; "
-                "no trial could ever be scheduled"
-            )
-        yield ray
-    finally:
+    with reaped() as watch:  # a local Ray's helpers die with this process, also of kill -9
         if started:
-            ray.shutdown()
+            if config.address:
+                ray.init(address=config.address, logging_level=logging.WARNING)
+            else:
+                # "local": always a fresh instance, never a cluster that `ray start` once left behind.
+                ray.init(
+                    address="local",
+                    num_cpus=config.cpus or None,
+                    include_dashboard=False,
+                    logging_level=logging.WARNING,
+                )
+                watch()
+        try:
+            available = ray.cluster_resources().get("CPU", 0)
+            if config.cpus_per_trial > available:
+                raise ValueError(
+                    f"--cpus-per-trial {config.cpus_per_trial} exceeds the Ray cluster's {available:g} CPUs; "
+                    "no trial could ever be scheduled"
+                )
+            yield ray
+        finally:
+            if started:
+                ray.shutdown()
 
 
 class SweepWork:
