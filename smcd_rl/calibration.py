@@ -44,7 +44,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from smcd_rl.adaptation import SMCD, NoAdaptation
-from smcd_rl.checks import check_count, check_real, check_tensordict
+from smcd_rl.checks import check_count, check_real, check_seed, check_tensordict
 from smcd_rl.filter import SMCDFilter
 from smcd_rl.model import AdaptiveModel
 
@@ -240,9 +240,11 @@ def calibrate(
     if not isinstance(criterion, str) or criterion not in _CRITERIA:
         raise ValueError(f"criterion must be 'one-step' or 'evidence', got {criterion!r}")
     model, base = _checked_model(model), _checked_base(base)
+    if not isinstance(per_dimension, bool):  # a string such as "no" is truthy: it would mean True
+        raise TypeError(f"per_dimension must be True or False, got {per_dimension!r} ({type(per_dimension).__name__})")
     grid = _checked_flips(flip_probs, model, base)
     refine = check_count(refine, "refine", minimum=0)
-    seed = check_count(seed, "seed", minimum=0)
+    seed = check_seed(seed)
     td = _stacked(episodes)
     num_episodes, steps = td.batch_size
     x, y = _pairs(model, td)  # normalised, [E, T, features]
@@ -366,7 +368,7 @@ def evidence(
         >>> log_evidence < 0 < rmse
         True
     """
-    model, base, seed = _checked_model(model), _checked_base(base), check_count(seed, "seed", minimum=0)
+    model, base, seed = _checked_model(model), _checked_base(base), check_seed(seed)
     td = _stacked(episodes)
     x, y = _pairs(model, td)
     config = {k: v for k, v in base.config().items() if k not in ("noise_std", "flip_prob")}
@@ -378,6 +380,12 @@ def evidence(
 def _checked_model(model: AdaptiveModel) -> AdaptiveModel:
     if not isinstance(model, AdaptiveModel):
         raise TypeError(f"calibrate takes a smcd_rl.AdaptiveModel, got {type(model).__name__}")
+    if next(model.net.parameters()).device.type == "meta":
+        raise ValueError(
+            "the model's network is on the meta device, whose tensors have shapes but no values, so it cannot "
+            "predict; load its trained weights onto a real device first (model.net.to_empty(device='cpu'), then "
+            "model.load_checkpoint(...))"
+        )
     if not model.fitted:
         raise ValueError(
             "calibrate needs a fitted model (its residual scale and the evidence of an untrained network mean "

@@ -28,6 +28,7 @@ from torch import Tensor
 
 __all__ = [
     "check_count",
+    "check_seed",
     "check_real",
     "check_shape",
     "check_real_tensor",
@@ -47,6 +48,25 @@ def check_count(value: Any, name: str, *, minimum: int = 1) -> int:
     if value < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {value}")
     return int(value)
+
+
+#: The largest seed a torch generator takes (``manual_seed`` reads an unsigned 64-bit integer).
+MAX_SEED = 2**64 - 1
+
+
+def check_seed(value: Any, name: str = "seed") -> int:
+    """``value`` as an ``int`` if a torch generator can be seeded with it: an integer in ``[0, 2**64 - 1]``.
+
+    Example:
+        >>> check_seed(2**70)
+        Traceback (most recent call last):
+        ...
+        ValueError: seed must be in [0, 2**64 - 1] (what a torch generator takes), got 1180591620717411303424
+    """
+    seed = check_count(value, name, minimum=0)
+    if seed > MAX_SEED:
+        raise ValueError(f"{name} must be in [0, 2**64 - 1] (what a torch generator takes), got {seed}")
+    return seed
 
 
 def check_real(

@@ -51,7 +51,7 @@ from tqdm.auto import tqdm
 
 from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation
 from smcd_rl.calibration import _checked_flips, _checked_model, _pairs, _stacked, calibrate
-from smcd_rl.checks import check_count, check_real
+from smcd_rl.checks import check_count, check_real, check_seed
 from smcd_rl.combination import Combination, mixed_log_weights
 from smcd_rl.diagnostics import trace
 from smcd_rl.digests import content_digest, model_digest
@@ -113,6 +113,8 @@ class TuneResult:
     seconds: float = 0.0
     #: A digest of the model, the episodes and the seed: which results ``tune(..., reuse=...)`` may reuse.
     data: str = ""
+    #: Every time per observation measured (ms), by setting: ``tune(..., reuse=...)`` takes them from here.
+    timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def best_kind(self) -> str:
@@ -130,11 +132,60 @@ class TuneResult:
         strategy = self.strategy("combination") if "combination" in self.best_of else None
         return strategy if isinstance(strategy, Combination) else None
 
-    def strategy(self, kind: str) -> Adaptation:
-        """A fresh instance of the best strategy of ``kind``."""
+    def strategy(self, kind: str, *, device: torch.device | str | None = None) -> Adaptation:
+        """A fresh instance of the best strategy of ``kind``.
+
+        ``device``: where SMCD's random generator lives (the model's device); default: where it
+        was tuned. A tuning recorded on a GPU rebuilds on a CPU-only machine with ``device="cpu"``.
+        """
         if kind not in self.best_of:
             raise KeyError(f"no {kind!r} was tuned; tuned: {sorted(self.best_of)}")
-        return build_strategy(kind, self.best_of[kind].settings)
+        settings = self.best_of[kind].settings
+        return build_strategy(kind, settings if device is None else _on_device(kind, settings, str(device)))
+
+    @classmethod
+    def from_dict(cls, record: Mapping[str, Any]) -> TuneResult:
+        """Rebuild a result from its :meth:`to_dict` record, such as a loaded model's ``model.tuning``.
+
+        Raises:
+            ValueError: ``record`` is not a record of :meth:`to_dict` (another tuning procedure's).
+
+        Example:
+            >>> result = TuneResult("one-step", None, [TuneCandidate("none", {}, 0.5, 0.1)], {})
+            >>> result.best_of["none"] = result.candidates[0]
+            >>> TuneResult.from_dict(result.to_dict()).best_kind
+            'none'
+        """
+        needed = ("criterion", "budget_ms", "best_of", "candidates")
+        if not isinstance(record, Mapping) or any(key not in record for key in needed):
+            raise ValueError(
+                f"not a record of TuneResult.to_dict (it needs the entries {list(needed)}); a model's tuning holds "
+                "one after smcd_rl.tune(model, ...)"
+            )
+
+        def candidate(entry: Mapping[str, Any]) -> TuneCandidate:
+            # to_dict writes inf as None (JSON has no infinity).
+            rmse, ms = entry["one_step_rmse"], entry["ms_per_step"]
+            return TuneCandidate(
+                entry["kind"],
+                dict(entry["settings"]),
+                math.inf if rmse is None else float(rmse),
+                math.inf if ms is None else float(ms),
+                entry.get("skipped", ""),
+            )
+
+        return cls(
+            criterion=record["criterion"],
+            budget_ms=record["budget_ms"],
+            candidates=[candidate(c) for c in record["candidates"]],
+            best_of={kind: candidate(c) for kind, c in record["best_of"].items()},
+            notes=list(record.get("notes", [])),
+            episodes=int(record.get("episodes", 0)),
+            steps=int(record.get("steps", 0)),
+            seconds=float(record.get("seconds", 0.0)),
+            data=str(record.get("data", "")),
+            timings={k: math.inf if v is None else float(v) for k, v in record.get("timings", {}).items()},
+        )
 
     def table(self) -> str:
         """The best of each kind: settings, one-step RMSE and time per observation."""
@@ -158,19 +209,22 @@ class TuneResult:
         return self.table()
 
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-ready record (what ``model.tuning`` holds)."""
-        return {
-            "criterion": self.criterion,
-            "budget_ms": self.budget_ms,
-            "best_kind": self.best_kind,
-            "best_of": {kind: asdict(c) for kind, c in self.best_of.items()},
-            "candidates": [asdict(c) for c in self.candidates],
-            "notes": list(self.notes),
-            "episodes": self.episodes,
-            "steps": self.steps,
-            "seconds": self.seconds,
-            "data": self.data,
-        }
+        """A JSON-ready record (what ``model.tuning`` holds; an infinite score or time is ``None``)."""
+        return _json_numbers(
+            {
+                "criterion": self.criterion,
+                "budget_ms": self.budget_ms,
+                "best_kind": self.best_kind,
+                "best_of": {kind: asdict(c) for kind, c in self.best_of.items()},
+                "candidates": [asdict(c) for c in self.candidates],
+                "notes": list(self.notes),
+                "episodes": self.episodes,
+                "steps": self.steps,
+                "seconds": self.seconds,
+                "data": self.data,
+                "timings": dict(self.timings),
+            }
+        )
 
 
 def tune(
@@ -194,7 +248,8 @@ def tune(
         model: a fitted model; its network is not changed.
         episodes: batch ``[E, T]`` in the model's keys (or a list of ``[T]``): held-out episodes
             of the *training* tasks, at least 2 of 2 steps.
-        strategies: which of :data:`KINDS` to tune; ``"combination"`` mixes the others tuned.
+        strategies: which of :data:`KINDS` to tune; ``"combination"`` mixes the others tuned
+            with no adaptation (tuned too, at no cost), so it needs ``"gradient_descent"`` or ``"smcd"``.
         criterion: how SMCD's noise and flip are chosen: ``"one-step"`` (default) or the
             filter's ``"evidence"``. The kinds are compared by one-step error either way.
         budget_ms: skip settings whose median time per observation exceeds this (``None``: no budget).
@@ -208,11 +263,14 @@ def tune(
             learning rate makes a planner's rollouts overflow, or ``{"steps": (None, 20)}`` to
             cap the cost per observation. The starting grid must lie within them.
         flip_probs: the flip probabilities SMCD's calibration tries (:func:`smcd_rl.calibrate`'s).
-        seed: seed of every SMCD run: two calls with the same arguments give the same choice.
+        seed: seed of every SMCD run: two calls with the same arguments give the same choice. With
+            ``budget_ms``, measured wall times decide which settings fit, and they vary from call to
+            call and machine to machine; pass ``reuse`` to take an earlier call's times and repeat
+            its choice.
         progress: show a progress bar.
         reuse: an earlier result of this function on the same model, episodes, seed, flip
             probabilities and criterion (e.g. the unbudgeted one, before a call with ``budget_ms``): each setting
-            it scored takes its score and time from there instead of running again.
+            it scored takes its score from there, and each setting it timed its time, instead of running again.
 
     Returns:
         The :class:`TuneResult`, also stored as ``model.tuning`` (its :meth:`~TuneResult.to_dict`).
@@ -229,8 +287,14 @@ def tune(
         raise ValueError(f"strategies: unknown {unknown}; choose one or more of {list(KINDS)}")
     if criterion not in ("one-step", "evidence"):
         raise ValueError(f"criterion must be 'one-step' or 'evidence', got {criterion!r}")
+    if "combination" in strategies and not {"gradient_descent", "smcd"} & set(strategies):
+        raise ValueError(
+            "strategies: a 'combination' mixes the other strategies tuned (and no adaptation); add "
+            "'gradient_descent' and/or 'smcd', e.g. strategies=['gradient_descent', 'smcd', 'combination']"
+        )
     if budget_ms is not None:
         budget_ms = check_real(budget_ms, "budget_ms", low=0.0, open_low=True)
+    seed = check_seed(seed)
     num_particles = check_count(num_particles, "num_particles")
     grid = _checked_gd_grid(gd_grid)
     limits = _checked_gd_limits(gd_limits, grid)
@@ -239,9 +303,10 @@ def tune(
     flips = _checked_flips(flip_probs, model, SMCD(num_particles=num_particles))  # calibrate's own check
     data = content_digest({"model": model_digest(model), "episodes": content_digest(td), "seed": seed, "flips": flips})
     known = _reusable(reuse, data, criterion)
-    timing = _Timing(model, x[0], y[0], budget_ms)
+    timing = _Timing(model, x[0], y[0], budget_ms, known=None if reuse is None else reuse.timings)
     search = _Search(model, td, timing, progress, known)
-    kinds = [k for k in KINDS if k in strategies]
+    # A combination mixes no adaptation too, which costs nothing to tune.
+    kinds = [k for k in KINDS if k in strategies or (k == "none" and "combination" in strategies)]
     try:
         if "none" in kinds:
             search.score("none", {})
@@ -265,6 +330,7 @@ def tune(
         steps=int(td.batch_size[1]),
         seconds=time.perf_counter() - started,
         data=data,
+        timings=timing.times,
     )
     model.tuning = result.to_dict()
     return result
@@ -316,10 +382,30 @@ def ms_per_observation(model: AdaptiveModel, strategy: Adaptation, episode: Tens
 
 
 class _Timing:
-    """Median wall milliseconds per observation of a strategy on one stream (one held-out episode)."""
+    """Median wall milliseconds per observation of a strategy on one stream (one held-out episode).
 
-    def __init__(self, model: AdaptiveModel, x: torch.Tensor, y: torch.Tensor, budget_ms: float | None) -> None:
+    Every time measured is kept in :attr:`times`, by setting, and measured once: a setting met
+    again, or given by an earlier call (``known``), takes its time from there, so that the
+    settings that fit a budget, and the choice among them, repeat.
+    """
+
+    def __init__(
+        self,
+        model: AdaptiveModel,
+        x: torch.Tensor,
+        y: torch.Tensor,
+        budget_ms: float | None,
+        known: Mapping[str, float] | None = None,
+    ) -> None:
         self.model, self.x, self.y, self.budget_ms = model, x, y, budget_ms
+        self.times: dict[str, float] = dict(known or {})
+
+    def ms(self, kind: str, settings: dict[str, Any]) -> float:
+        """The time per observation of ``kind`` with ``settings``, measured the first time it is asked for."""
+        key = _key(kind, settings)
+        if key not in self.times:
+            self.times[key] = self.ms_per_step(build_strategy(kind, settings))
+        return self.times[key]
 
     def ms_per_step(self, strategy: Adaptation) -> float:
         self.model.with_adaptation(strategy).reset(batch_shape=(1,))
@@ -362,9 +448,9 @@ class _Search:
     ) -> float:
         """Measure one setting (time first, then one-step error unless over budget, or ``rmse`` if given)."""
         earlier = self.known.get(_key(kind, settings))
-        if earlier is not None:
-            ms = earlier.ms_per_step
-        ms = self.timing.ms_per_step(build_strategy(kind, settings)) if ms is None else ms
+        if ms is not None:  # a time measured for it otherwise (SMCD's particle probe, a combination's members)
+            self.timing.times.setdefault(_key(kind, settings), ms)
+        ms = self.timing.ms(kind, settings)
         if self.timing.over(ms):
             self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, "over budget"))
             return math.inf
@@ -396,6 +482,12 @@ def _checked_gd_grid(gd_grid: Mapping[str, Sequence[Any]] | None) -> dict[str, t
     unknown = [loss for loss in grid["loss"] if loss not in GradientDescent.LOSSES]
     if unknown:
         raise ValueError(f"gd_grid['loss'] takes losses from {list(GradientDescent.LOSSES)}, got {unknown}")
+    # The values GradientDescent takes, checked here: steps=1.5 would otherwise run as int(1.5) = 1.
+    grid["lr"] = tuple(
+        check_real(v, f"gd_grid['lr'][{i}]", low=0.0, high=1e30, open_low=True) for i, v in enumerate(grid["lr"])
+    )
+    for name in ("steps", "window"):
+        grid[name] = tuple(check_count(v, f"gd_grid[{name!r}][{i}]") for i, v in enumerate(grid[name]))
     return grid
 
 
@@ -439,7 +531,7 @@ def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]], limits: dict[str
 
     def score(lr: float, steps: int, window: int, loss: Any) -> None:  # loss: one of GradientDescent.LOSSES
         if (lr, steps, window, loss) not in scored:
-            strategy = GradientDescent(lr=lr, steps=int(steps), window=int(window), loss=loss)
+            strategy = GradientDescent(lr=lr, steps=steps, window=window, loss=loss)
             scored[(lr, steps, window, loss)] = search.score("gradient_descent", strategy.config())
 
     for point in product(grid["lr"], grid["steps"], grid["window"], grid["loss"]):
@@ -448,6 +540,10 @@ def _tune_gd(search: _Search, grid: dict[str, tuple[Any, ...]], limits: dict[str
     while True:
         finite = {k: v for k, v in scored.items() if math.isfinite(v)}
         if not finite:
+            search.notes.append(
+                f"gradient descent: every one of its {len(scored)} settings diverged or was over the budget, so none "
+                "is kept; try smaller learning rates (gd_grid['lr'])"
+            )
             return
         point = min(finite.items(), key=lambda item: item[1])[0]
         best = dict(zip(("lr", "steps", "window", "loss"), point, strict=True))
@@ -516,15 +612,18 @@ def _tune_smcd(
     """Halve the particles until a step fits the budget, then calibrate (both noise forms) by ``criterion``."""
     particles = num_particles
     while True:
-        ms = search.timing.ms_per_step(SMCD(num_particles=particles, noise_std=1.0, flip_prob=0.01))
+        ms = search.timing.ms("smcd", {"num_particles": particles, "noise_std": 1.0, "flip_prob": 0.01})
         if not search.timing.over(ms) or particles // 2 < MIN_PARTICLES:
             break
         particles //= 2
-    if particles != num_particles:
-        search.notes.append(f"SMCD: {particles} particles instead of {num_particles}, to fit the budget")
     if search.timing.over(ms):
+        search.notes.append(
+            f"SMCD: over the budget even with {particles} particles ({ms:.3g} ms per observation), so not tuned"
+        )
         search.candidates.append(TuneCandidate("smcd", {"num_particles": particles}, math.inf, ms, "over budget"))
         return
+    if particles != num_particles:
+        search.notes.append(f"SMCD: {particles} particles instead of {num_particles}, to fit the budget")
     known = [c for c in search.known.values() if c.kind == "smcd" and c.settings.get("num_particles") == particles]
     if known:  # an earlier call calibrated these particles on the same data: its two choices stand
         for candidate in known:
@@ -642,7 +741,34 @@ def build_strategy(kind: str, settings: dict[str, Any]) -> Adaptation:
 
 
 def _smcd(seed: int = 0, device: str = "cpu", **settings: Any) -> SMCD:
+    kind = torch.device(device).type
+    if kind != "cpu" and not getattr(torch, kind).is_available():
+        raise ValueError(
+            f"this SMCD was tuned on {device}, which this machine does not have; rebuild it for the model's "
+            f"device, e.g. result.strategy('smcd', device='cpu')"
+        )
     return SMCD(**settings, generator=torch.Generator(device=device).manual_seed(seed))
+
+
+def _on_device(kind: str, settings: dict[str, Any], device: str) -> dict[str, Any]:
+    """``settings`` with every SMCD's generator on ``device`` (a combination's members too)."""
+    if kind == "smcd":
+        return {**settings, "device": device}
+    if kind == "combination":
+        members = [{**m, "settings": _on_device(m["name"], m["settings"], device)} for m in settings["members"]]
+        return {**settings, "members": members}
+    return settings
+
+
+def _json_numbers(value: Any) -> Any:
+    """``value`` with every float that JSON cannot hold (inf, NaN) as ``None``."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_numbers(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_numbers(v) for v in value]
+    return value
 
 
 def _device(model: AdaptiveModel) -> torch.device:

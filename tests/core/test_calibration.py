@@ -389,3 +389,11 @@ def test_auto_smcd_runs_as_the_stored_settings_and_refuses_without_them() -> Non
     model.calibration = None
     with pytest.raises(ValueError, match="has none"):
         auto.reset()
+
+
+def test_per_dimension_takes_a_bool_not_a_truthy_value() -> None:
+    """per_dimension="no" once meant True: any non-empty string is truthy."""
+    model, _, data = tiny_fitted(validation=True)
+    with pytest.raises(TypeError, match="per_dimension must be True or False, got 'no'"):
+        smcd_rl.calibrate(model, data[4:], per_dimension="no", progress=False)
+    assert model.calibration is None

@@ -248,3 +248,118 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
     monkeypatch.setattr(smcd_rl.tuning, "trace", lambda m, e, s: traced.append(type(s).__name__) or real_trace(m, e, s))
     smcd_rl.tune(model, shifted_episodes(0.5), **FAST)
     assert "Combination" not in traced and "GradientDescent" in traced
+
+
+class _DriftingClock:
+    """Times that drift from one measurement to the next, as on a busy machine: each call is 3 % slower."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, strategy: smcd_rl.Adaptation) -> float:
+        self.calls += 1
+        base = 0.01 if isinstance(strategy, smcd_rl.NoAdaptation) else 4.0 * strategy.config().get("steps", 1)
+        if isinstance(strategy, smcd_rl.SMCD):
+            base = 0.2 * strategy.num_particles
+        return base * 1.03**self.calls
+
+
+def test_a_budgeted_call_with_reuse_repeats_the_times_and_the_choice(model, monkeypatch) -> None:
+    """With a budget the measured times decide what fits; they drift between calls, so the same call could
+    choose differently. An earlier result passed as ``reuse`` gives every time, SMCD's particle probes too."""
+    clock = _DriftingClock()
+    monkeypatch.setattr(smcd_rl.tuning._Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
+    options = {**FAST, "num_particles": 64, "gd_grid": {"lr": (1e-2,), "steps": (1, 2, 3), "window": (5,)}}
+    first = smcd_rl.tune(model, shifted_episodes(0.3), budget_ms=8.0, **options)
+    again = smcd_rl.tune(model, shifted_episodes(0.3), budget_ms=8.0, reuse=first, **options)
+    assert [(c.kind, c.settings, c.ms_per_step, c.skipped) for c in again.candidates] == [
+        (c.kind, c.settings, c.ms_per_step, c.skipped) for c in first.candidates
+    ]
+    assert {k: c.settings for k, c in again.best_of.items()} == {k: c.settings for k, c in first.best_of.items()}
+    assert again.timings == first.timings and any(c.skipped for c in first.candidates)
+
+
+def test_the_record_is_json_and_rebuilds_the_result(model) -> None:
+    """A skipped candidate's score is inf, which JSON cannot hold; to_dict writes None, from_dict reads it back."""
+    import json
+
+    result = smcd_rl.tune(model, shifted_episodes(0.5), budget_ms=3.6e6, **FAST)
+    result.candidates.append(smcd_rl.tuning.TuneCandidate("smcd", {"num_particles": 8}, math.inf, 9.0, "over budget"))
+    record = json.loads(json.dumps(result.to_dict(), allow_nan=False))
+    rebuilt = smcd_rl.TuneResult.from_dict(record)
+    assert rebuilt.candidates[-1].one_step_rmse == math.inf and rebuilt.best_kind == result.best_kind
+    assert rebuilt.strategy("smcd").config() == result.strategy("smcd").config()
+    assert smcd_rl.TuneResult.from_dict(model.tuning).best_kind == model.tuning["best_kind"]
+    with pytest.raises(ValueError, match="not a record of TuneResult.to_dict"):
+        smcd_rl.TuneResult.from_dict({"gd_lr": 0.01})
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_a_tuning_recorded_on_a_gpu_rebuilds_on_the_cpu(model, result) -> None:
+    record = result.to_dict()
+    record["best_of"]["smcd"]["settings"]["device"] = "cuda"
+    for member in record["best_of"]["combination"]["settings"]["members"]:
+        if member["name"] == "smcd":
+            member["settings"]["device"] = "cuda"
+    gpu = smcd_rl.TuneResult.from_dict(record)
+    with pytest.raises(ValueError, match=r"tuned on cuda, which this machine does not have.*device='cpu'"):
+        gpu.strategy("smcd")
+    for kind in ("smcd", "combination"):
+        adaptive = model.with_adaptation(gpu.strategy(kind, device="cpu"))
+        adaptive.reset()
+    assert gpu.strategy("smcd", device="cpu").config() == result.strategy("smcd").config()
+
+
+def test_a_combination_mixes_the_other_strategies_tuned(model) -> None:
+    """strategies=["combination", "smcd"] once tuned no combination, and ["combination"] failed with a TypeError."""
+    result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["combination", "smcd"], **FAST)
+    members = [m["name"] for m in result.best_of["combination"].settings["members"]]
+    assert members == ["none", "smcd"] and "gradient_descent" not in result.best_of
+    with pytest.raises(ValueError, match="a 'combination' mixes the other strategies tuned"):
+        smcd_rl.tune(model, shifted_episodes(0.5), strategies=["combination"], **FAST)
+
+
+def test_gradient_descent_that_always_diverges_is_dropped_with_a_note(model) -> None:
+    grid = {"lr": (1e12, 1e13), "steps": (3,), "window": (5,)}
+    result = smcd_rl.tune(
+        model, shifted_episodes(0.5), strategies=["none", "gradient_descent"], gd_grid=grid, progress=False
+    )
+    assert "gradient_descent" not in result.best_of and result.best_kind == "none"
+    assert any("gradient descent: every one of its" in note and "diverged" in note for note in result.notes)
+
+
+def test_smcd_over_any_budget_says_so_and_is_not_said_to_fit(model, monkeypatch) -> None:
+    clock = _DriftingClock()
+    monkeypatch.setattr(smcd_rl.tuning._Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
+    result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["none", "smcd"], budget_ms=1.0, **FAST)
+    assert "smcd" not in result.best_of
+    assert any("over the budget even with 8 particles" in note for note in result.notes), result.notes
+    assert not any("to fit the budget" in note for note in result.notes)
+
+
+@pytest.mark.parametrize(
+    ("options", "error", "message"),
+    [
+        ({"gd_grid": {"steps": (1.5,)}}, TypeError, r"gd_grid\['steps'\]\[0\] must be an int, got 1.5"),
+        ({"gd_grid": {"window": (0,)}}, ValueError, r"gd_grid\['window'\]\[0\] must be >= 1"),
+        ({"gd_grid": {"lr": (0.01, -1.0)}}, ValueError, r"gd_grid\['lr'\]\[1\] must be in \(0, 1e\+30\]"),
+        ({"seed": 2**70}, ValueError, r"seed must be in \[0, 2\*\*64 - 1\]"),
+        ({"seed": -1}, ValueError, "seed must be >= 0"),
+    ],
+)
+def test_bad_values_are_refused_before_any_run(model, monkeypatch, options, error, message) -> None:
+    """Each was found late or not at all: steps=1.5 ran as 1 step, a huge seed failed after the whole GD grid."""
+    monkeypatch.setattr(smcd_rl.tuning, "trace", lambda *a: pytest.fail("a setting ran before the refusal"))
+    with pytest.raises(error, match=message):
+        smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, **options})
+
+
+def test_a_model_on_the_meta_device_is_refused_clearly() -> None:
+    net = smcd_rl.MaskedMLP(2, 2, hidden=(8,))
+    model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+    model.fitted = True
+    net.to("meta")
+    with pytest.raises(ValueError, match="meta device"):
+        smcd_rl.tune(model, shifted_episodes(0.5), **FAST)
+    with pytest.raises(ValueError, match="meta device"):
+        smcd_rl.calibrate(model, shifted_episodes(0.5), progress=False)
