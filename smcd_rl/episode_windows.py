@@ -100,6 +100,10 @@ def episodes(td: TensorDictBase, length: int) -> TensorDictBase:
         first &= position + length <= run_length[run]
     if not bool(first.any()):
         longest = int(run_length.max()) if run_start.numel() else 0
+        if longest == 0:  # nothing to cut: no length would do
+            raise ValueError(
+                "episodes got no transitions (an empty stream, or every step padding); collect transitions first"
+            )
         raise ValueError(
             f"no episode has {length} consecutive transitions (the longest has {longest}; episodes end where "
             f"{' or '.join(map(str, present))} is set): pass length <= {longest}, or collect longer episodes"
