@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -174,8 +175,9 @@ def fit(
         >>> seen  # epoch 0 has no posteriors yet
         [1, 2]
     """
-    if epochs < 0 or batch_size < 1 or lr <= 0:
-        raise ValueError(f"need epochs >= 0, batch_size >= 1 and lr > 0, got {epochs}, {batch_size}, {lr}")
+    epochs, batch_size = check_count(epochs, "epochs", minimum=0), check_count(batch_size, "batch_size")
+    lr = _checked_rate(lr, "lr")
+    weight_decay = check_real(weight_decay, "weight_decay", low=0.0, high=_LARGEST)
     _require_samples(data, "fit")
     _check_validation(validation, "fit")
     net = model.net
@@ -347,11 +349,12 @@ def fit_reptile(
         >>> len(losses)
         2
     """
-    if epochs < 0 or batch_size < 1 or lr <= 0 or inner_lr <= 0 or inner_epochs < 1 or tasks_per_batch < 1:
-        raise ValueError(
-            "need epochs >= 0, batch_size >= 1, lr > 0, inner_lr > 0, inner_epochs >= 1 and tasks_per_batch >= 1, "
-            f"got {epochs}, {batch_size}, {lr}, {inner_lr}, {inner_epochs}, {tasks_per_batch}"
-        )
+    epochs, batch_size = check_count(epochs, "epochs", minimum=0), check_count(batch_size, "batch_size")
+    lr, inner_lr = _checked_rate(lr, "lr"), _checked_rate(inner_lr, "inner_lr")
+    inner_epochs, tasks_per_batch = (
+        check_count(inner_epochs, "inner_epochs"),
+        check_count(tasks_per_batch, "tasks_per_batch"),
+    )
     if data.batch_dims < 2:
         raise ValueError(
             f"fit_reptile needs data whose first batch dim indexes tasks, [tasks, *samples], got batch "
@@ -468,6 +471,15 @@ def _check_validation(validation: Any, what: str) -> None:
         return
     check_tensordict(validation, f"{what}(validation=...)")
     _require_samples(validation, f"{what}(validation=...)")
+
+
+#: The largest finite float: a rate or decay of inf passes a check for "> 0" and trains to NaN.
+_LARGEST = sys.float_info.max
+
+
+def _checked_rate(value: Any, name: str) -> float:
+    """A learning rate: a finite real number > 0 (inf would train to NaN, a run that fails only at its end)."""
+    return check_real(value, name, low=0.0, high=_LARGEST, open_low=True)
 
 
 def _forget_fitted_records(model: AdaptiveModel) -> None:

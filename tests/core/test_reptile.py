@@ -1,5 +1,7 @@
 """fit_reptile: learning, the meaning of the outer step size, exact resume, and refusing bad data."""
 
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -102,7 +104,11 @@ def test_bad_data_and_settings_are_refused() -> None:
         smcd_rl.fit_reptile(_model(), data[:, :0], epochs=1, progress=False)
     with pytest.raises(ValueError, match="tasks_per_batch=5 exceeds the 4 tasks"):
         smcd_rl.fit_reptile(_model(), data, epochs=1, tasks_per_batch=5, progress=False)
-    with pytest.raises(ValueError, match="inner_lr > 0"):
+    with pytest.raises(ValueError, match=r"inner_lr must be in \(0, "):
         smcd_rl.fit_reptile(_model(), data, epochs=1, inner_lr=0.0, progress=False)
+    with pytest.raises(ValueError, match=r"lr must be in \(0, .*got inf"):
+        smcd_rl.fit_reptile(_model(), data, epochs=1, lr=math.inf, progress=False)
+    with pytest.raises(TypeError, match=r"epochs must be an int, got 1.5"):
+        smcd_rl.fit_reptile(_model(), data, epochs=1.5, progress=False)
     with pytest.raises(KeyError, match="no key 'ee'"):
         smcd_rl.fit_reptile(_model(), TensorDict({"q": torch.zeros(2, 3, 2)}, [2, 3]), epochs=1, progress=False)

@@ -1,5 +1,7 @@
 """fit: learning, exact resume after an interruption, and refusing bad data or checkpoints."""
 
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -87,3 +89,25 @@ def test_seeded_training_is_repeatable() -> None:
     smcd_rl.fit(b, _data(), epochs=2, seed=3, progress=False)
     for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
         assert torch.equal(x, y)
+
+
+@pytest.mark.parametrize(
+    ("settings", "error", "message"),
+    [
+        (
+            {"lr": math.inf},
+            ValueError,
+            r"lr must be in \(0, .*got inf",
+        ),  # once trained to NaN, then blamed residual_scale
+        ({"lr": math.nan}, ValueError, r"lr must be in \(0, "),
+        ({"epochs": 1.5}, TypeError, r"epochs must be an int, got 1.5"),  # once Python's raw range() error
+        ({"batch_size": 0}, ValueError, "batch_size must be >= 1"),
+        ({"weight_decay": -0.1}, ValueError, "weight_decay must be in"),
+    ],
+)
+def test_bad_training_settings_are_refused_before_any_step(settings, error, message) -> None:
+    model = _model()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    with pytest.raises(error, match=message):
+        smcd_rl.fit(model, _data(), **{"epochs": 1, **settings}, progress=False)
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in before.items())
