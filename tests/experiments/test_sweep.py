@@ -198,6 +198,9 @@ def test_summary_is_mean_std_min_over_the_other_parameters() -> None:
         (["--study", "masks", "--epochs", "1"], "the masks study needs --epochs 2 or more"),
         (["--study", "masks", "--design", "one-at-a-time", "--mask-groups", "24"], "mask_groups 24 does not divide"),
         (["--study", "masks", "--design", "one-at-a-time", "--tasks", "1"], "tasks 1: the masks study ties masks"),
+        # Once neither checked nor used: a factorial grid sweeps mask_groups over its own values.
+        (["--study", "masks", "--mask-groups", "7"], "--mask-groups 7 is not used: the masks study's factorial grid"),
+        (["--study", "smcd", "--particles", "300"], "--grid particles=300 to sweep it"),
     ],
 )
 def test_bad_options_are_refused_before_any_work(tmp_path, capsys, argv, message) -> None:

@@ -129,7 +129,7 @@ class SweepConfig(ExperimentConfig):
         from smcd_rl.experiments.shared.runtime import resolve_device
 
         super().validate()
-        resolve_grid(self)
+        self._check_bases_used(resolve_grid(self))
         local_cpus = self.cpus or os.cpu_count() or 1
         if not self.address and self.cpus_per_trial > local_cpus:
             raise ValueError(
@@ -150,6 +150,25 @@ class SweepConfig(ExperimentConfig):
             self._check_masks(resolve_grid(self))
         if self.study == "drone" and self.dataset and not Path(self.dataset).is_file():
             raise FileNotFoundError(f"--dataset {self.dataset}: no such file; give a .npz dataset or leave it empty")
+
+    def _check_bases_used(self, grid: dict[str, tuple[Any, ...]]) -> None:
+        """A factorial grid sweeps its parameters over the grid's values, so their options (the base values
+        of one-at-a-time designs) are unused there: one set to another value than its default, or than
+        ``--full``'s, is refused rather than silently ignored."""
+        if self.design != "factorial":
+            return
+        presets = {field.name: [field.default] for field in dataclasses.fields(self)}
+        for name, value in (FULL.items() if self.full else ()):
+            presets[name].append(value)
+        for name, values in grid.items():
+            value = getattr(self, name)
+            if value not in presets[name] and value not in values:
+                option = "--" + name.replace("_", "-")
+                raise ValueError(
+                    f"{option} {value} is not used: the {self.study} study's factorial grid sweeps {name} over "
+                    f"{', '.join(map(str, values))}; pass --grid {name}={value} to sweep it, or --design "
+                    f"one-at-a-time to centre the sweep on it"
+                )
 
     def _check_masks(self, grid: dict[str, tuple[Any, ...]]) -> None:
         """The masks study's networks can be trained and report posteriors: groups divide the layers, two
