@@ -246,10 +246,20 @@ def _shared_inside() -> list[smcd_rl.Adaptation]:
         (_same, {}, ValueError, r"members\[1\] is the same NoAdaptation object as members\[0\]"),
         (_shared_inside, {}, ValueError, r"members\[1\].members\[0\] is the same NoAdaptation object"),
         *[
-            (lambda: [smcd_rl.NoAdaptation()], {"eta": eta}, ValueError, r"eta must be a finite number in \[0, 1e\+100\]")
+            (
+                lambda: [smcd_rl.NoAdaptation()],
+                {"eta": eta},
+                ValueError,
+                r"eta must be a finite number in \[0, 1e\+100\]",
+            )
             for eta in (math.nan, math.inf, -0.5)
         ],
-        (lambda: [smcd_rl.NoAdaptation()], {"eta": 1e101}, ValueError, r"eta must be a finite number in \[0, 1e\+100\]"),
+        (
+            lambda: [smcd_rl.NoAdaptation()],
+            {"eta": 1e101},
+            ValueError,
+            r"eta must be a finite number in \[0, 1e\+100\]",
+        ),
         (lambda: [smcd_rl.NoAdaptation()], {"eta": "1"}, TypeError, "eta must be a real number"),
         *[
             (lambda: [smcd_rl.NoAdaptation()], {"share": share}, ValueError, r"share must be in \[0, 1\)")

@@ -540,7 +540,9 @@ def test_a_float64_model_loads_as_float64(tmp_path) -> None:
     model.save(tmp_path / "m.pt")
     loaded = smcd_rl.load(tmp_path / "m.pt")
     assert {v.dtype for v in loaded.state_dict().values() if v.is_floating_point()} == {torch.float64}
-    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), loaded.state_dict().values(), strict=True))
+    assert all(
+        torch.equal(a, b) for a, b in zip(model.state_dict().values(), loaded.state_dict().values(), strict=True)
+    )
     q = torch.rand(3, 2, dtype=torch.float64)
     loaded.reset()
     model.reset()
