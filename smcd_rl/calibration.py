@@ -44,8 +44,10 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from smcd_rl.adaptation import SMCD, NoAdaptation
-from smcd_rl.checks import check_count, check_real, check_seed, check_tensordict
+from smcd_rl.checks import check_count, check_real, check_seed
+from smcd_rl.diagnostics import Trace, trace_pairs
 from smcd_rl.filter import SMCDFilter
+from smcd_rl.held_out import checked_model, pairs, stacked
 from smcd_rl.model import AdaptiveModel
 
 __all__ = ["calibrate", "evidence", "Calibration", "Candidate"]
@@ -79,6 +81,8 @@ class Candidate:
     #: RMSE (target units, all dimensions pooled) of the filter's prediction of each step from the
     #: steps before it (the MMSE mask before its update), over every episode's steps 2..T.
     one_step_rmse: float
+    #: The run step by step (:func:`smcd_rl.diagnostics.trace` of this setting, which it equals).
+    trace: Trace | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass
@@ -239,15 +243,15 @@ def calibrate(
     started = time.perf_counter()
     if not isinstance(criterion, str) or criterion not in _CRITERIA:
         raise ValueError(f"criterion must be 'one-step' or 'evidence', got {criterion!r}")
-    model, base = _checked_model(model), _checked_base(base)
+    model, base = checked_model(model), _checked_base(base)
     if not isinstance(per_dimension, bool):  # a string such as "no" is truthy: it would mean True
         raise TypeError(f"per_dimension must be True or False, got {per_dimension!r} ({type(per_dimension).__name__})")
     grid = _checked_flips(flip_probs, model, base)
     refine = check_count(refine, "refine", minimum=0)
     seed = check_seed(seed)
-    td = _stacked(episodes)
+    td = stacked(episodes)
     num_episodes, steps = td.batch_size
-    x, y = _pairs(model, td)  # normalised, [E, T, features]
+    x, y = pairs(model, td)  # normalised, [E, T, features]
 
     recorded = model.residual_scale
     source: Literal["fit", "episodes"] = "fit" if recorded is not None else "episodes"
@@ -283,8 +287,8 @@ def calibrate(
             flip_prob=flip,
             generator=torch.Generator(device=device).manual_seed(seed),
         )
-        evidence, rmse = _run(model, strategy, x, y)
-        candidate = Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse)
+        evidence, rmse, run = _run(model, strategy, x, y)
+        candidate = Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse, run)
         candidates.append(candidate)
         scores[key] = value = _objective(candidate, criterion)
         bar.update(1)
@@ -368,30 +372,13 @@ def evidence(
         >>> log_evidence < 0 < rmse
         True
     """
-    model, base, seed = _checked_model(model), _checked_base(base), check_seed(seed)
-    td = _stacked(episodes)
-    x, y = _pairs(model, td)
+    model, base, seed = checked_model(model), _checked_base(base), check_seed(seed)
+    td = stacked(episodes)
+    x, y = pairs(model, td)
     config = {k: v for k, v in base.config().items() if k not in ("noise_std", "flip_prob")}
     device = next(model.net.parameters()).device
     generator = torch.Generator(device=device).manual_seed(seed)
-    return _run(model, SMCD(**config, noise_std=noise_std, flip_prob=flip_prob, generator=generator), x, y)
-
-
-def _checked_model(model: AdaptiveModel) -> AdaptiveModel:
-    if not isinstance(model, AdaptiveModel):
-        raise TypeError(f"calibrate takes a smcd_rl.AdaptiveModel, got {type(model).__name__}")
-    if next(model.net.parameters()).device.type == "meta":
-        raise ValueError(
-            "the model's network is on the meta device, whose tensors have shapes but no values, so it cannot "
-            "predict; load its trained weights onto a real device first (model.net.to_empty(device='cpu'), then "
-            "model.load_checkpoint(...))"
-        )
-    if not model.fitted:
-        raise ValueError(
-            "calibrate needs a fitted model (its residual scale and the evidence of an untrained network mean "
-            "nothing); train it with smcd_rl.fit first, or set model.fitted = True if you trained it yourself"
-        )
-    return model
+    return _run(model, SMCD(**config, noise_std=noise_std, flip_prob=flip_prob, generator=generator), x, y)[:2]
 
 
 def _checked_base(base: SMCD | None) -> SMCD:
@@ -456,28 +443,17 @@ def _golden(low: float, high: float, runs: int, score: Callable[[float], float])
             fd = score(d)
 
 
-def _run(model: AdaptiveModel, strategy: SMCD, x: Tensor, y: Tensor) -> tuple[float, float]:
-    """One filter over every episode at once: mean log evidence per episode and the one-step RMSE.
+def _run(model: AdaptiveModel, strategy: SMCD, x: Tensor, y: Tensor) -> tuple[float, float, Trace]:
+    """One filter over every episode at once: mean log evidence per episode, the one-step RMSE and the trace.
 
-    ``x [E, T, in]``, ``y [E, T, out]`` are normalised; the RMSE is in the target's units.
+    ``x [E, T, in]``, ``y [E, T, out]`` are normalised; the RMSE is in the target's units. A filter
+    that refused an observation has evidence ``-inf`` and RMSE ``inf``: this setting cannot explain
+    the episodes.
     """
-    num_episodes, steps = x.shape[:2]
-    model.with_adaptation(strategy).reset(batch_shape=(num_episodes,))
-    output_std = model.output_norm.std.to(torch.float64)
-    squared = torch.zeros((), dtype=torch.float64, device=x.device)
-    with torch.no_grad():
-        try:
-            for t in range(steps):
-                if t > 0:  # predicted from steps < t, before the filter sees step t
-                    error = (strategy.predict(x[:, t]) - y[:, t]).to(torch.float64) * output_std
-                    squared += error.square().sum()
-                strategy.observe(x[:, t], y[:, t])
-        except ValueError:  # the filter refused an observation: this setting cannot explain the episodes
-            return -math.inf, math.nan
-    assert strategy.filter is not None and strategy.filter.log_evidence is not None
-    evidence = float(strategy.filter.log_evidence.to(torch.float64).mean())
-    rmse = math.sqrt(float(squared) / (num_episodes * (steps - 1) * y.shape[-1]))
-    return evidence, rmse
+    run = trace_pairs(model, x, y, strategy)
+    if not math.isfinite(run.rmse):
+        return -math.inf, math.inf, run
+    return run.log_evidence[-1], run.rmse, run
 
 
 def _residual_scale(model: AdaptiveModel, x: Tensor, y: Tensor) -> Tensor:
@@ -489,68 +465,6 @@ def _residual_scale(model: AdaptiveModel, x: Tensor, y: Tensor) -> Tensor:
     std = model.output_norm.std.to(torch.float64)
     rms = residual.to(torch.float64).square().mean(0).sqrt() * std
     return torch.maximum(rms, 1e-6 * std).to(torch.float32).cpu()  # a dimension fitted exactly keeps a scale
-
-
-def _stacked(episodes: TensorDictBase | Sequence[TensorDictBase]) -> TensorDictBase:
-    """``episodes`` as one TensorDict of batch ``[E, T]``, ``E, T >= 2``, or a clear error."""
-    if isinstance(episodes, TensorDictBase):
-        td = episodes
-        if td.batch_dims != 2:
-            hint = ""
-            if td.batch_dims == 1:
-                hint = "; a batch [T] is one episode, and calibration needs at least 2"
-            elif td.batch_dims > 2:
-                hint = f"; flatten the leading dims, e.g. episodes.reshape(-1, {td.batch_size[-1]})"
-            raise ValueError(
-                f"calibrate takes episodes as a TensorDict of batch [E, T] (E episodes of T steps) or a list of "
-                f"[T] ones, got batch {list(td.batch_size)}{hint}"
-            )
-    elif isinstance(episodes, Sequence) and not isinstance(episodes, (str, bytes)):
-        items = list(episodes)
-        for i, episode in enumerate(items):
-            check_tensordict(episode, f"calibrate (episodes[{i}])")
-            if episode.batch_dims != 1:
-                raise ValueError(
-                    f"calibrate: episodes[{i}] has batch {list(episode.batch_size)}; a list holds one TensorDict "
-                    "of batch [T] per episode"
-                )
-        lengths = sorted({int(episode.batch_size[0]) for episode in items})
-        if len(lengths) > 1:
-            raise ValueError(
-                f"calibrate: the episodes have different lengths {lengths}; cut them to a common length, "
-                f"e.g. [episode[:{lengths[0]}] for episode in episodes]"
-            )
-        if len(items) < 2:
-            raise ValueError(f"calibrate needs at least 2 episodes, got {len(items)}")
-        try:
-            td = torch.stack(items, 0)
-        except (RuntimeError, ValueError, KeyError) as err:
-            raise ValueError(
-                f"calibrate: the episodes do not all have the same keys and feature shapes ({err})"
-            ) from err
-    else:
-        check_tensordict(episodes, "calibrate")
-        raise AssertionError("unreachable")  # check_tensordict refused it
-    num_episodes, steps = td.batch_size
-    if num_episodes < 2:
-        raise ValueError(
-            f"calibrate needs at least 2 episodes, got {num_episodes}: two settings are chosen from the "
-            "evidence, and one episode's evidence mostly measures that episode"
-        )
-    if steps < 2:
-        raise ValueError(
-            f"calibrate needs episodes of at least 2 steps, got {steps}: the one-step error predicts each "
-            "step from the steps before it"
-        )
-    return td
-
-
-def _pairs(model: AdaptiveModel, td: TensorDictBase) -> tuple[Tensor, Tensor]:
-    """Normalised network inputs and targets ``[E, T, features]`` of the episodes, checked (keys, shapes, NaN)."""
-    what = "calibrate (episodes)"
-    x = model._raw_inputs(td, what=what, exact=True)
-    target = model._read(td, model.target_key, model.net.out_features, what=what, exact=True)
-    return model.input_norm(x), model.output_norm(model._to_output(td, target, exact=True))
 
 
 def _checked_flips(flip_probs: Sequence[float], model: AdaptiveModel, base: SMCD) -> list[float]:

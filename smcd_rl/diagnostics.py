@@ -30,12 +30,13 @@ from dataclasses import dataclass, field
 
 import torch
 from tensordict import TensorDictBase
+from torch import Tensor
 
 from smcd_rl.adaptation import SMCD, Adaptation
-from smcd_rl.calibration import _checked_model, _pairs, _stacked
+from smcd_rl.held_out import checked_model, pairs, stacked
 from smcd_rl.model import AdaptiveModel
 
-__all__ = ["trace", "Trace"]
+__all__ = ["trace", "trace_pairs", "Trace"]
 
 
 @dataclass
@@ -75,7 +76,7 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
         particle, or gradient descent whose weights or predictions would turn non-finite) stops the trace there:
         ``rmse`` is ``inf`` and the lists end at the refused step.
     """
-    model = _checked_model(model)
+    model = checked_model(model)
     if not isinstance(strategy, Adaptation):
         raise TypeError(f"trace takes a strategy such as smcd_rl.SMCD(...), got {type(strategy).__name__}")
     if strategy._net is not None:
@@ -83,8 +84,15 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
             "trace needs a fresh strategy: this one is attached to a model, whose state tracing would reset; "
             "pass a new one, e.g. smcd_rl.SMCD(**strategy.config())"
         )
-    td = _stacked(episodes)
-    x, y = _pairs(model, td)
+    x, y = pairs(model, stacked(episodes))
+    return trace_pairs(model, x, y, strategy)
+
+
+def trace_pairs(model: AdaptiveModel, x: Tensor, y: Tensor, strategy: Adaptation) -> Trace:
+    """:func:`trace` on episodes already checked and normalised: ``x [E, T, in]``, ``y [E, T, out]``.
+
+    For the tuning functions, which check the episodes once and run many strategies on them.
+    """
     num_episodes, steps = x.shape[:2]
     model.with_adaptation(strategy).reset(batch_shape=(num_episodes,))
     output_std = model.output_norm.std.to(torch.float64)

@@ -50,11 +50,12 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation
-from smcd_rl.calibration import _checked_flips, _checked_model, _pairs, _stacked, calibrate
+from smcd_rl.calibration import _checked_flips, calibrate
 from smcd_rl.checks import check_count, check_real, check_seed
 from smcd_rl.combination import Combination, mixed_log_weights
 from smcd_rl.diagnostics import trace
 from smcd_rl.digests import content_digest, model_digest
+from smcd_rl.held_out import checked_model, pairs, stacked
 from smcd_rl.model import AdaptiveModel
 
 __all__ = ["tune", "TuneResult", "TuneCandidate", "KINDS", "build_strategy", "ms_per_observation", "describe_settings"]
@@ -281,7 +282,7 @@ def tune(
             another model, other episodes, another seed or another criterion.
     """
     started = time.perf_counter()
-    model = _checked_model(model)
+    model = checked_model(model)
     unknown = [s for s in strategies if s not in KINDS]
     if unknown or not strategies:
         raise ValueError(f"strategies: unknown {unknown}; choose one or more of {list(KINDS)}")
@@ -298,8 +299,8 @@ def tune(
     num_particles = check_count(num_particles, "num_particles")
     grid = _checked_gd_grid(gd_grid)
     limits = _checked_gd_limits(gd_limits, grid)
-    td = _stacked(episodes)
-    x, y = _pairs(model, td)  # checks keys, shapes and values before any run
+    td = stacked(episodes)
+    x, y = pairs(model, td)  # checks keys, shapes and values before any run
     flips = _checked_flips(flip_probs, model, SMCD(num_particles=num_particles))  # calibrate's own check
     data = content_digest({"model": model_digest(model), "episodes": content_digest(td), "seed": seed, "flips": flips})
     known = _reusable(reuse, data, criterion)
@@ -377,7 +378,7 @@ def ms_per_observation(model: AdaptiveModel, strategy: Adaptation, episode: Tens
         raise TypeError(f"strategy must be an smcd_rl.Adaptation, got {type(strategy).__name__}")
     if not isinstance(episode, TensorDictBase) or episode.batch_dims != 1:
         raise ValueError("episode must be one episode: a TensorDict of batch [T] in the model's keys")
-    x, y = _pairs(model, episode.unsqueeze(0))
+    x, y = pairs(model, episode.unsqueeze(0))
     return _Timing(model, x[0], y[0], None).ms_per_step(strategy)
 
 
@@ -680,7 +681,7 @@ def _member_predictions(
     ``None`` if a strategy refuses an observation or predicts a non-finite value: a combination
     of them stops there too.
     """
-    x, y = _pairs(model, td)
+    x, y = pairs(model, td)
     num_episodes, steps = x.shape[:2]
     predictions = []
     with torch.no_grad():

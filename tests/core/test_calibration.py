@@ -71,7 +71,7 @@ def test_chosen_noise_is_the_true_noise_and_the_evidence_peaks_there() -> None:
     assert result.criterion == model.calibration["criterion"] == "evidence"
 
 
-def known_objective(model, strategy, x, y) -> tuple[float, float]:  # noqa: ANN001
+def known_objective(model, strategy, x, y) -> tuple[float, float, None]:  # noqa: ANN001
     """In place of a filter run: an evidence peaked at noise 0.03, flip 0.003 and an RMSE lowest at 0.3, 0.01.
 
     Pure float64 arithmetic of the setting, so the search's path is the same on every CPU.
@@ -79,7 +79,7 @@ def known_objective(model, strategy, x, y) -> tuple[float, float]:  # noqa: ANN0
     u, f = math.log(strategy.noise_std), math.log(strategy.flip_prob)
     log_evidence = -((u - math.log(0.03)) ** 2) - (f - math.log(0.003)) ** 2
     rmse = 0.1 + (u - math.log(0.3)) ** 2 + (f - math.log(0.01)) ** 2
-    return log_evidence, rmse
+    return log_evidence, rmse, None
 
 
 #: (stage, factor, flip) of every run of the evidence search on :func:`known_objective` from a
