@@ -26,6 +26,8 @@ import typing
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
+from smcd_rl.experiments.shared.allocator import keep_freed_memory
+
 __all__ = ["main", "COMMANDS", "Command", "build_parser", "make_config"]
 
 
@@ -195,6 +197,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         name = f"smcd-rl {args._command}"
         given = {k: v for k, v in vars(args).items() if k != "command" and not k.startswith("_")}
         config = make_config(args._command, given)
+        keep_freed_memory()  # before the first large tensor: no page faults for every temporary
         module = importlib.import_module(COMMANDS[args._command].run_module)  # torch etc.: only now
         module.run(config)
     except KeyboardInterrupt:

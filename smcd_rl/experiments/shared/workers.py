@@ -30,6 +30,7 @@ from typing import Any, TypeVar
 
 from tqdm.auto import tqdm
 
+from smcd_rl.experiments.shared.allocator import keep_freed_memory
 from smcd_rl.experiments.shared.orphans import exit_with_parent
 
 __all__ = ["map_jobs", "computed", "auto_workers", "usable_cores", "AUTO_MIN_SECONDS"]
@@ -147,6 +148,7 @@ def _start_worker(threads: int, parent: int) -> None:
     import torch
 
     exit_with_parent(parent)
+    keep_freed_memory()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if threads > 0:
         torch.set_num_threads(threads)

@@ -23,6 +23,7 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
+from smcd_rl.experiments.shared.allocator import keep_freed_memory
 from smcd_rl.experiments.shared.runtime import seed_everything, torch_threads
 from smcd_rl.experiments.shared.two_link_family import TUNING_ARMS_SEED
 from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED, lookahead_errors, test_arms
@@ -62,6 +63,7 @@ def train(config: Mapping[str, Any]) -> dict[str, Any]:
         >>> len(train(point)["losses"])
         2
     """
+    keep_freed_memory()  # a Ray worker is a process of its own
     with torch_threads(int(config["threads"])):
         generator = seed_everything(int(config["seed"]))
         data = training_data(config, generator)
@@ -158,6 +160,7 @@ def evaluate_arms(config: Mapping[str, Any], trained: Mapping[str, Any]) -> dict
 
 def timed_evaluate(config: Mapping[str, Any], trained: Mapping[str, Any]) -> tuple[dict[str, torch.Tensor], float]:
     """:func:`evaluate_arms` and its wall seconds (what a Ray task returns)."""
+    keep_freed_memory()  # a Ray worker is a process of its own
     started = time.perf_counter()
     return evaluate_arms(config, trained), time.perf_counter() - started
 
