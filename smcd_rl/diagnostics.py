@@ -88,10 +88,15 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
     return trace_pairs(model, x, y, strategy)
 
 
-def trace_pairs(model: AdaptiveModel, x: Tensor, y: Tensor, strategy: Adaptation) -> Trace:
+def trace_pairs(
+    model: AdaptiveModel, x: Tensor, y: Tensor, strategy: Adaptation, *, predictions: list[Tensor] | None = None
+) -> Trace:
     """:func:`trace` on episodes already checked and normalised: ``x [E, T, in]``, ``y [E, T, out]``.
 
     For the tuning functions, which check the episodes once and run many strategies on them.
+    With ``predictions``, the strategy's normalised prediction of every step ``t = 1..T``, made
+    before it observes that step, is appended to it (``[E, out]`` each; the first is made before
+    any observation, which draws no random number, so the run is the same).
     """
     num_episodes, steps = x.shape[:2]
     model.with_adaptation(strategy).reset(batch_shape=(num_episodes,))
@@ -101,8 +106,11 @@ def trace_pairs(model: AdaptiveModel, x: Tensor, y: Tensor, strategy: Adaptation
     episode_squared = torch.zeros(num_episodes, dtype=torch.float64)
     with torch.no_grad():
         for t in range(steps):
+            if predictions is not None:
+                predictions.append(strategy.predict(x[:, t]))
             if t > 0:
-                error = (strategy.predict(x[:, t]) - y[:, t]).to(torch.float64) * output_std
+                predicted = predictions[-1] if predictions is not None else strategy.predict(x[:, t])
+                error = (predicted - y[:, t]).to(torch.float64) * output_std
                 step_squared = float(error.square().sum())
                 squared += step_squared
                 result.one_step_rmse.append(math.sqrt(step_squared / (num_episodes * y.shape[-1])))

@@ -1016,7 +1016,11 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
 def _saved_dtype(checkpoint: dict[str, Any]) -> torch.dtype | None:
     """The floating dtype of the saved weights (``None``: no float weight saved, torch's default)."""
     weights = checkpoint.get("state_dict")
-    found = [v.dtype for v in weights.values() if isinstance(v, Tensor) and v.is_floating_point()] if isinstance(weights, dict) else []
+    found = (
+        [v.dtype for v in weights.values() if isinstance(v, Tensor) and v.is_floating_point()]
+        if isinstance(weights, dict)
+        else []
+    )
     return found[0] if found else None
 
 

@@ -53,7 +53,7 @@ from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation
 from smcd_rl.calibration import _checked_flips, calibrate
 from smcd_rl.checks import check_count, check_real, check_seed
 from smcd_rl.combination import Combination, mixed_log_weights
-from smcd_rl.diagnostics import trace
+from smcd_rl.diagnostics import Trace, trace_pairs
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.held_out import checked_model, pairs, stacked
 from smcd_rl.model import AdaptiveModel
@@ -116,6 +116,8 @@ class TuneResult:
     data: str = ""
     #: Every time per observation measured (ms), by setting: ``tune(..., reuse=...)`` takes them from here.
     timings: dict[str, float] = field(default_factory=dict)
+    #: Every run on the episodes, step by step, by setting (this call's; not in :meth:`to_dict`).
+    traces: dict[str, Trace] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def best_kind(self) -> str:
@@ -132,6 +134,16 @@ class TuneResult:
         """A fresh instance of the tuned combination, or ``None`` if none was tuned."""
         strategy = self.strategy("combination") if "combination" in self.best_of else None
         return strategy if isinstance(strategy, Combination) else None
+
+    def trace(self, kind: str) -> Trace | None:
+        """The run of the best strategy of ``kind`` on the tuning episodes, step by step (``None`` if not at hand).
+
+        The same as :func:`smcd_rl.diagnostics.trace` of :meth:`strategy` on those episodes, for a
+        strategy this call ran (a setting reused from an earlier call has none). A combination's
+        holds its one-step errors only.
+        """
+        best = self.best_of.get(kind)
+        return None if best is None else self.traces.get(_key(kind, best.settings))
 
     def strategy(self, kind: str, *, device: torch.device | str | None = None) -> Adaptation:
         """A fresh instance of the best strategy of ``kind``.
@@ -332,6 +344,7 @@ def tune(
         seconds=time.perf_counter() - started,
         data=data,
         timings=timing.times,
+        traces=search.traces,
     )
     model.tuning = result.to_dict()
     return result
@@ -438,16 +451,54 @@ class _Search:
         known: dict[str, TuneCandidate] | None = None,
     ) -> None:
         self.model, self.td, self.timing = model, td, timing
+        self.x, self.y = pairs(model, td)
         self.known = known or {}  # scored by an earlier call on the same data: not run again
         self.candidates: list[TuneCandidate] = []
         self.best_of: dict[str, TuneCandidate] = {}
         self.notes: list[str] = []
+        #: Every run on the episodes, by setting, and its normalised predictions ``[E, T, out]``
+        #: where it ran to the end: what the combination and the diagnosis take instead of running again.
+        self.traces: dict[str, Trace] = {}
+        self.predictions: dict[str, Tensor] = {}
         self.bar = tqdm(desc="tune", unit="setting", disable=not progress)
 
+    def run(self, kind: str, settings: dict[str, Any]) -> Trace:
+        """The trace of ``kind`` with ``settings`` on the episodes, run the first time it is asked for."""
+        key = _key(kind, settings)
+        if key not in self.traces:
+            self._record(kind, settings)
+        return self.traces[key]
+
+    def recorded(self, kind: str, settings: dict[str, Any]) -> Tensor | None:
+        """The setting's normalised predictions ``[E, T, out]``, run again only if no run recorded them
+        (``None``: it refused an observation)."""
+        key = _key(kind, settings)
+        if key not in self.predictions and math.isfinite(self.run(kind, settings).rmse):
+            self._record(kind, settings)  # a run given from elsewhere (a calibration's) kept no predictions
+        return self.predictions.get(key)
+
+    def _record(self, kind: str, settings: dict[str, Any]) -> None:
+        key = _key(kind, settings)
+        predictions: list[Tensor] = []
+        run = trace_pairs(self.model, self.x, self.y, build_strategy(kind, settings), predictions=predictions)
+        self.traces.setdefault(key, run)
+        if math.isfinite(run.rmse):
+            self.predictions[key] = torch.stack(predictions, dim=1)
+
     def score(
-        self, kind: str, settings: dict[str, Any], *, ms: float | None = None, rmse: float | None = None
+        self,
+        kind: str,
+        settings: dict[str, Any],
+        *,
+        ms: float | None = None,
+        rmse: float | None = None,
+        run: Trace | None = None,
     ) -> float:
-        """Measure one setting (time first, then one-step error unless over budget, or ``rmse`` if given)."""
+        """Measure one setting: time first, then one-step error unless over budget.
+
+        ``run``: the setting's trace if it ran already (a calibration's); ``rmse``: its error where it
+        is known without a trace of its own.
+        """
         earlier = self.known.get(_key(kind, settings))
         if ms is not None:  # a time measured for it otherwise (SMCD's particle probe, a combination's members)
             self.timing.times.setdefault(_key(kind, settings), ms)
@@ -458,7 +509,9 @@ class _Search:
         if earlier is not None:
             rmse = earlier.one_step_rmse
         elif rmse is None:
-            rmse = trace(self.model, self.td, build_strategy(kind, settings)).rmse
+            if run is not None:
+                self.traces.setdefault(_key(kind, settings), run)
+            rmse = self.run(kind, settings).rmse
         candidate = TuneCandidate(kind, settings, rmse, ms)
         self.candidates.append(candidate)
         if math.isfinite(rmse) and (kind not in self.best_of or rmse < self.best_of[kind].one_step_rmse):
@@ -644,7 +697,7 @@ def _tune_smcd(
                 progress=progress,
             )
             settings = {**result.strategy.config(), "seed": seed, "device": str(_device(model))}
-            search.score("smcd", settings, ms=ms)
+            search.score("smcd", settings, ms=ms, run=result.best.trace)
     finally:
         model.calibration = saved  # tune's record is model.tuning; calibrate's own stays as it was
 
@@ -667,58 +720,62 @@ def _tune_combination(search: _Search, kinds: list[str]) -> None:
         for one in settings:  # reused from an earlier call, or over the budget: nothing to run
             search.score("combination", one, ms=ms)
         return
-    recorded = _member_predictions(search.model, search.td, [build_strategy(m["name"], m["settings"]) for m in members])
+    recorded = _member_predictions(search, members)
     for (eta, share), one in zip(grid, settings, strict=True):
-        rmse = math.inf if recorded is None else _combination_rmse(search.model, *recorded, eta=eta, share=share)
-        search.score("combination", one, ms=ms, rmse=rmse)
+        if recorded is None:
+            search.score("combination", one, ms=ms, rmse=math.inf)
+            continue
+        search.score("combination", one, ms=ms, run=_combination_trace(search.model, recorded, search.y, eta, share))
 
 
-def _member_predictions(
-    model: AdaptiveModel, td: TensorDictBase, strategies: list[Adaptation]
-) -> tuple[Tensor, Tensor] | None:
-    """Each strategy's prediction of every step before it observes it, ``[E, T, out, K]``, and the targets.
+def _member_predictions(search: _Search, members: list[dict[str, Any]]) -> Tensor | None:
+    """Each member's normalised prediction of every step before it observes it, ``[E, T, out, K]``.
 
-    ``None`` if a strategy refuses an observation or predicts a non-finite value: a combination
-    of them stops there too.
+    A member scored on the episodes already gives them from that run; the others run now. ``None``
+    if a member refuses an observation or predicts a non-finite value: a combination of them
+    stops there too.
     """
-    x, y = pairs(model, td)
-    num_episodes, steps = x.shape[:2]
     predictions = []
-    with torch.no_grad():
-        for strategy in strategies:
-            model.with_adaptation(strategy).reset(batch_shape=(num_episodes,))
-            row = []
-            for t in range(steps):
-                row.append(strategy.predict(x[:, t]))
-                try:
-                    strategy.observe(x[:, t], y[:, t])
-                except ValueError:
-                    return None
-            predictions.append(torch.stack(row, dim=1))
+    for member in members:
+        found = search.recorded(member["name"], member["settings"])
+        if found is None:
+            return None
+        predictions.append(found)
     stacked = torch.stack(predictions, dim=-1)
-    return (stacked, y) if bool(torch.isfinite(stacked).all()) else None
+    return stacked if bool(torch.isfinite(stacked).all()) else None
 
 
-def _combination_rmse(model: AdaptiveModel, predictions: Tensor, targets: Tensor, *, eta: float, share: float) -> float:
-    """The one-step RMSE (target units) of a combination from its members' recorded predictions.
+def _combination_trace(model: AdaptiveModel, predictions: Tensor, targets: Tensor, eta: float, share: float) -> Trace:
+    """The trace (one-step errors only) of a combination, from its members' recorded predictions.
 
     ``predictions [E, T, out, K]`` are the members' normalised one-step predictions, each made
     before its step was observed, ``targets [E, T, out]`` the normalised observations. The weights
-    follow :class:`~smcd_rl.combination.Combination` operation for operation, and the error is
-    accumulated as :func:`smcd_rl.diagnostics.trace` accumulates it.
+    follow :class:`~smcd_rl.combination.Combination` operation for operation, and the errors are
+    accumulated as :func:`smcd_rl.diagnostics.trace` accumulates them.
     """
     num_episodes, steps, outputs, count = predictions.shape
     log_weights = predictions.new_full((num_episodes, count), -math.log(count), dtype=torch.float64)
     output_std = model.output_norm.std.to(torch.float64)
+    result = Trace([], math.inf, [], [], [], [], [[] for _ in range(num_episodes)])
     squared = 0.0
+    episode_squared = torch.zeros(num_episodes, dtype=torch.float64)
     for t in range(steps):
         members = predictions[:, t]
         if t > 0:
             combined = (members * log_weights.exp().to(members.dtype).reshape(num_episodes, 1, count)).sum(-1)
-            squared += float(((combined - targets[:, t]).to(torch.float64) * output_std).square().sum())
+            error = (combined - targets[:, t]).to(torch.float64) * output_std
+            step_squared = float(error.square().sum())
+            squared += step_squared
+            result.one_step_rmse.append(math.sqrt(step_squared / (num_episodes * outputs)))
+            per_episode = error.square().sum(-1).cpu()
+            episode_squared += per_episode
+            for errors, value in zip(result.one_step_errors, per_episode.tolist(), strict=True):
+                errors.append(math.sqrt(value / outputs))
         step = (members - targets[:, t].unsqueeze(-1)).square().sum(-2)
         log_weights = mixed_log_weights(log_weights - eta * step.to(torch.float64), share)
-    return math.sqrt(squared / (num_episodes * (steps - 1) * outputs))
+    result.rmse = math.sqrt(squared / (num_episodes * (steps - 1) * outputs))
+    result.per_episode_rmse = [math.sqrt(v / ((steps - 1) * outputs)) for v in episode_squared.tolist()]
+    return result
 
 
 def build_strategy(kind: str, settings: dict[str, Any]) -> Adaptation:

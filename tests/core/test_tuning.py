@@ -123,7 +123,7 @@ def test_bad_options_are_refused_and_change_nothing(model, options, message) -> 
 
 def test_bad_flip_probabilities_are_refused_before_any_run(model, monkeypatch) -> None:
     """calibrate's own check of the flips runs first: no grid is scored only to fail at SMCD."""
-    monkeypatch.setattr(smcd_rl.tuning, "trace", lambda *a: pytest.fail("a setting ran before the refusal"))
+    monkeypatch.setattr(smcd_rl.tuning, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal"))
     with pytest.raises(TypeError, match="flip_probs must be a sequence of probabilities"):
         smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, "flip_probs": 0.01})
     with pytest.raises(ValueError, match=r"flip_probs\[0\]"):
@@ -200,7 +200,7 @@ def test_reuse_takes_an_earlier_calls_scores_without_running_anything(model, res
     def refuse(*args, **kwargs):
         raise AssertionError("a setting the earlier call scored was run again")
 
-    monkeypatch.setattr(tuning, "trace", refuse)
+    monkeypatch.setattr(tuning, "trace_pairs", refuse)
     monkeypatch.setattr(tuning, "calibrate", refuse)
     again = smcd_rl.tune(model, shifted_episodes(0.5), **FAST, reuse=result)
     assert {k: c.settings for k, c in again.best_of.items()} == {k: c.settings for k, c in result.best_of.items()}
@@ -242,12 +242,25 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
         strategy = smcd_rl.tuning.build_strategy("combination", candidate.settings)
         expected = smcd_rl.diagnostics.trace(model, shifted_episodes(0.5), strategy).rmse
         assert candidate.one_step_rmse == pytest.approx(expected, rel=1e-6)
-    # Scoring the grid runs no combination through trace.
+    # Scoring the grid runs no combination, and no member again: each setting runs once, and the
+    # combination takes its members' predictions from their own runs (SMCD's calibration keeps only
+    # its trace, so the calibrated SMCD runs once more, to record them).
     traced = []
-    real_trace = smcd_rl.tuning.trace
-    monkeypatch.setattr(smcd_rl.tuning, "trace", lambda m, e, s: traced.append(type(s).__name__) or real_trace(m, e, s))
-    smcd_rl.tune(model, shifted_episodes(0.5), **FAST)
-    assert "Combination" not in traced and "GradientDescent" in traced
+    real_trace = smcd_rl.tuning.trace_pairs
+    monkeypatch.setattr(
+        smcd_rl.tuning,
+        "trace_pairs",
+        lambda m, x, y, s, **kw: traced.append(type(s).__name__) or real_trace(m, x, y, s, **kw),
+    )
+    again = smcd_rl.tune(model, shifted_episodes(0.5), **FAST)
+    settings = [c for c in again.candidates if c.kind == "gradient_descent"]
+    assert "Combination" not in traced and traced.count("GradientDescent") == len(settings)
+    assert traced.count("NoAdaptation") == 1 and traced.count("SMCD") == 1
+    # Each best strategy's run is kept: what the diagnosis of an experiment shows, without running it again.
+    for kind in ("none", "gradient_descent", "smcd"):
+        expected = smcd_rl.diagnostics.trace(model, shifted_episodes(0.5), again.strategy(kind))
+        assert again.trace(kind) == expected, kind
+    assert again.trace("combination").rmse == again.best_of["combination"].one_step_rmse
 
 
 class _DriftingClock:
@@ -349,7 +362,7 @@ def test_smcd_over_any_budget_says_so_and_is_not_said_to_fit(model, monkeypatch)
 )
 def test_bad_values_are_refused_before_any_run(model, monkeypatch, options, error, message) -> None:
     """Each was found late or not at all: steps=1.5 ran as 1 step, a huge seed failed after the whole GD grid."""
-    monkeypatch.setattr(smcd_rl.tuning, "trace", lambda *a: pytest.fail("a setting ran before the refusal"))
+    monkeypatch.setattr(smcd_rl.tuning, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal"))
     with pytest.raises(error, match=message):
         smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, **options})
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -13,6 +14,7 @@ import torch
 import smcd_rl
 from smcd_rl import cli
 from smcd_rl.calibration import calibrate
+from smcd_rl.diagnostics import trace
 from smcd_rl.experiments.scoreboard import run as scoreboard
 from smcd_rl.experiments.shared import tuned_methods, tuning
 from smcd_rl.experiments.shared.adaptations import AdaptationConfig
@@ -47,6 +49,10 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     assert SIGMA / 2 < rms < 2 * SIGMA
     assert result.traces["S"]["rmse"] == pytest.approx(best_of["smcd"]["one_step_rmse"], rel=1e-6)
     assert result.traces["S"]["rmse"] < result.traces["S(paper)"]["rmse"]
+    # The diagnosis takes tuning's own runs where it has them: each equals a fresh run of the variant.
+    for variant in ("N", "G", "S", "S(evidence)", "S(paper)"):
+        fresh = trace(model, episodes, result.strategy(variant, seed=config.seed + 23))
+        assert result.traces[variant] == dataclasses.asdict(fresh), variant
     paper = result.strategy("S(paper)", seed=0)
     assert isinstance(paper, smcd_rl.SMCD) and paper.noise_std == 0.3 and paper.flip_prob == config.flip_prob
     combination = result.strategy("C", seed=0)

@@ -39,7 +39,7 @@ from tensordict import TensorDictBase
 
 import smcd_rl
 from smcd_rl.calibration import calibrate
-from smcd_rl.diagnostics import trace
+from smcd_rl.diagnostics import Trace, trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.shared.adaptation_config import VARIANTS
 from smcd_rl.experiments.shared.harness import Experiment
@@ -157,8 +157,8 @@ def tuned_specs(
             (``C`` needs ``G`` and ``S``), and a reference only when asked for; ``N`` always is.
 
     Returns:
-        ``{"specs", "ms", "tables", "seconds", "candidates"}``; the unbudgeted result becomes
-        ``model.tuning``.
+        ``{"specs", "ms", "runs", "tables", "seconds", "candidates"}``, ``runs`` the variants'
+        traces on ``episodes`` that tuning ran already; the unbudgeted result becomes ``model.tuning``.
     """
     seed = config.seed + 23
     device = str(ex.device)
@@ -181,11 +181,14 @@ def tuned_specs(
     budget = smcd_rl.tune(model, episodes, budget_ms=config.budget_ms, reuse=free, **common)
     specs: dict[str, dict[str, Any]] = {}
     ms: dict[str, float] = {}
+    runs: dict[str, Trace] = {}  # the runs on the episodes that tuning made already: the diagnosis reuses them
     for variant, kind in TUNED.items():
         label = f"{variant}@{config.budget_ms:g}ms"
         if kind in free.best_of:
             specs[variant] = {"kind": kind, "settings": free.best_of[kind].settings}
             ms[variant] = free.best_of[kind].ms_per_step
+            if (run := free.trace(kind)) is not None:
+                runs[variant] = run
         if variant in budgeted and kind in budget.best_of:
             specs[label] = {"kind": kind, "settings": budget.best_of[kind].settings}
             # The same strategy: one time, not two noisy ones.
@@ -203,6 +206,8 @@ def tuned_specs(
         )
         settings = {**evidence.strategy.config(), "seed": seed, "device": device}
         specs["S(evidence)"] = {"kind": "smcd", "settings": settings}
+        if evidence.best.trace is not None:
+            runs["S(evidence)"] = evidence.best.trace
     if "S(paper)" in variants:
         noise = list(paper_noise) if isinstance(paper_noise, (tuple, list)) else float(paper_noise)
         paper = {"num_particles": config.particles, "noise_std": noise, "flip_prob": config.flip_prob}
@@ -216,6 +221,7 @@ def tuned_specs(
     return {
         "specs": specs,
         "ms": ms,
+        "runs": runs,
         "tables": {
             f"{name}: tuned on {free.episodes} held-out training-task episodes x {free.steps} steps": free.table(),
             f"{name}: tuned under {config.budget_ms:g} ms per observation": budget.table(),
@@ -332,8 +338,11 @@ def _tune(
     with timer("diagnose"):
         traces = {}
         for variant, spec in specs.items():
-            strategy = build_strategy(spec["kind"], _reseeded(spec["kind"], spec["settings"], seed, str(ex.device)))
-            traces[variant] = asdict(trace(model, episodes, strategy))
+            run = found["runs"].get(variant)  # the same strategy, seed and episodes: tuning's own run
+            if run is None:
+                strategy = build_strategy(spec["kind"], _reseeded(spec["kind"], spec["settings"], seed, str(ex.device)))
+                run = trace(model, episodes, strategy)
+            traces[variant] = asdict(run)
     traced: dict[str, dict[str, Any]] = {}
     if options and "S" in specs:
         traced, seconds = trace_options(ex, model, episodes, config, specs["S"]["settings"], seed=seed)

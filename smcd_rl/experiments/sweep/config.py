@@ -158,7 +158,7 @@ class SweepConfig(ExperimentConfig):
         if self.design != "factorial":
             return
         presets = {field.name: [field.default] for field in dataclasses.fields(self)}
-        for name, value in (FULL.items() if self.full else ()):
+        for name, value in FULL.items() if self.full else ():
             presets[name].append(value)
         for name, values in grid.items():
             value = getattr(self, name)
