@@ -517,49 +517,57 @@ class GradientDescent(Adaptation):
         assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
         rows = torch.arange(self._count.numel(), device=self._count.device)
         slot = self._count % self.window  # a ring buffer per batch element
-        before = (self._params, self._count, self._inputs[rows, slot].clone(), self._targets[rows, slot].clone())
+        before = (self._count, self._inputs[rows, slot].clone(), self._targets[rows, slot].clone())
         self._inputs[rows, slot] = inputs.reshape(-1, inputs.shape[-1])
         self._targets[rows, slot] = targets.reshape(-1, targets.shape[-1])
         self._count = self._count + 1
         # Slots filled so far count in the loss; the rest (after a reset) do not.
         filled = (torch.arange(self.window, device=rows.device) < self._count.unsqueeze(-1)).to(self._inputs.dtype)
-        params = self._params
-        for step in range(self.steps):
-            # The first step writes new tensors, so the weights before the observation stay for a
-            # refusal to put back; the later steps update those new tensors where they lie.
-            params = stream_weights.sgd_step(
-                self.net,
-                params,
-                self._inputs,
-                self._targets,
-                filled,
-                lr=self.lr,
-                loss=self.loss,
-                delta=self.huber_delta,
-                in_place=step > 0,
-            )
-        self._params = params
-        if not self._predicts_finite(self._inputs, filled):
+        # The steps write into new tensors, so the weights before the observation stay for a refusal
+        # to put back. A few streams at a time take every step, while their weights are in the cache.
+        stepped = {k: torch.empty_like(v) for k, v in self._params.items()}
+        finite = True
+        for streams in stream_weights.stream_chunks(self._params):
+            into = {k: v[streams] for k, v in stepped.items()}
+            params = {k: v[streams] for k, v in self._params.items()}
+            for _ in range(self.steps):
+                params = stream_weights.sgd_step(
+                    self.net,
+                    params,
+                    self._inputs[streams],
+                    self._targets[streams],
+                    filled[streams],
+                    lr=self.lr,
+                    loss=self.loss,
+                    delta=self.huber_delta,
+                    out=into,
+                )
+            finite = self._predicts_finite(into, self._inputs[streams], filled[streams])  # while in the cache
+            if not finite:
+                break
+        if finite:
+            self._params = stepped
+        else:
             # Put everything back, so that one outlier does not leave NaN weights for good.
-            self._params, self._count = before[0], before[1]
-            self._inputs[rows, slot], self._targets[rows, slot] = before[2], before[3]
+            self._count = before[0]
+            self._inputs[rows, slot], self._targets[rows, slot] = before[1], before[2]
             raise ValueError(
                 "gradient descent diverged on this observation (its weights, or its predictions for the "
                 "observed inputs, became inf or NaN); the adaptation state is unchanged. Drop the outlier, "
                 f"or lower the learning rate (lr={self.lr})"
             )
 
-    def _predicts_finite(self, inputs: Tensor, filled: Tensor) -> bool:
-        """Whether the weights are finite and predict finite values, in the target's units, for the window.
+    def _predicts_finite(self, params: dict[str, Tensor], inputs: Tensor, filled: Tensor) -> bool:
+        """Whether the weights ``params`` are finite and predict finite values, in the target's units, for the window.
 
         Finite weights are not enough: one step on a 1e18 target (or with a huge ``lr``) leaves
         weights of 1e20 that predict inf. Checked on the observed inputs, where the loss pulled the
         weights, and after the model's de-normalisation (``* output_scale``), where a float32 value
         of 1e37 becomes inf.
         """
-        if not stream_weights.all_finite(self._params):
+        if not stream_weights.all_finite(params):
             return False
-        prediction = stream_weights.forward(self.net, self._params, inputs)
+        prediction = stream_weights.forward(self.net, params, inputs)
         observed = prediction[filled.to(torch.bool)]  # the empty slots after a reset hold no input
         return bool(torch.isfinite(observed * self._output_scale).all())
 

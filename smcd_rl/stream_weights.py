@@ -37,7 +37,7 @@ from torch import Tensor
 
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["stream_copies", "forward", "sgd_step", "all_finite"]
+__all__ = ["stream_copies", "stream_chunks", "forward", "sgd_step", "all_finite", "CACHE_BYTES"]
 
 Params = dict[str, Tensor]
 
@@ -45,6 +45,27 @@ Params = dict[str, Tensor]
 def stream_copies(net: MaskedMLP, streams: int) -> Params:
     """``streams`` private copies of ``net``'s parameters, ``{name: [streams, *shape]}``."""
     return {k: v.detach().expand(streams, *v.shape).clone() for k, v in net.named_parameters()}
+
+
+#: The bytes of weights a chunk of streams may hold: a few MB stay in a core's cache across the
+#: passes of a step and across the steps of an observation (measured on a 2-core x86 CPU: 2 x 512
+#: networks in chunks of 4 streams took 260 us per stream and step, in one batch of 32 or more 530 us).
+CACHE_BYTES = 4 << 20
+
+
+def stream_chunks(params: Params) -> list[slice]:
+    """Consecutive ranges of streams whose weights together fit :data:`CACHE_BYTES` (at least one stream each).
+
+    Example:
+        >>> import torch, smcd_rl
+        >>> params = stream_copies(smcd_rl.MaskedMLP(2, 2, hidden=(512, 512)), streams=10)
+        >>> stream_chunks(params)
+        [slice(0, 3, None), slice(3, 6, None), slice(6, 9, None), slice(9, 10, None)]
+    """
+    streams = next(iter(params.values())).shape[0]
+    per_stream = sum(p[0].numel() * p.element_size() for p in params.values())
+    size = max(1, CACHE_BYTES // max(per_stream, 1))
+    return [slice(begin, min(begin + size, streams)) for begin in range(0, streams, size)]
 
 
 def forward(net: MaskedMLP, params: Params, x: Tensor) -> Tensor:
@@ -63,6 +84,7 @@ def sgd_step(
     loss: str,
     delta: float,
     in_place: bool = False,
+    out: Params | None = None,
 ) -> Params:
     """One SGD step of every stream on its weighted mean loss; returns the stepped parameters.
 
@@ -82,15 +104,19 @@ def sgd_step(
         delta: the Huber loss's threshold (unused with ``"mse"``).
         in_place: update ``params``' tensors where they lie (their owner no longer needs the
             values before the step); otherwise the result holds new tensors.
+        out: tensors of ``params``' shapes to write the result into (``params`` itself, or views of
+            a larger buffer), instead of new ones.
     """
-    out, pre, post = _forward(net, params, x)
-    residual = out - targets
+    if in_place:
+        out = params
+    prediction, pre, post = _forward(net, params, x)
+    residual = prediction - targets
     if loss == "huber":
         slope = torch.where(residual.abs() <= delta, 2 * residual, 2 * delta * residual.sign())
     else:
         slope = 2 * residual
     # d loss / d output, per stream: the weight of each sample over the stream's total, per output.
-    scale = weight / weight.sum(-1, keepdim=True) / out.shape[-1]
+    scale = weight / weight.sum(-1, keepdim=True) / prediction.shape[-1]
     grad_out = slope * scale.unsqueeze(-1)
     derivative = _DERIVATIVES[net.activation]
     stepped = dict(params)
@@ -99,9 +125,9 @@ def sgd_step(
         w, b = params[w_name], params[b_name]
         # The gradient that flows on is taken through the weight before its update.
         below = derivative(torch.bmm(grad_out, w), pre[i - 1], post[i]) if i > 0 else None
-        if in_place:
-            stepped[w_name] = w.baddbmm_(grad_out.transpose(1, 2), post[i], alpha=-lr)
-            stepped[b_name] = b.sub_(grad_out.sum(1), alpha=lr)
+        if out is not None:
+            stepped[w_name] = torch.baddbmm(w, grad_out.transpose(1, 2), post[i], alpha=-lr, out=out[w_name])
+            stepped[b_name] = torch.sub(b, grad_out.sum(1), alpha=lr, out=out[b_name])
         else:
             stepped[w_name] = torch.baddbmm(w, grad_out.transpose(1, 2), post[i], alpha=-lr)
             stepped[b_name] = b - lr * grad_out.sum(1)

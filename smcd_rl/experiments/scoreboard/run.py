@@ -24,6 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from smcd_rl.experiments.scoreboard.config import ScoreboardConfig
+from smcd_rl.experiments.scoreboard.summary import milliseconds as _ms
+from smcd_rl.experiments.scoreboard.summary import summary_table
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.outputs import format_table, save_figure, write_json
 from smcd_rl.experiments.shared.scoreboard_entry import (
@@ -142,6 +144,9 @@ def _write(
             experiment="scoreboard: every task, none / GD / SMCD (paper, calibrated, one-step) / combination",
             # Narrow tables, not one wide one: each fits the width of a docs page.
             tables={
+                "In short: each task's best mean; SMCD tuned by one-step error, SMCD on task-trained masks (T+S) "
+                "and the combination against tuned GD (paired verdicts over the same trials; tie: no significant "
+                "difference); median ms per observation": summary_table(rows),
                 "Each task's headline metric and cell (every number of the tables below: results.csv)": format_table(
                     tasks, ["task", "metric", "cell"]
                 ),
@@ -326,10 +331,6 @@ def _csv_row(row: Mapping[str, Any]) -> dict[str, Any]:
 
 #: The strategies whose times the report's table shows (SMCD on task masks: in its own table).
 TIMED = tuple(c for c in COLUMNS if c not in ("none", TASK_MASKS))
-
-
-def _ms(value: float | None) -> str:
-    return "-" if value is None else f"{value:.3g}"
 
 
 #: The strategies' names under the bars.
