@@ -163,8 +163,9 @@ class SMCD(Adaptation):
             with ``flip_prob`` (see :class:`smcd_rl.SMCDFilter`).
         forward_path: how an update runs the particles through the network: ``"auto"`` takes the
             exact incremental path (pre-activations once per distinct parent plus the flipped
-            columns, :mod:`smcd_rl.particle_forward`) when it is cheaper, ``"dense"`` always
-            runs every particle in full, ``"incremental"`` forces the incremental path.
+            columns, :mod:`smcd_rl.particle_forward`) when it is cheaper, and for a grouped
+            network (``mask_groups``) the next layer from each group's contribution; ``"dense"``
+            always runs every particle in full, ``"incremental"`` forces the incremental path.
         prediction: ``"mask"`` (the network under the MMSE mask, the paper's choice) or
             ``"predictive"`` (the posterior predictive mean).
         likelihood: ``"gaussian"`` (eq. 1) or ``"student-t"``: independent Student-t errors of

@@ -43,8 +43,9 @@ class MaskedMLP(nn.Module):
     ``j``-th block of ``width / G`` consecutive units on or off together, so ``mask_dim`` is
     ``G`` times the number of masked layers. A small mask space lets a particle filter of a few
     hundred masks cover it, at the price of coarser sub-networks. A kept unit is still scaled
-    by ``1 / keep_prob``. (The incremental particle forward pass of :class:`smcd_rl.SMCD` needs
-    one bit per unit; a grouped network always takes the dense pass.)
+    by ``1 / keep_prob``. (:class:`smcd_rl.SMCD` runs a grouped network's particles from each
+    group's contribution to the next layer, ``mask_groups`` multiply-adds per output and particle
+    instead of the layer's width: :mod:`smcd_rl.particle_forward`.)
 
     Args:
         in_features: input size.

@@ -29,7 +29,8 @@ weights so flat that (almost) every particle is distinct               dense
 masks on the last hidden layer only (the next linear is the small      dense
 output layer: nothing worth saving)
 one input per particle (``x`` has a particle dim)                      dense
-grouped masks (``MaskedMLP(mask_groups=...)``: a bit is many columns)  dense
+grouped masks (``MaskedMLP(mask_groups=...)``: a bit is a block of     grouped
+columns), one input per batch element
 a float (MMSE) mask                                                    one ordinary forward, no particles
 =====================================================================  ===========
 
@@ -107,13 +108,13 @@ class ParticleForward:
         self.path = check_path(path)
         # The incremental sums add one weight column per flipped bit: a grouped bit would be a
         # block of columns, which the gain table below does not model.
-        self._grouped = net.mask_groups is not None
-        if self._grouped and self.path == "incremental":
+        self._grouped_masks = net.mask_groups is not None
+        if self._grouped_masks and self.path == "incremental":
             raise ValueError(
                 f"the incremental path needs one mask bit per unit, but this network has mask_groups="
                 f"{net.mask_groups}; use path='auto' or 'dense' (a grouped network always runs dense)"
             )
-        #: The path the last call took: ``"incremental"`` or ``"dense"``.
+        #: The path the last call took: ``"incremental"``, ``"grouped"`` or ``"dense"``.
         self.last_path: str | None = None
         #: Distinct parents of the last call's particle set (``None`` after a dense call without lineage).
         self.last_distinct_parents: int | None = None
@@ -128,9 +129,13 @@ class ParticleForward:
 
     def _forward(self, x: Tensor, masks: Tensor, lineage: Lineage | None) -> Tensor:
         self.last_path, self.last_distinct_parents = "dense", None
-        valid = lineage is not None and masks.dtype == torch.bool and x.dim() == masks.dim() - 1 and not self._grouped
+        valid = (
+            lineage is not None and masks.dtype == torch.bool and x.dim() == masks.dim() - 1 and not self._grouped_masks
+        )
         if self.path == "incremental" and not valid:
             raise ValueError("the incremental path needs a lineage, bool masks and one input [*B, in] per particle set")
+        if self.path == "auto" and self._grouped_masks and x.dim() == masks.dim() - 1:
+            return self._grouped(x, masks)
         if self.path == "dense" or not valid:
             return self.net.forward_particles(x, masks)
         assert lineage is not None
@@ -143,6 +148,42 @@ class ParticleForward:
             return self.net.forward_particles(x, masks)
         self.last_path = "incremental"
         return self._incremental(x, masks, lineage, groups, child_group)
+
+    def _grouped(self, x: Tensor, masks: Tensor) -> Tensor:
+        """A grouped network's particles: the layer after the first masked one from its groups' contributions.
+
+        With ``G`` bits on the first masked layer, each bit switches a block of units, so that
+        layer's successor sees ``pre = b + sum_g bit_g * c_g``, where ``c_g`` is the block's
+        contribution ``W[:, block_g] @ h[block_g] / keep``, the same for every particle of a batch
+        element. The contributions cost one dense row per batch element; each particle then costs
+        ``G`` multiply-adds per output instead of the layer's width. Later layers run per particle.
+        """
+        net, layer = self.net, self._layer
+        batch, n, dim = masks.shape[:-2], masks.shape[-2], masks.shape[-1]
+        elements = masks[..., 0, 0].numel()
+        h = x
+        for linear in list(net.linears)[: layer + 1]:  # slicing a ModuleList builds a new Module
+            h = net.act(linear(h))
+        groups = net.mask_groups
+        assert groups is not None
+        following = _linear(net, layer + 1)
+        blocks = h.reshape(elements, groups, -1) * (1.0 / net.keep_prob)  # [B, G, width / G]
+        weight = following.weight.reshape(following.out_features, groups, -1)  # [out, G, width / G]
+        contributions = torch.einsum("bgk,ogk->bgo", blocks, weight)  # [B, G, out]
+        sl = net.mask_slices[layer]
+        assert sl is not None
+        bits = masks.reshape(elements, n, dim)[..., sl].to(h.dtype)  # [B, N, G], 0 and 1 for bools
+        pre = torch.baddbmm(following.bias, bits, contributions)  # [B, N, out]
+        flat_masks = masks.reshape(elements * n, dim)
+        h = pre.reshape(elements * n, -1)
+        for i in range(layer + 1, len(net.hidden)):
+            h = net.act(h)
+            later = net.mask_slices[i]
+            if later is not None:
+                h = net._masked(h, flat_masks[:, later].to(h.dtype) * (1.0 / net.keep_prob))
+            h = _linear(net, i + 1)(h)
+        self.last_path = "grouped"
+        return h.reshape(*batch, n, h.shape[-1])
 
     def _pays(self, distinct: int, total: int, flips: int) -> bool:
         if self._layer == len(self.net.hidden) - 1:

@@ -107,7 +107,7 @@ def test_save_and_load_rebuild_the_grouped_network(tmp_path) -> None:
     torch.testing.assert_close(loaded.net.forward_particles(q, masks), model.net.forward_particles(q, masks))
 
 
-def test_smcd_filters_grouped_masks_on_the_dense_path() -> None:
+def test_smcd_filters_grouped_masks_on_the_grouped_path() -> None:
     model = _model()
     data = _data()
     for epochs, how in ((1, "random"), (2, "task")):  # both trainers draw masks of mask_dim bits
@@ -116,7 +116,7 @@ def test_smcd_filters_grouped_masks_on_the_dense_path() -> None:
     for t in range(4):
         model.observe(data[3 * t : 3 * t + 3])
     assert model.mask.shape == (3, 8) and model.particles.shape == (3, 64, 8)
-    assert model.adaptation.particle_forward.last_path == "dense"
+    assert model.adaptation.particle_forward.last_path == "grouped"
     assert model(data[:3].exclude("ee"))["ee"].shape == (3, 2)
 
 

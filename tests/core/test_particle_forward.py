@@ -188,3 +188,41 @@ def test_float_floor_division_is_exact_at_multiples() -> None:
         k = torch.tensor([0, 1, 7, 1000, 2**20, 2**27 // divisor + 1])
         index = torch.cat([k * divisor, (k * divisor - 1).clamp(min=0), k * divisor + divisor - 1]).sort().values
         assert torch.equal(_floor_div(index, divisor, 2**40), index // divisor)
+
+
+@pytest.mark.parametrize(
+    ("hidden", "masked", "groups"),
+    [((48, 40), None, 8), ((32, 32, 24), None, 4), ((32, 40), (1,), 5), ((40,), None, 10)],
+)
+@pytest.mark.parametrize("batch", [(), (3,), (2, 2)])
+def test_the_grouped_path_equals_the_dense_pass(hidden, masked, groups, batch) -> None:
+    """A grouped network's particles from its groups' contributions, for bool and float masks, equal
+    the dense pass up to float rounding; a filter on it proposes, weighs and resamples alike."""
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(3, 2, hidden=hidden, masked_layers=masked, mask_groups=groups).double().eval()
+    x = torch.randn(*batch, 3, dtype=torch.float64)
+    forward = ParticleForward(net)
+    for masks in (
+        torch.rand(*batch, 50, net.mask_dim) < 0.5,
+        torch.rand(*batch, 50, net.mask_dim, dtype=torch.float64),
+    ):
+        torch.testing.assert_close(forward(x, masks), net.forward_particles(x, masks), rtol=1e-10, atol=1e-12)
+        assert forward.last_path == "grouped"
+    filters = []
+    for path in ("auto", "dense"):
+        smcd = smcd_rl.SMCD(
+            num_particles=40, noise_std=0.5, generator=torch.Generator().manual_seed(7), forward_path=path
+        )
+        smcd.bind(net, torch.ones(2, dtype=torch.float64))
+        smcd.reset(batch)
+        filters.append(smcd)
+    g = torch.Generator().manual_seed(3)
+    for _ in range(8):
+        x, z = (
+            torch.randn(*batch, 3, generator=g, dtype=torch.float64),
+            torch.randn(*batch, 2, generator=g, dtype=torch.float64),
+        )
+        for smcd in filters:
+            smcd.observe(x, z)
+        assert torch.equal(filters[0].particles, filters[1].particles)
+        torch.testing.assert_close(filters[0].filter.log_evidence, filters[1].filter.log_evidence)
