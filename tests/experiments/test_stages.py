@@ -8,22 +8,35 @@ import pytest
 from smcd_rl.experiments.shared import stages
 from smcd_rl.experiments.shared.stages import StagePlan
 
-#: One stage line: command, k, n (if planned), stage, and the times.
-STAGE_LINE = re.compile(r"(\S+) \[(\d+)(?:/(\d+))?\] (.+?) \| (\S.* elapsed.*)")
+#: One stage line: command, k (or the first and last of stages run side by side), n (if planned),
+#: stage, and the times.
+STAGE_LINE = re.compile(r"(\S+) \[(\d+)(?:-(\d+))?(?:/(\d+))?\] (.+?) \| (\S.* elapsed.*)")
 
 
 def planned_stages(err: str, command: str) -> list[str]:
-    """The stages ``command`` printed on ``err``, checked: each ``[k/n]`` with one n, k counting up to n, time left from the 2nd on.
+    """The stages ``command`` printed on ``err``, checked: each ``[k/n]`` (``[k-m/n]`` for stages side by
+    side in workers) with one n, the stages counting up to n, time left from the 2nd line on.
 
     A tiny run's stages take well under :data:`~smcd_rl.experiments.shared.stages.RESUMED_SECONDS`, so a
     test that wants the time left sets that to 0 first (``monkeypatch``).
     """
     lines = [m for line in err.splitlines() if (m := STAGE_LINE.fullmatch(line)) and m[1] == command]
     assert lines, err
-    assert {m[3] for m in lines} == {lines[0][3]} and lines[0][3] is not None, [m[0] for m in lines]
-    assert [int(m[2]) for m in lines] == list(range(1, int(lines[0][3]) + 1)), [m[0] for m in lines]
-    assert all(", about " in m[5] and m[5].endswith(" left") for m in lines[1:]), [m[0] for m in lines]
-    return [m[4] for m in lines]
+    assert {m[4] for m in lines} == {lines[0][4]} and lines[0][4] is not None, [m[0] for m in lines]
+    counted = [k for m in lines for k in range(int(m[2]), int(m[3] or m[2]) + 1)]
+    assert counted == list(range(1, int(lines[0][4]) + 1)), [m[0] for m in lines]
+    assert all(", about " in m[6] and m[6].endswith(" left") for m in lines[1:]), [m[0] for m in lines]
+    return [name for m in lines for name in _side_by_side(m[5])]
+
+
+def _side_by_side(stage: str) -> list[str]:
+    """A line's stages: ``"tune M, R in 2 workers"`` is ``["tune M", "tune R"]``, any other line one stage."""
+    found = re.fullmatch(r"(.+) in \d+ workers", stage)
+    if found is None:
+        return [stage]
+    names = found[1].split(", ")
+    kind = names[0].split(" ")[0]
+    return [name if name.startswith(kind) else f"{kind} {name}" for name in names]
 
 
 class Clock:

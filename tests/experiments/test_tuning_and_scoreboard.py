@@ -186,7 +186,8 @@ def printed_tables(printed: str) -> tuple[dict[str, list[str]], dict[str, list[s
         elif line.startswith("| ") and tables:
             cells = [c.strip() for c in line.strip().strip("|").split("|")]
             tables[-1][cells[0]] = cells[1:]
-    tasks, means, verdicts = tables
+    summary, tasks, means, verdicts = tables[:4]  # the compact table first, then the scoreboard's
+    assert list(summary) == list(tasks)
     return {task: [*tasks[task], *cells] for task, cells in means.items()}, verdicts
 
 

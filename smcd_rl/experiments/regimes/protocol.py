@@ -101,6 +101,14 @@ def _tune(
     budgeted: Sequence[str],
 ) -> dict[str, Any]:
     found = tuned_specs(
-        ex, model, episodes, config, name=name, paper_noise=config.noise_std, budgeted=budgeted, variants=variants
+        model,
+        episodes,
+        config,
+        name=name,
+        paper_noise=config.noise_std,
+        budgeted=budgeted,
+        variants=variants,
+        device=str(ex.device),
+        progress=ex.progress,
     )
     return {**found, "residual": residual_of(model, episodes).tolist()}

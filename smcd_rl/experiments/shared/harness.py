@@ -155,7 +155,7 @@ class Experiment:
         """
         stages = {name: _train_stage(name) for name in jobs}
         paths = {name: self.checkpoint(name, t, m, d, **settings) for name, (t, m, d, settings) in jobs.items()}
-        workers = self._workers(list(stages.values())) if len(jobs) > 1 else 1
+        workers = self.workers_for(list(stages.values())) if len(jobs) > 1 else 1
         if workers > 1:
             with self.stage(f"{', '.join(stages.values())} in {workers} workers", members=list(stages.values())):
                 seconds = map_jobs(
@@ -228,7 +228,7 @@ class Experiment:
         keys = {name: {"method": name, "settings": settings, "content": _content(content, name)} for name in methods}
         label = (lambda name: f"evaluate {name}") if kind == "method" else (lambda name: f"{kind} {name}")
         pending = [name for name in methods if not self.store.path(kind, keys[name]).is_file()]
-        workers = self._workers([label(name) for name in pending])
+        workers = self.workers_for([label(name) for name in pending])
         results: dict[str, dict[str, Any]] = {}
         for name, factory in methods.items():
             if workers > 1 and name in pending:
@@ -258,7 +258,7 @@ class Experiment:
             self.timings[f"evaluate {name}"] = results[name]["seconds"]
         return {name: results[name] for name in methods}
 
-    def _workers(self, stages: Sequence[str]) -> int:
+    def workers_for(self, stages: Sequence[str]) -> int:
         """The worker processes for these pending stages: ``--workers``, or its choice when 0 (auto)."""
         requested = int(getattr(self.config, "workers", 1))
         if requested == 0:

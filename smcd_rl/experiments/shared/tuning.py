@@ -13,8 +13,8 @@ one criterion, the one-step prediction error:
 
 A second call under ``--budget-ms`` per observation (reusing the first call's scores) gives the
 budgeted view: what each kind would be within a 100 Hz control step. Each method's median time
-per observation (one stream, the run's threads) is measured in the main process, while no worker
-runs. The chosen settings, every kind's best with its time, and a step-by-step diagnosis of each
+per observation is measured on one stream with the run's threads, where the network is tuned
+(:func:`tune_all`: a worker beside another with ``--workers``). The chosen settings, every kind's best with its time, and a step-by-step diagnosis of each
 method on the tuning episodes (:func:`smcd_rl.diagnostics.trace`: one-step error, ESS, log
 evidence, kept share) go into the run's report and ``tuning-<model>.png``. With ``options``,
 the one-step error of the tuned SMCD under each of :data:`OPTIONS` (five times the particles;
@@ -28,13 +28,12 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
-import torch
 from tensordict import TensorDictBase
 
 import smcd_rl
@@ -43,14 +42,16 @@ from smcd_rl.diagnostics import Trace, trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.shared.adaptation_config import VARIANTS
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.experiments.shared.outputs import format_table, ms_cell
 from smcd_rl.experiments.shared.tuning_options import OPTIONS, STUDENT, trace_options
-from smcd_rl.experiments.shared.tuning_plot import plot_traces
-from smcd_rl.tuning import build_strategy, describe_settings, ms_per_observation
+from smcd_rl.experiments.shared.tuning_record import TUNED, Tuning, reseeded
+from smcd_rl.experiments.shared.workers import computed, map_jobs
+from smcd_rl.tuning import build_strategy, ms_per_observation
 
 __all__ = [
     "Tuning",
+    "TuneJob",
     "tune",
+    "tune_all",
     "tuned_specs",
     "VARIANTS",
     "TUNED",
@@ -58,80 +59,8 @@ __all__ = [
     "STUDENT",
 ]
 
-#: Variant -> the kind of :func:`smcd_rl.tune`'s result it takes.
-TUNED = {"N": "none", "G": "gradient_descent", "S": "smcd", "C": "combination"}
-
-
-@dataclass
-class Tuning:
-    """What :func:`tune` chose for one trained model, and the evidence it chose from."""
-
-    #: The model's name in the experiment (``"M"``, ``"R"``...).
-    name: str
-    #: Variant (:data:`VARIANTS`) -> ``{"kind": ..., "settings": ...}`` for :func:`smcd_rl.tuning.build_strategy`.
-    specs: dict[str, dict[str, Any]]
-    #: Variant -> median wall milliseconds per observation (one stream, the run's threads).
-    ms: dict[str, float]
-    #: Caption -> Markdown: :func:`smcd_rl.tune`'s tables, unbudgeted and under ``--budget-ms``.
-    tune_tables: dict[str, str]
-    #: Per variant: the :class:`~smcd_rl.diagnostics.Trace` on the tuning episodes, as a dict.
-    traces: dict[str, dict[str, Any]]
-    #: The tuned SMCD with one option changed (see :data:`OPTIONS`): its trace, per option.
-    options: dict[str, dict[str, Any]]
-    #: Wall seconds of tuning, of the references and of the diagnosis runs.
-    seconds: dict[str, float]
-    episodes: int
-    steps: int
-
-    def strategy(self, variant: str, *, seed: int, device: torch.device | str = "cpu") -> smcd_rl.Adaptation:
-        """A fresh strategy of a variant in :data:`VARIANTS`, SMCD's generator seeded with ``seed`` on ``device``."""
-        if variant not in self.specs:
-            raise ValueError(f"unknown strategy {variant!r}; choose from {list(self.specs)}")
-        spec = self.specs[variant]
-        return build_strategy(spec["kind"], _reseeded(spec["kind"], spec["settings"], seed, str(device)))
-
-    def table(self) -> str:
-        """Each variant's settings, its one-step RMSE (and SMCD's evidence) on the tuning episodes, its time."""
-        rows = []
-        for variant, spec in self.specs.items():
-            settings = describe_settings(spec["settings"])
-            rows.append([f"{self.name}+{variant}", settings, *_scores(self.traces[variant]), ms_cell(self.ms[variant])])
-        for option, t in self.options.items():
-            rows.append([f"{self.name}+S, {option}", t["settings"], *_scores(t), "-"])
-        header = ["method", "settings", "one-step RMSE", "log evidence / episode", "min ESS share", "ms / observation"]
-        return format_table(rows, header)
-
-    def caption(self) -> str:
-        s = self.seconds
-        return (
-            f"Tuning of {self.name} on {self.episodes} held-out training-task episodes x {self.steps} steps "
-            f"(smcd_rl.tune {s['tune']:.1f} s, references {s['references']:.1f} s; diagnosis on the same episodes)"
-        )
-
-    def tables(self) -> dict[str, str]:
-        """Every tuning table of this model for the report, caption -> Markdown."""
-        return {self.caption(): self.table(), **self.tune_tables}
-
-    def payload(self) -> dict[str, Any]:
-        """The ``results.json`` entry: chosen settings, times, traces and the tuning tables."""
-        return {
-            "specs": self.specs,
-            "ms_per_observation": self.ms,
-            "tune_tables": self.tune_tables,
-            "traces": self.traces,
-            "options": self.options,
-            "seconds": self.seconds,
-            "episodes": self.episodes,
-            "steps": self.steps,
-        }
-
-    def plot(self, path: Path) -> None:
-        """``tuning-<name>.png``: one-step error, ESS share, log evidence and kept share over the steps."""
-        plot_traces(self.name, self.traces, self.episodes, path)
-
 
 def tuned_specs(
-    ex: Experiment,
     model: smcd_rl.AdaptiveModel,
     episodes: TensorDictBase,
     config: Any,
@@ -140,11 +69,12 @@ def tuned_specs(
     paper_noise: float | tuple[float, ...] | list[float],
     budgeted: Sequence[str] = (),
     variants: Sequence[str] = VARIANTS,
+    device: str = "cpu",
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Every variant's spec and time per observation from :func:`smcd_rl.tune` and the two references.
 
     Args:
-        ex: the running experiment (its device and progress setting).
         model: the trained model.
         episodes: held-out training-task episodes ``[E, T]`` in the model's keys.
         config: a :class:`~smcd_rl.experiments.shared.adaptation_config.TuningConfig` with
@@ -155,13 +85,14 @@ def tuned_specs(
             labelled ``"G@10ms"`` and so on.
         variants: the variants (:data:`VARIANTS`) to tune: only the kinds they need are tuned
             (``C`` needs ``G`` and ``S``), and a reference only when asked for; ``N`` always is.
+        device: the model's device (where SMCD's generators live).
+        progress: show the progress bars.
 
     Returns:
         ``{"specs", "ms", "runs", "tables", "seconds", "candidates"}``, ``runs`` the variants'
         traces on ``episodes`` that tuning ran already; the unbudgeted result becomes ``model.tuning``.
     """
     seed = config.seed + 23
-    device = str(ex.device)
     grid = {"lr": config.gd_lr, "steps": config.gd_steps, "window": config.gd_window}
     common: dict[str, Any] = {
         "num_particles": config.particles,
@@ -174,7 +105,7 @@ def tuned_specs(
         },
         "flip_probs": config.calibrate_flips,
         "seed": seed,
-        "progress": ex.progress,
+        "progress": progress,
     }
     common["strategies"] = _kinds(variants)
     free = smcd_rl.tune(model, episodes, **common)
@@ -202,7 +133,7 @@ def tuned_specs(
             flip_probs=config.calibrate_flips,
             criterion="evidence",
             seed=seed,
-            progress=ex.progress,
+            progress=progress,
         )
         settings = {**evidence.strategy.config(), "seed": seed, "device": device}
         specs["S(evidence)"] = {"kind": "smcd", "settings": settings}
@@ -245,6 +176,17 @@ def _kinds(variants: Sequence[str]) -> list[str]:
     return [kind for variant, kind in TUNED.items() if variant in needed]
 
 
+@dataclass(frozen=True)
+class TuneJob:
+    """One trained network to tune: what :func:`tune_all` takes per network (see :func:`tune` for the fields)."""
+
+    model: smcd_rl.AdaptiveModel
+    episodes: TensorDictBase
+    paper_noise_std: float | Sequence[float] | None = None
+    options: bool = True
+    variants: Sequence[str] = VARIANTS
+
+
 def tune(
     ex: Experiment,
     model: smcd_rl.AdaptiveModel,
@@ -271,14 +213,92 @@ def tune(
         variants: the variants to tune (default all of :data:`VARIANTS`); an experiment passes
             those its methods use, so a network that only runs ``G`` is not calibrated for SMCD.
     """
-    paper_noise = config.noise_std if paper_noise_std is None else paper_noise_std
-    paper_noise = tuple(float(v) for v in paper_noise) if isinstance(paper_noise, Sequence) else float(paper_noise)
-    key = {
-        "model": model_digest(model),
-        "episodes": content_digest(episodes),
-        "paper_noise": paper_noise,
-        "options": options,
-        "variants": sorted(variants),
+    return tune_all(ex, {name: TuneJob(model, episodes, paper_noise_std, options, variants)}, config)[name]
+
+
+def tune_all(ex: Experiment, jobs: Mapping[str, TuneJob], config: Any) -> dict[str, Tuning]:
+    """:func:`tune` every network of ``jobs`` (name -> :class:`TuneJob`); those still to tune side by side.
+
+    With ``--workers``, worker processes tune the networks a rerun has not stored yet, each on
+    one core; each network's times per observation are then measured beside the other worker's
+    tuning (measured on the two-link networks: within 10 % of a quiet machine's, since one
+    stream's weights fit in a core's cache). The results are the same for any number of workers.
+    """
+    keys = {name: _key(job, config) for name, job in jobs.items()}
+    found = {name: ex.store.get(f"tuning-{name}", keys[name]) for name in jobs}
+    pending = [name for name in jobs if found[name] is None]
+    stages = {name: f"tune {name}" for name in jobs}
+    workers = ex.workers_for([stages[name] for name in pending]) if len(pending) > 1 else 1
+
+    def compute(name: str, progress: bool) -> functools.partial[dict[str, Any]]:
+        job = jobs[name]
+        return functools.partial(
+            _tune,
+            job.model,
+            job.episodes,
+            config,
+            name=name,
+            paper_noise=_paper_noise(job, config),
+            options=job.options,
+            variants=tuple(job.variants),
+            device=str(ex.device),
+            progress=progress,
+        )
+
+    def store(name: str, result: dict[str, Any]) -> None:  # as each finishes: Ctrl-C keeps it
+        ex.store.put(f"tuning-{name}", keys[name], result)
+        found[name] = result
+
+    if workers > 1:
+        with ex.stage(f"tune {', '.join(pending)} in {workers} workers", members=[stages[n] for n in pending]):
+            map_jobs(
+                {name: compute(name, False) for name in pending},
+                computed,
+                workers=workers,
+                threads=ex.config.threads,
+                on_result=store,
+                progress=ex.progress,
+            )
+    for name in jobs:
+        if workers > 1 and name in pending:
+            continue
+        with ex.stage(stages[name]):  # a stored result too: the progress line counts every stage
+            if found[name] is None:
+                store(name, compute(name, ex.progress)())
+    tunings = {}
+    for name in jobs:
+        result = found[name]
+        assert result is not None
+        tunings[name] = Tuning(
+            name=name,
+            specs=result["specs"],
+            ms=result["ms"],
+            tune_tables=result["tables"],
+            traces=result["traces"],
+            options=result["options"],
+            seconds=result["seconds"],
+            episodes=result["episodes"],
+            steps=result["steps"],
+        )
+        for stage, seconds in result["seconds"].items():
+            ex.timings[f"tune {name} {stage}"] = seconds
+    return tunings
+
+
+def _paper_noise(job: TuneJob, config: Any) -> float | tuple[float, ...]:
+    """``S(paper)``'s noise: the job's, else the config's ``noise_std``, as floats."""
+    value = config.noise_std if job.paper_noise_std is None else job.paper_noise_std
+    return tuple(float(v) for v in value) if isinstance(value, Sequence) else float(value)
+
+
+def _key(job: TuneJob, config: Any) -> dict[str, Any]:
+    """Everything a network's tuning depends on: what its stored result is keyed by."""
+    return {
+        "model": model_digest(job.model),
+        "episodes": content_digest(job.episodes),
+        "paper_noise": _paper_noise(job, config),
+        "options": job.options,
+        "variants": sorted(job.variants),
         "settings": {
             k: getattr(config, k)
             for k in (
@@ -293,31 +313,9 @@ def tune(
             )
         },
     }
-    with ex.stage(f"tune {name}"):
-        found = ex.store.get(f"tuning-{name}", key)
-        if found is None:
-            found = _tune(
-                ex, model, episodes, config, name=name, paper_noise=paper_noise, options=options, variants=variants
-            )
-            ex.store.put(f"tuning-{name}", key, found)
-    tuning = Tuning(
-        name=name,
-        specs=found["specs"],
-        ms=found["ms"],
-        tune_tables=found["tables"],
-        traces=found["traces"],
-        options=found["options"],
-        seconds=found["seconds"],
-        episodes=found["episodes"],
-        steps=found["steps"],
-    )
-    for stage, seconds in tuning.seconds.items():
-        ex.timings[f"tune {name} {stage}"] = seconds
-    return tuning
 
 
 def _tune(
-    ex: Experiment,
     model: smcd_rl.AdaptiveModel,
     episodes: TensorDictBase,
     config: Any,
@@ -326,12 +324,24 @@ def _tune(
     paper_noise: float | tuple[float, ...],
     options: bool,
     variants: Sequence[str],
+    device: str,
+    progress: bool,
 ) -> dict[str, Any]:
+    """One network's tuning, diagnosis and options: what :func:`tune_all` stores (run in a worker or here)."""
     num_episodes, steps = episodes.batch_size
     seed = config.seed + 23
     timer = _Timer()
     with timer("tune"):
-        found = tuned_specs(ex, model, episodes, config, name=name, paper_noise=paper_noise, variants=variants)
+        found = tuned_specs(
+            model,
+            episodes,
+            config,
+            name=name,
+            paper_noise=paper_noise,
+            variants=variants,
+            device=device,
+            progress=progress,
+        )
     timer.seconds["references"] = timer.seconds["tune"] - found["seconds"]
     timer.seconds["tune"] = found["seconds"]
     specs = {variant: found["specs"][variant] for variant in VARIANTS if variant in found["specs"]}
@@ -340,12 +350,14 @@ def _tune(
         for variant, spec in specs.items():
             run = found["runs"].get(variant)  # the same strategy, seed and episodes: tuning's own run
             if run is None:
-                strategy = build_strategy(spec["kind"], _reseeded(spec["kind"], spec["settings"], seed, str(ex.device)))
+                strategy = build_strategy(spec["kind"], reseeded(spec["kind"], spec["settings"], seed, device))
                 run = trace(model, episodes, strategy)
             traces[variant] = asdict(run)
     traced: dict[str, dict[str, Any]] = {}
     if options and "S" in specs:
-        traced, seconds = trace_options(ex, model, episodes, config, specs["S"]["settings"], seed=seed)
+        traced, seconds = trace_options(
+            model, episodes, config, specs["S"]["settings"], seed=seed, device=device, progress=progress
+        )
         timer.seconds |= seconds
     return {
         "specs": specs,
@@ -357,23 +369,6 @@ def _tune(
         "episodes": int(num_episodes),
         "steps": int(steps),
     }
-
-
-def _reseeded(kind: str, settings: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
-    """``settings`` with every SMCD's generator seeded by ``seed`` on ``device`` (a combination's members too)."""
-    if kind == "smcd":
-        return {**settings, "seed": seed, "device": device}
-    if kind == "combination":
-        members = [{**m, "settings": _reseeded(m["name"], m["settings"], seed, device)} for m in settings["members"]]
-        return {**settings, "members": members}
-    return settings
-
-
-def _scores(t: Mapping[str, Any]) -> list[Any]:
-    """A trace's table cells: one-step RMSE, final log evidence and smallest ESS share (``-`` without SMCD)."""
-    evidence = f"{t['log_evidence'][-1]:.1f}" if t["log_evidence"] else "-"
-    ess = f"{min(t['ess']):.3f}" if t["ess"] else "-"
-    return [t["rmse"], evidence, ess]
 
 
 class _Timer:

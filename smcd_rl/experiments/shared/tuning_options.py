@@ -24,7 +24,6 @@ from tensordict import TensorDictBase
 import smcd_rl
 from smcd_rl.calibration import calibrate
 from smcd_rl.diagnostics import trace
-from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.tuning import build_strategy, describe_settings
 
 __all__ = ["OPTIONS", "STUDENT", "trace_options"]
@@ -39,23 +38,25 @@ STUDENT = "Student-t likelihood"
 
 
 def trace_options(
-    ex: Experiment,
     model: smcd_rl.AdaptiveModel,
     episodes: TensorDictBase,
     config: Any,
     settings: dict[str, Any],
     *,
     seed: int,
+    device: str,
+    progress: bool,
 ) -> tuple[dict[str, dict[str, Any]], dict[str, float]]:
     """The tuned SMCD's trace with each option changed, and with a Student-t likelihood of its own calibration.
 
     Args:
-        ex: the running experiment (its device and progress setting).
         model: the trained model; its own calibration is kept.
         episodes: the tuning episodes ``[E, T]``.
         config: the experiment's config (``particles``, ``calibrate_flips``).
         settings: the tuned SMCD's settings.
         seed: every filter's generator seed.
+        device: where the filters' generators live (the model's device).
+        progress: show the calibration's progress bar.
 
     Returns:
         option -> trace (as a dict, with a ``"settings"`` description), and the wall seconds of the
@@ -63,10 +64,10 @@ def trace_options(
     """
     started = time.perf_counter()
     options = {}
-    tuned = build_strategy("smcd", {**settings, "seed": seed, "device": str(ex.device)})
+    tuned = build_strategy("smcd", {**settings, "seed": seed, "device": device})
     assert isinstance(tuned, smcd_rl.SMCD)
     for option, changed in OPTIONS.items():
-        generator = torch.Generator(device=ex.device).manual_seed(seed)
+        generator = torch.Generator(device=device).manual_seed(seed)
         other = smcd_rl.SMCD(**{**tuned.config(), **changed(tuned)}, generator=generator)
         options[option] = {**asdict(trace(model, episodes, other)), "settings": "as S"}
     seconds = {"options": time.perf_counter() - started}
@@ -79,10 +80,10 @@ def trace_options(
         flip_probs=config.calibrate_flips,
         criterion="evidence",
         seed=seed,
-        progress=ex.progress,
+        progress=progress,
     )
     model.calibration = chosen  # the model keeps its own calibration
-    generator = torch.Generator(device=ex.device).manual_seed(seed)
+    generator = torch.Generator(device=device).manual_seed(seed)
     strategy = smcd_rl.SMCD(**student.strategy.config(), generator=generator)
     options[STUDENT] = {
         **asdict(trace(model, episodes, strategy)),

@@ -42,7 +42,7 @@ from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, 
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.shared.task_family import task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import ms_column, tuned_variants
-from smcd_rl.experiments.shared.tuning import tune
+from smcd_rl.experiments.shared.tuning import TuneJob, tune_all
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
     fit_settings,
@@ -101,11 +101,12 @@ def run(config: TelescopingConfig, *, progress: bool = True) -> dict[str, Any]:
 
         # --- the fair protocol: SMCD and GD tuned on babbling of fresh training arms (never telescoping)
         held_out = tuning_episodes(config, ex.device, steps=TUNING_STEPS)
-        tunings = {
-            family: tune(ex, models[family], held_out, config, name=family, variants=variants)
+        jobs = {
+            family: TuneJob(models[family], held_out, variants=variants)
             for family in sorted(families)
             if (variants := tuned_variants(family, config.methods))
         }
+        tunings = tune_all(ex, jobs, config)  # independent: side by side with --workers
 
         # --- every method on the same episodes, cached by the digest of the model it adapts ---------
         episodes, noise = sample_episodes(config, ex.device)

@@ -26,7 +26,7 @@ from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.shared.task_family import task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column, strategy_for, tuned_variants
-from smcd_rl.experiments.shared.tuning import Tuning, tune
+from smcd_rl.experiments.shared.tuning import TuneJob, Tuning, tune_all
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
     fit_settings,
@@ -82,11 +82,12 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         # --- the fair protocol: SMCD and GD tuned on held-out babbling of fresh training arms -------
         episodes = tuning_episodes(config, ex.device, steps=max(2, *config.burn_in))  # calibration needs 2 steps
         networks = {"M": model, "R": reptile, "T": task}
-        tunings = {
-            name: tune(ex, trained, episodes, config, name=name, options=config.tuning_options, variants=variants)
+        jobs = {
+            name: TuneJob(trained, episodes, options=config.tuning_options, variants=variants)
             for name, trained in networks.items()
             if trained is not None and (variants := tuned_variants(name, config.methods))
         }
+        tunings = tune_all(ex, jobs, config)  # independent: side by side with --workers
 
         # --- every method on the same held-out arms -------------------------------------------------
         q, ee, ee_true, lengths = test_arms(config, ex.device, count=config.trials, seed=config.seed + TEST_ARMS_SEED)
