@@ -56,18 +56,40 @@ def clock(monkeypatch) -> Clock:
     return clock
 
 
-def test_time_left_is_the_remaining_cost_at_the_measured_speed(clock: Clock) -> None:
-    plan = StagePlan("run", {"train": 2.0, "tune": 1.0, "evaluate": 3.0}, stream=io.StringIO())
+def test_time_left_is_the_remaining_cost_at_each_kinds_measured_speed(clock: Clock) -> None:
+    """Each stage costs its planned cost plus STAGE_OVERHEAD (0.5); a kind run already has its own speed,
+    one not run yet the speed of all finished stages together."""
+    costs = {"train": 1.5, "tune M": 0.5, "tune R": 1.5, "evaluate": 3.5}
+    plan = StagePlan("run", costs, stream=io.StringIO())
     with plan.stage("train"):
-        clock.now += 20.0  # cost 2 took 20 s: 10 s per unit, so 4 units are 40 s
-    with plan.stage("tune"):
+        clock.now += 20.0  # 2 units in 20 s: 10 s per unit
+    with plan.stage("tune M"):
+        clock.now += 5.0  # tune: 1 unit in 5 s, twice train's speed
+    with plan.stage("tune R"):
         clock.now += 10.0
     with plan.stage("evaluate"):
         pass
     lines = plan.stream.getvalue().splitlines()
-    assert lines[0] == "run [1/3] train | 0 s elapsed"  # nothing timed yet: no estimate
-    assert lines[1] == "run [2/3] tune | 20 s elapsed, about 40 s left"
-    assert lines[2] == "run [3/3] evaluate | 30 s elapsed, about 30 s left"
+    assert lines[0] == "run [1/4] train | 0 s elapsed"  # nothing timed yet: no estimate
+    assert lines[1] == "run [2/4] tune M | 20 s elapsed, about 1 min 10 s left"  # 7 units at 10 s
+    # tune R at tune's 5 s per unit (10 s) and evaluate at the pooled 25 s / 3 units (33 s)
+    assert lines[2] == "run [3/4] tune R | 25 s elapsed, about 43 s left"
+    assert lines[3] == "run [4/4] evaluate | 35 s elapsed, about 28 s left"  # 4 units at 35 s / 5 units
+
+
+def test_a_tiny_run_never_extrapolates_its_overhead_to_hours(clock: Clock) -> None:
+    """A run whose planned work is next to nothing (tiny settings, or workers whose start dominates) took
+    3 s for its first stage: the rest is estimated from that at the stages' overhead, not at 3 s per
+    millionth of a unit."""
+    plan = StagePlan(
+        "run", {"train": 1e-6, "tune": 0.3, **{f"evaluate {i}": 0.2 for i in range(10)}}, stream=io.StringIO()
+    )
+    with plan.stage("train"):
+        clock.now += 3.0
+    with plan.stage("tune"):
+        pass
+    left = plan.stream.getvalue().splitlines()[-1].split("about ")[1]
+    assert " h " not in left and left.endswith(" s left") and int(left.split()[0]) < 120, left
 
 
 def test_resumed_stages_do_not_count_as_fast_work(clock: Clock) -> None:
@@ -79,7 +101,7 @@ def test_resumed_stages_do_not_count_as_fast_work(clock: Clock) -> None:
     with plan.stage("evaluate"):
         pass
     last = plan.stream.getvalue().splitlines()[-1]
-    assert last.endswith("about 30 s left"), last  # 30 s per unit from tune alone, not 30.1 / 6
+    assert last.endswith("about 30 s left"), last  # 20 s per unit (1.5) from tune alone, not 30.1 / 7.5
 
 
 def test_an_unplanned_stage_still_prints_and_quiet_prints_nothing(clock: Clock) -> None:

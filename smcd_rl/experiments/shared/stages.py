@@ -5,9 +5,15 @@ it starts, above the stage's own progress bars::
 
     two-link [4/9] tune M | 2 min 10 s elapsed, about 3 min left
 
-The time left is the remaining cost at the speed measured so far on this run's own stages, so
-it needs one finished stage; stages that finish at once (resumed from a checkpoint or the cache)
-do not count towards the speed. A stage the plan does not name still prints its line.
+The time left is the remaining cost at the speeds measured so far on this run's own stages, so
+it needs one finished stage. Each kind of stage (the first word of its name: train, tune,
+evaluate, ...) has a speed of its own, learned from the stages of that kind already run, since
+the planned costs of different kinds are rougher relative to each other than those of one
+kind; a kind not run yet takes the speed of all finished stages together. Every stage also costs
+:data:`STAGE_OVERHEAD` (starting workers, building a model), so a tiny run whose planned work is
+next to nothing does not extrapolate its overhead to hours. Stages that finish at once (resumed
+from a checkpoint or the cache) do not count towards a speed. A stage the plan does not name
+still prints its line.
 """
 
 from __future__ import annotations
@@ -24,6 +30,8 @@ __all__ = ["StagePlan", "duration", "estimate", "mlp_flops", "tuning_cost", "upd
 
 #: A stage that finished faster than this was resumed, not computed: it says nothing about speed.
 RESUMED_SECONDS = 1.0
+#: What every stage costs beyond its planned work, in the plan's units (about seconds).
+STAGE_OVERHEAD = 0.5
 
 
 def duration(seconds: float) -> str:
@@ -150,8 +158,8 @@ class StagePlan:
         self.stream = stream
         self.quiet = quiet
         self.done: set[str] = set()
-        self._computed_cost = 0.0  # of the finished stages that were computed, not resumed
-        self._computed_seconds = 0.0
+        # Per kind of stage: [cost, seconds] of its finished stages that were computed, not resumed.
+        self._timed: dict[str, list[float]] = {}
         self._started = time.perf_counter()
 
     def plan(self, costs: Mapping[str, float]) -> None:
@@ -160,10 +168,15 @@ class StagePlan:
 
     def remaining(self) -> float | None:
         """Estimated seconds for the planned stages not yet finished; None before any stage was timed."""
-        if self._computed_cost <= 0:
+        if not self._timed:
             return None
-        left = sum(cost for name, cost in self.costs.items() if name not in self.done)
-        return left * self._computed_seconds / self._computed_cost
+        pooled = sum(seconds for _, seconds in self._timed.values()) / sum(cost for cost, _ in self._timed.values())
+        rates = {kind: seconds / cost for kind, (cost, seconds) in self._timed.items()}
+        return sum(
+            (cost + STAGE_OVERHEAD) * rates.get(_kind(name), pooled)
+            for name, cost in self.costs.items()
+            if name not in self.done
+        )
 
     @contextmanager
     def stage(self, name: str, *, members: Sequence[str] = ()) -> Iterator[None]:
@@ -199,8 +212,15 @@ class StagePlan:
         started = time.perf_counter()
         yield
         seconds = time.perf_counter() - started
-        cost = sum(self.costs.get(s, 0.0) for s in stages)
-        if seconds >= RESUMED_SECONDS and cost > 0:
-            self._computed_cost += cost
-            self._computed_seconds += seconds
+        planned = [s for s in stages if s in self.costs]
+        if seconds >= RESUMED_SECONDS and planned:
+            # Side-by-side stages are of one kind (a command's workers train, tune or evaluate).
+            timed = self._timed.setdefault(_kind(planned[0]), [0.0, 0.0])
+            timed[0] += sum(self.costs[s] + STAGE_OVERHEAD for s in planned)
+            timed[1] += seconds
         self.done.update(stages)
+
+
+def _kind(stage: str) -> str:
+    """A stage's kind, the first word of its name: ``"tune M"`` is a ``"tune"`` stage."""
+    return stage.split(" ", 1)[0]
