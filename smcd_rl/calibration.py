@@ -36,7 +36,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from tensordict import TensorDictBase
@@ -46,6 +46,7 @@ from tqdm.auto import tqdm
 from smcd_rl.adaptation import SMCD, NoAdaptation
 from smcd_rl.checks import check_count, check_real, check_seed
 from smcd_rl.diagnostics import Trace, trace_pairs
+from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.filter import SMCDFilter
 from smcd_rl.held_out import checked_model, pairs, stacked
 from smcd_rl.model import AdaptiveModel
@@ -111,6 +112,8 @@ class Calibration:
     num_particles: int
     #: Wall time of the search.
     seconds: float = field(compare=False)
+    #: A digest of the model, the episodes, the seed and the base settings: what ``reuse`` checks.
+    data: str = field(default="", compare=False)
 
     @property
     def best(self) -> Candidate:
@@ -172,6 +175,8 @@ def calibrate(
     criterion: Criterion = "one-step",
     seed: int = 0,
     progress: bool = True,
+    reuse: Calibration | None = None,
+    store: bool = True,
 ) -> Calibration:
     """Choose SMCD's ``noise_std`` and ``flip_prob`` on held-out episodes, by one-step error or by evidence.
 
@@ -228,6 +233,11 @@ def calibrate(
             log evidence (:attr:`Candidate.log_evidence`, highest wins).
         seed: seed of every filter run: two calls with the same arguments give the same result.
         progress: show a progress bar over the filter runs.
+        reuse: an earlier result on the same model, episodes, seed and ``base`` (the other
+            criterion's, say): a setting it ran takes its run from there instead of running again.
+            The two criteria's searches start from the same bracket, so the second runs fewer.
+        store: write the choice into ``model.calibration`` (``False``: leave the model as it is,
+            as :func:`smcd_rl.tune` does, which keeps its own record).
 
     Returns:
         The chosen strategy and settings and every candidate (``print`` it for a table).
@@ -244,6 +254,8 @@ def calibrate(
     if not isinstance(criterion, str) or criterion not in _CRITERIA:
         raise ValueError(f"criterion must be 'one-step' or 'evidence', got {criterion!r}")
     model, base = checked_model(model), _checked_base(base)
+    if not isinstance(store, bool):
+        raise TypeError(f"store must be True or False, got {store!r} ({type(store).__name__})")
     if not isinstance(per_dimension, bool):  # a string such as "no" is truthy: it would mean True
         raise TypeError(f"per_dimension must be True or False, got {per_dimension!r} ({type(per_dimension).__name__})")
     grid = _checked_flips(flip_probs, model, base)
@@ -269,6 +281,16 @@ def calibrate(
     scores: dict[tuple[float, float], float] = {}
     middle = grid[len(grid) // 2]
     planned = len(_BRACKET) + len(grid) - 1 + refine
+    data = content_digest(
+        {
+            "model": model_digest(model),
+            "episodes": content_digest(td),
+            "seed": seed,
+            "base": config,
+            "scale": start.tolist(),
+        }
+    )
+    ran_before = _reusable(reuse, data)
     bar = tqdm(total=planned, desc="calibrate", unit="run", disable=not progress)
 
     def score(log_factor: float, flip: float, stage: Stage) -> float:
@@ -281,13 +303,17 @@ def calibrate(
             bar.total = planned
             bar.refresh()
         noise = noise_of(log_factor)
-        strategy = SMCD(
-            **config,
-            noise_std=list(noise) if isinstance(noise, tuple) else noise,
-            flip_prob=flip,
-            generator=torch.Generator(device=device).manual_seed(seed),
-        )
-        evidence, rmse, run = _run(model, strategy, x, y)
+        earlier = ran_before.get((noise, flip))
+        if earlier is not None and earlier.trace is not None:
+            evidence, rmse, run = earlier.log_evidence, earlier.one_step_rmse, earlier.trace
+        else:
+            strategy = SMCD(
+                **config,
+                noise_std=list(noise) if isinstance(noise, tuple) else noise,
+                flip_prob=flip,
+                generator=torch.Generator(device=device).manual_seed(seed),
+            )
+            evidence, rmse, run = _run(model, strategy, x, y)
         candidate = Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse, run)
         candidates.append(candidate)
         scores[key] = value = _objective(candidate, criterion)
@@ -317,17 +343,7 @@ def calibrate(
             "every particle); check that the episodes are in the model's units and free of outliers"
         )
     chosen: float | list[float] = list(best.noise_std) if isinstance(best.noise_std, tuple) else best.noise_std
-    model.calibration = {
-        "noise_std": chosen,
-        "flip_prob": best.flip_prob,
-        "criterion": criterion,
-        "log_evidence": best.log_evidence,
-        "one_step_rmse": best.one_step_rmse,
-        "episodes": num_episodes,
-        "steps": steps,
-        "num_particles": base.num_particles,
-    }
-    return Calibration(
+    result = Calibration(
         strategy=SMCD(**config, noise_std=chosen, flip_prob=best.flip_prob),
         noise_std=chosen,
         flip_prob=best.flip_prob,
@@ -341,7 +357,35 @@ def calibrate(
         steps=steps,
         num_particles=base.num_particles,
         seconds=time.perf_counter() - started,
+        data=data,
     )
+    if not store:
+        return result
+    model.calibration = {
+        "noise_std": chosen,
+        "flip_prob": best.flip_prob,
+        "criterion": criterion,
+        "log_evidence": best.log_evidence,
+        "one_step_rmse": best.one_step_rmse,
+        "episodes": num_episodes,
+        "steps": steps,
+        "num_particles": base.num_particles,
+    }
+    return result
+
+
+def _reusable(reuse: Calibration | None, data: str) -> dict[tuple[Any, float], Candidate]:
+    """The runs of ``reuse`` by (noise, flip), after checking that it searched the same model and episodes."""
+    if reuse is None:
+        return {}
+    if not isinstance(reuse, Calibration):
+        raise TypeError(f"reuse must be a Calibration of an earlier calibrate call, got {type(reuse).__name__}")
+    if reuse.data != data:
+        raise ValueError(
+            "reuse holds a calibration of another model, other episodes, another seed or other base settings "
+            "(or of another noise form); pass one of the same, or none"
+        )
+    return {(c.noise_std, c.flip_prob): c for c in reuse.candidates}
 
 
 def evidence(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -9,6 +10,8 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
+import smcd_rl.tuning_kinds
+import smcd_rl.tuning_search
 
 # Small and fast: a few particles and a small GD grid; each test runs in seconds.
 FAST = {"num_particles": 16, "gd_grid": {"lr": (1e-3, 1e-2), "steps": (1,), "window": (1, 5)}, "progress": False}
@@ -76,7 +79,7 @@ def test_a_budget_skips_what_does_not_fit(model) -> None:
     result = smcd_rl.tune(
         model, shifted_episodes(0.5), strategies=["none", "gradient_descent"], budget_ms=3.6e6, **FAST
     )
-    assert not [c for c in result.candidates if c.skipped] and len(result.candidates) >= 5
+    assert not [c for c in result.candidates if c.skipped == "over budget"] and len(result.candidates) >= 5
     assert all(c.ms_per_step > 0 for c in result.candidates)
 
 
@@ -123,7 +126,9 @@ def test_bad_options_are_refused_and_change_nothing(model, options, message) -> 
 
 def test_bad_flip_probabilities_are_refused_before_any_run(model, monkeypatch) -> None:
     """calibrate's own check of the flips runs first: no grid is scored only to fail at SMCD."""
-    monkeypatch.setattr(smcd_rl.tuning, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal"))
+    monkeypatch.setattr(
+        smcd_rl.tuning_search, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal")
+    )
     with pytest.raises(TypeError, match="flip_probs must be a sequence of probabilities"):
         smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, "flip_probs": 0.01})
     with pytest.raises(ValueError, match=r"flip_probs\[0\]"):
@@ -195,30 +200,34 @@ def test_a_grid_of_one_loss_tries_only_that_loss(model) -> None:
 
 def test_reuse_takes_an_earlier_calls_scores_without_running_anything(model, result, monkeypatch) -> None:
     """A budgeted call after an unbudgeted one: the same settings, not one filter or GD run again."""
-    import smcd_rl.tuning as tuning
 
     def refuse(*args, **kwargs):
         raise AssertionError("a setting the earlier call scored was run again")
 
-    monkeypatch.setattr(tuning, "trace_pairs", refuse)
-    monkeypatch.setattr(tuning, "calibrate", refuse)
+    monkeypatch.setattr(smcd_rl.tuning_search, "trace_pairs", refuse)
+    monkeypatch.setattr(smcd_rl.tuning_kinds, "calibrate", refuse)
     again = smcd_rl.tune(model, shifted_episodes(0.5), **FAST, reuse=result)
     assert {k: c.settings for k, c in again.best_of.items()} == {k: c.settings for k, c in result.best_of.items()}
     assert {k: c.one_step_rmse for k, c in again.best_of.items()} == {
         k: c.one_step_rmse for k, c in result.best_of.items()
     }
-    # under a budget below the slowest GD setting's time, that setting is skipped, the rest reused
-    # (reused times, so no timing noise decides; SMCD left out: its particle count is timed afresh)
-    slowest = max((c for c in result.candidates if c.kind == "gradient_descent"), key=lambda c: c.ms_per_step)
+    # Under a budget that the largest learning rates' settings exceed (a clock of the learning rate,
+    # so that no timing noise decides), those are skipped and the rest reused: the leader is within
+    # the budget, so the race goes as before and nothing runs.
+    monkeypatch.setattr(smcd_rl.tuning_search.Timing, "ms_per_step", lambda timing, s: 1.0 + getattr(s, "lr", 0.0))
+    largest = max(c.settings["lr"] for c in result.candidates if c.kind == "gradient_descent")
+    assert result.best_of["gradient_descent"].settings["lr"] < largest
     budgeted = smcd_rl.tune(
         model,
         shifted_episodes(0.5),
         **FAST,
         strategies=["none", "gradient_descent"],
         reuse=result,
-        budget_ms=0.999 * slowest.ms_per_step,
+        budget_ms=0.999 * (1.0 + largest),
     )
-    assert any(c.skipped == "over budget" and c.settings == slowest.settings for c in budgeted.candidates)
+    skipped = [c.settings["lr"] for c in budgeted.candidates if c.skipped == "over budget"]
+    assert skipped and set(skipped) == {largest}
+    assert budgeted.best_of["gradient_descent"].settings == result.best_of["gradient_descent"].settings
 
 
 def test_reuse_of_other_episodes_is_refused_and_changes_nothing(model, result) -> None:
@@ -246,20 +255,29 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
     # combination takes its members' predictions from their own runs (SMCD's calibration keeps only
     # its trace, so the calibrated SMCD runs once more, to record them).
     traced = []
-    real_trace = smcd_rl.tuning.trace_pairs
+    real_trace = smcd_rl.tuning_search.trace_pairs
     monkeypatch.setattr(
-        smcd_rl.tuning,
+        smcd_rl.tuning_search,
         "trace_pairs",
         lambda m, x, y, s, **kw: traced.append(type(s).__name__) or real_trace(m, x, y, s, **kw),
     )
     again = smcd_rl.tune(model, shifted_episodes(0.5), **FAST)
+    # Each GD setting runs on the first episodes, and those not raced out on the rest.
     settings = [c for c in again.candidates if c.kind == "gradient_descent"]
-    assert "Combination" not in traced and traced.count("GradientDescent") == len(settings)
+    ran_on = [c for c in settings if math.isfinite(c.one_step_rmse)]
+    assert "Combination" not in traced and traced.count("GradientDescent") == len(settings) + len(ran_on)
     assert traced.count("NoAdaptation") == 1 and traced.count("SMCD") == 1
     # Each best strategy's run is kept: what the diagnosis of an experiment shows, without running it again.
+    # (GD's, raced, joins the runs on the first episodes and on the rest: the same errors per episode,
+    # the per-step RMSEs pooled in another order, equal to float rounding.)
     for kind in ("none", "gradient_descent", "smcd"):
-        expected = smcd_rl.diagnostics.trace(model, shifted_episodes(0.5), again.strategy(kind))
-        assert again.trace(kind) == expected, kind
+        expected = dataclasses.asdict(smcd_rl.diagnostics.trace(model, shifted_episodes(0.5), again.strategy(kind)))
+        kept = dataclasses.asdict(again.trace(kind))
+        assert kept["per_episode_rmse"] == expected["per_episode_rmse"], kind
+        assert kept["one_step_errors"] == expected["one_step_errors"], kind
+        for field in ("one_step_rmse", "ess", "log_evidence", "kept"):
+            assert kept[field] == pytest.approx(expected[field], rel=1e-12), (kind, field)
+        assert kept["rmse"] == pytest.approx(expected["rmse"], rel=1e-12), kind
     assert again.trace("combination").rmse == again.best_of["combination"].one_step_rmse
 
 
@@ -281,7 +299,7 @@ def test_a_budgeted_call_with_reuse_repeats_the_times_and_the_choice(model, monk
     """With a budget the measured times decide what fits; they drift between calls, so the same call could
     choose differently. An earlier result passed as ``reuse`` gives every time, SMCD's particle probes too."""
     clock = _DriftingClock()
-    monkeypatch.setattr(smcd_rl.tuning._Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
+    monkeypatch.setattr(smcd_rl.tuning_search.Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
     options = {**FAST, "num_particles": 64, "gd_grid": {"lr": (1e-2,), "steps": (1, 2, 3), "window": (5,)}}
     first = smcd_rl.tune(model, shifted_episodes(0.3), budget_ms=8.0, **options)
     again = smcd_rl.tune(model, shifted_episodes(0.3), budget_ms=8.0, reuse=first, **options)
@@ -343,7 +361,7 @@ def test_gradient_descent_that_always_diverges_is_dropped_with_a_note(model) -> 
 
 def test_smcd_over_any_budget_says_so_and_is_not_said_to_fit(model, monkeypatch) -> None:
     clock = _DriftingClock()
-    monkeypatch.setattr(smcd_rl.tuning._Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
+    monkeypatch.setattr(smcd_rl.tuning_search.Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
     result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["none", "smcd"], budget_ms=1.0, **FAST)
     assert "smcd" not in result.best_of
     assert any("over the budget even with 8 particles" in note for note in result.notes), result.notes
@@ -362,7 +380,9 @@ def test_smcd_over_any_budget_says_so_and_is_not_said_to_fit(model, monkeypatch)
 )
 def test_bad_values_are_refused_before_any_run(model, monkeypatch, options, error, message) -> None:
     """Each was found late or not at all: steps=1.5 ran as 1 step, a huge seed failed after the whole GD grid."""
-    monkeypatch.setattr(smcd_rl.tuning, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal"))
+    monkeypatch.setattr(
+        smcd_rl.tuning_search, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal")
+    )
     with pytest.raises(error, match=message):
         smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, **options})
 
@@ -376,3 +396,74 @@ def test_a_model_on_the_meta_device_is_refused_clearly() -> None:
         smcd_rl.tune(model, shifted_episodes(0.5), **FAST)
     with pytest.raises(ValueError, match="meta device"):
         smcd_rl.calibrate(model, shifted_episodes(0.5), progress=False)
+
+
+def test_racing_drops_settings_by_their_error_alone_and_keeps_the_runs_exact(model) -> None:
+    """Every raced-out setting was worse than the leader by more than RACE_MARGIN on the first episodes,
+    every setting that ran on has the errors a run on all episodes gives, and the choice is the one
+    a search without racing makes (here, where the best is far ahead of the runners-up)."""
+    from smcd_rl.tuning_search import RACE_MARGIN
+
+    episodes = shifted_episodes(0.5, count=12)
+    grid = {"lr": (1e-4, 1e-3, 1e-2, 1e-1), "steps": (1, 3), "window": (2, 6)}
+    result = smcd_rl.tune(model, episodes, strategies=["gradient_descent"], gd_grid=grid, progress=False)
+    gd = [c for c in result.candidates if c.kind == "gradient_descent"]
+    raced_out = [c for c in gd if c.skipped.startswith("raced out")]
+    assert raced_out and len(raced_out) < len(gd)
+    for candidate in raced_out:
+        head, leader = (
+            float(v.split(" ")[0])
+            for v in candidate.skipped.split(": ")[1].split(" on the first 3 episodes, the best ")
+        )
+        assert head > (1 + RACE_MARGIN) * leader * (1 - 1e-3)  # printed at 4 digits
+    for candidate in gd:
+        if math.isfinite(candidate.one_step_rmse):
+            full = smcd_rl.diagnostics.trace(model, episodes, smcd_rl.GradientDescent(**candidate.settings))
+            assert candidate.one_step_rmse == pytest.approx(full.rmse, rel=1e-12)
+    # The same search with every setting run on all episodes chooses the same.
+    unraced = {tuple(sorted(c.settings.items())): c for c in gd}
+    scores = {
+        key: smcd_rl.diagnostics.trace(model, episodes, smcd_rl.GradientDescent(**dict(key))).rmse for key in unraced
+    }
+    best = min(scores, key=scores.get)
+    assert dict(best) == result.best_of["gradient_descent"].settings
+
+
+def test_tune_leaves_the_models_calibration_to_calibrate_even_when_both_run_at_once(model, monkeypatch) -> None:
+    """tune once saved the calibration and restored it after its own: a calibrate call on the same model in
+    between (another thread) was lost. tune no longer writes it: the other call's result stays."""
+    real = smcd_rl.tuning_kinds.calibrate
+    stored = {}
+
+    def beside(*args, **kwargs):  # a calibrate call on the same model while tune calibrates
+        if not stored:
+            stored["result"] = smcd_rl.calibrate(
+                model, shifted_episodes(0.3), base=smcd_rl.SMCD(num_particles=8), progress=False
+            )
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(smcd_rl.tuning_kinds, "calibrate", beside)
+    smcd_rl.tune(model, shifted_episodes(0.5), strategies=["smcd"], **FAST)
+    assert model.calibration is not None and model.calibration["noise_std"] == stored["result"].noise_std
+
+
+def test_calibrate_reuses_an_earlier_searchs_runs_and_chooses_the_same(model) -> None:
+    """The evidence search starts from the same bracket as the one-step search: reusing the latter's runs,
+    it runs fewer filters and chooses exactly what it chooses alone."""
+    episodes, base = shifted_episodes(0.2), smcd_rl.SMCD(num_particles=16)
+    one_step = smcd_rl.calibrate(model, episodes, base=base, progress=False, store=False)
+    alone = smcd_rl.calibrate(model, episodes, base=base, criterion="evidence", progress=False, store=False)
+    ran = []
+    real = smcd_rl.calibration._run
+    try:
+        smcd_rl.calibration._run = lambda *a: ran.append(1) or real(*a)
+        reused = smcd_rl.calibrate(
+            model, episodes, base=base, criterion="evidence", progress=False, store=False, reuse=one_step
+        )
+    finally:
+        smcd_rl.calibration._run = real
+    assert (reused.noise_std, reused.flip_prob) == (alone.noise_std, alone.flip_prob)
+    assert [c.log_evidence for c in reused.candidates] == [c.log_evidence for c in alone.candidates]
+    assert 0 < len(ran) <= len(alone.candidates) - 7  # at least the seven runs of the bracket
+    with pytest.raises(ValueError, match="another model, other episodes"):
+        smcd_rl.calibrate(model, shifted_episodes(0.3), base=base, progress=False, store=False, reuse=one_step)

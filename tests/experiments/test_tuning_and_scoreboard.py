@@ -49,10 +49,15 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     assert SIGMA / 2 < rms < 2 * SIGMA
     assert result.traces["S"]["rmse"] == pytest.approx(best_of["smcd"]["one_step_rmse"], rel=1e-6)
     assert result.traces["S"]["rmse"] < result.traces["S(paper)"]["rmse"]
-    # The diagnosis takes tuning's own runs where it has them: each equals a fresh run of the variant.
+    # The diagnosis takes tuning's own runs where it has them: each equals a fresh run of the variant
+    # (G's, raced, joins two runs: the same errors per episode, its means pooled in another order).
     for variant in ("N", "G", "S", "S(evidence)", "S(paper)"):
-        fresh = trace(model, episodes, result.strategy(variant, seed=config.seed + 23))
-        assert result.traces[variant] == dataclasses.asdict(fresh), variant
+        fresh = dataclasses.asdict(trace(model, episodes, result.strategy(variant, seed=config.seed + 23)))
+        kept = result.traces[variant]
+        assert kept["one_step_errors"] == fresh["one_step_errors"], variant
+        for field, value in fresh.items():
+            if field != "one_step_errors":
+                assert kept[field] == pytest.approx(value, rel=1e-12), (variant, field)
     paper = result.strategy("S(paper)", seed=0)
     assert isinstance(paper, smcd_rl.SMCD) and paper.noise_std == 0.3 and paper.flip_prob == config.flip_prob
     combination = result.strategy("C", seed=0)

@@ -134,6 +134,7 @@ def tuned_specs(
             criterion="evidence",
             seed=seed,
             progress=progress,
+            reuse=free.calibrations.get("per-dimension"),  # the same bracket: its runs are not run again
         )
         settings = {**evidence.strategy.config(), "seed": seed, "device": device}
         specs["S(evidence)"] = {"kind": "smcd", "settings": settings}

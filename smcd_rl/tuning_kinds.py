@@ -1,0 +1,324 @@
+"""How :func:`smcd_rl.tune` searches each kind of strategy: gradient descent's grid, SMCD's calibration, the combination.
+
+Each function adds its kind's candidates to a :class:`~smcd_rl.tuning_search.Search`; the
+module doc of :mod:`smcd_rl.tuning` says what each searches.
+
+Example:
+    >>> _past((1e-3, 1e-2, 1e-1), "lr", "high"), _past((1, 5), "steps", "high")
+    (1.0, 10)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from itertools import product
+from typing import Any, Literal
+
+import torch
+from torch import Tensor
+
+from smcd_rl.adaptation import SMCD, GradientDescent
+from smcd_rl.calibration import Calibration, calibrate
+from smcd_rl.checks import check_count, check_real
+from smcd_rl.combination import mixed_log_weights
+from smcd_rl.diagnostics import Trace
+from smcd_rl.model import AdaptiveModel
+from smcd_rl.tuning_search import Search, TuneCandidate, setting_key
+
+__all__ = [
+    "GD_GRID",
+    "MAX_EXTENSIONS",
+    "EXTENSIBLE",
+    "COMBINATION_GRID",
+    "MIN_PARTICLES",
+    "checked_gd_grid",
+    "checked_gd_limits",
+    "tune_gd",
+    "tune_smcd",
+    "tune_combination",
+]
+
+#: Gradient descent's starting grid: learning rate x steps per observation x window x loss
+#: (:class:`smcd_rl.GradientDescent`'s ``loss``; this dimension is never extended).
+GD_GRID: dict[str, tuple[Any, ...]] = {
+    "lr": (1e-3, 1e-2, 1e-1),
+    "steps": (1, 5),
+    "window": (1, 10),
+    "loss": ("mse", "huber"),
+}
+#: At most this many extensions past each edge of the GD grid.
+MAX_EXTENSIONS = 3
+#: The dimensions of the GD grid that extend past their edges.
+EXTENSIBLE = ("lr", "steps", "window")
+#: The combination's grid: the weights' learning rate and the fixed share.
+COMBINATION_GRID = {"eta": (0.1, 1.0, 10.0, 100.0), "share": (0.0, 0.02)}
+#: SMCD never halves its particles below this to meet a budget.
+MIN_PARTICLES = 8
+
+
+# ---------------------------------------------------------------------------- gradient descent
+def checked_gd_grid(gd_grid: Mapping[str, Sequence[Any]] | None) -> dict[str, tuple[Any, ...]]:
+    """``gd_grid`` filled in from :data:`GD_GRID`, or an error before any run."""
+    if gd_grid is not None and not isinstance(gd_grid, Mapping):
+        raise TypeError(f"gd_grid must be a dict such as {GD_GRID}, got {type(gd_grid).__name__}")
+    given = dict(gd_grid or {})
+    grid = {k: tuple(v) for k, v in {**GD_GRID, **given}.items()}
+    # A bare string is iterable too: "mse" would become the losses "m", "s", "e".
+    if set(grid) != set(GD_GRID) or not all(grid.values()) or any(isinstance(v, str) for v in given.values()):
+        raise ValueError(
+            f"gd_grid takes non-empty sequences of 'lr', 'steps', 'window' and 'loss' values, such as "
+            f"{{'lr': (0.01, 0.1), 'loss': ('huber',)}} (a key left out keeps GD_GRID's values), got {gd_grid!r}"
+        )
+    unknown = [loss for loss in grid["loss"] if loss not in GradientDescent.LOSSES]
+    if unknown:
+        raise ValueError(f"gd_grid['loss'] takes losses from {list(GradientDescent.LOSSES)}, got {unknown}")
+    # The values GradientDescent takes, checked here: steps=1.5 would otherwise run as int(1.5) = 1.
+    grid["lr"] = tuple(
+        check_real(v, f"gd_grid['lr'][{i}]", low=0.0, high=1e30, open_low=True) for i, v in enumerate(grid["lr"])
+    )
+    for name in ("steps", "window"):
+        grid[name] = tuple(check_count(v, f"gd_grid[{name!r}][{i}]") for i, v in enumerate(grid[name]))
+    return grid
+
+
+def checked_gd_limits(
+    gd_limits: Mapping[str, tuple[float | None, float | None]] | None, grid: dict[str, tuple[Any, ...]]
+) -> dict[str, tuple[float, float]]:
+    """``gd_limits`` as ``{dimension: (low, high)}`` for every extensible dimension, or an error before any run."""
+    if gd_limits is not None and not isinstance(gd_limits, Mapping):
+        raise TypeError(f"gd_limits must be a dict such as {{'lr': (None, 0.03)}}, got {type(gd_limits).__name__}")
+    given = dict(gd_limits or {})
+    unknown = sorted(set(given) - set(EXTENSIBLE))
+    if unknown:
+        raise ValueError(f"gd_limits: unknown {unknown}; the grid extends only along {list(EXTENSIBLE)}")
+    limits = {}
+    for name in EXTENSIBLE:
+        bounds = given.get(name, (None, None))
+        if not isinstance(bounds, (tuple, list)) or len(bounds) != 2:
+            raise ValueError(f"gd_limits[{name!r}] must be a pair (low, high), None for no limit, got {bounds!r}")
+        low, high = (-math.inf if bounds[0] is None else bounds[0], math.inf if bounds[1] is None else bounds[1])
+        outside = [v for v in grid[name] if not low <= v <= high]
+        if outside:
+            raise ValueError(f"gd_grid[{name!r}] has {outside} outside gd_limits[{name!r}] = {tuple(bounds)}")
+        limits[name] = (low, high)
+    return limits
+
+
+def tune_gd(search: Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, tuple[float, float]]) -> None:
+    """Score the grid; while the best point lies on an edge, go on past that edge along that dimension.
+
+    The grid, and each extension's settings, are raced (:meth:`~smcd_rl.tuning_search.Search.race`).
+    Past an edge only the line through the best point is scored (the new value with the other
+    settings at their best), not the whole grid again: each extension costs one setting per loss
+    at most, and steps and window double the cost of a setting with each extension. The loss is
+    a dimension of the grid but has no edge: the search tries each loss given and extends only the
+    learning rate, steps and window, never past ``limits``.
+    """
+    # The losses keep GradientDescent.LOSSES' order, so that among equal errors the squared one wins.
+    grid = {k: tuple(sorted(v)) for k, v in grid.items() if k != "loss"} | {
+        "loss": tuple(loss for loss in GradientDescent.LOSSES if loss in grid["loss"])
+    }
+    scored: dict[tuple[Any, ...], float] = {}
+
+    def race(points: list[tuple[Any, ...]]) -> None:
+        points = [p for p in points if p not in scored]
+        configs = [GradientDescent(lr=lr, steps=s, window=w, loss=loss).config() for lr, s, w, loss in points]
+        scored.update(zip(points, search.race("gradient_descent", configs), strict=True))
+
+    race(list(product(grid["lr"], grid["steps"], grid["window"], grid["loss"])))
+    extensions = {("lr", "low"): 0, ("lr", "high"): 0, ("steps", "high"): 0, ("window", "high"): 0}
+    while True:
+        finite = {k: v for k, v in scored.items() if math.isfinite(v)}
+        if not finite:
+            search.notes.append(
+                f"gradient descent: every one of its {len(scored)} settings diverged or was over the budget, so none "
+                "is kept; try smaller learning rates (gd_grid['lr'])"
+            )
+            return
+        point = min(finite.items(), key=lambda item: item[1])[0]
+        best = dict(zip(("lr", "steps", "window", "loss"), point, strict=True))
+        edge = _edge(grid, best, extensions, limits)
+        if edge is None:
+            search.notes.extend(
+                f"gradient descent: best {name} {best[name]:g} on the grid's {side} edge, at gd_limits"
+                for name, side in extensions
+                if _on_edge(grid[name], best[name], side) and not _within(limits[name], _past(grid[name], name, side))
+            )
+            search.time_best("gradient_descent")
+            return
+        name, side = edge
+        extensions[edge] += 1
+        new = _past(grid[name], name, side)
+        grid[name] = tuple(sorted({*grid[name], new}))
+        race([tuple({**best, name: new, "loss": loss}.values()) for loss in grid["loss"]])
+        search.notes.append(f"gradient descent: best {name} {best[name]:g} on the grid's {side} edge; tried {new:g}")
+
+
+def _past(values: tuple[Any, ...], name: str, side: str) -> Any:
+    """The next value past an edge: the learning rate continues the grid's own ratio; steps and
+    window double, since each multiplies the cost of an observation."""
+    ratio = values[1] / values[0] if name == "lr" else 2.0
+    new = values[0] / ratio if side == "low" else values[-1] * ratio
+    return new if name == "lr" else int(round(new))
+
+
+def _edge(
+    grid: dict[str, tuple[Any, ...]],
+    best: dict[str, Any],
+    extensions: dict[tuple[str, str], int],
+    limits: dict[str, tuple[float, float]],
+) -> tuple[str, str] | None:
+    """The first edge the best point lies on that may still extend, or ``None``."""
+    for name, side in extensions:
+        values = grid[name]
+        if (
+            _on_edge(values, best[name], side)
+            and extensions[(name, side)] < MAX_EXTENSIONS
+            and _within(limits[name], _past(values, name, side))
+        ):
+            return name, side
+    return None
+
+
+def _on_edge(values: tuple[Any, ...], value: Any, side: str) -> bool:
+    """Whether ``value`` is the grid's ``side`` end (a dimension of one value has no edge)."""
+    return len(values) > 1 and value == (values[0] if side == "low" else values[-1])
+
+
+def _within(bounds: tuple[float, float], value: float) -> bool:
+    return bounds[0] <= value <= bounds[1]
+
+
+# ---------------------------------------------------------------------------- SMCD
+def tune_smcd(
+    search: Search,
+    num_particles: int,
+    criterion: Literal["one-step", "evidence"],
+    flip_probs: tuple[float, ...],
+    seed: int,
+    progress: bool,
+) -> dict[str, Calibration]:
+    """Halve the particles until a step fits the budget, then calibrate (both noise forms) by ``criterion``.
+
+    Returns the calibrations run, by noise form (``"per-dimension"``, ``"scalar"``); the model's
+    own calibration is left as it is.
+    """
+    model = search.model
+    particles, ms = num_particles, math.nan
+    while search.timing.budget_ms is not None:
+        ms = search.timing.ms("smcd", {"num_particles": particles, "noise_std": 1.0, "flip_prob": 0.01})
+        if not search.timing.over(ms) or particles // 2 < MIN_PARTICLES:
+            break
+        particles //= 2
+    if search.timing.over(ms):
+        search.notes.append(
+            f"SMCD: over the budget even with {particles} particles ({ms:.3g} ms per observation), so not tuned"
+        )
+        search.candidates.append(TuneCandidate("smcd", {"num_particles": particles}, math.inf, ms, "over budget"))
+        return {}
+    if particles != num_particles:
+        search.notes.append(f"SMCD: {particles} particles instead of {num_particles}, to fit the budget")
+    device = str(next(model.net.parameters()).device)
+    known = [c for c in search.known.values() if c.kind == "smcd" and c.settings.get("num_particles") == particles]
+    calibrations: dict[str, Calibration] = {}
+    if known:  # an earlier call calibrated these particles on the same data: its two choices stand
+        for candidate in known:
+            search.score("smcd", candidate.settings)
+    else:
+        for per_dimension in (True, False):
+            result = calibrate(
+                model,
+                search.td,
+                base=SMCD(num_particles=particles),
+                flip_probs=flip_probs,
+                per_dimension=per_dimension,
+                criterion=criterion,
+                seed=seed,
+                progress=progress,
+                store=False,  # tune's record is model.tuning; calibrate's own stays as it was
+            )
+            calibrations["per-dimension" if per_dimension else "scalar"] = result
+            settings = {**result.strategy.config(), "seed": seed, "device": device}
+            search.score("smcd", settings, ms=None if math.isnan(ms) else ms, run=result.best.trace)
+    search.time_best("smcd")
+    return calibrations
+
+
+# ---------------------------------------------------------------------------- combination
+def tune_combination(search: Search, kinds: list[str]) -> None:
+    """Score the combination grid of the best members, from one run of each member.
+
+    The members run on the same stream whatever the weights, so their one-step predictions are
+    recorded once and every ``(eta, share)`` is scored from them (:func:`_combination_trace`), the
+    same error :func:`smcd_rl.diagnostics.trace` gives a :class:`~smcd_rl.combination.Combination`,
+    at the cost of one combination run instead of one per grid point.
+    """
+    if len(kinds) < 2:
+        return
+    for kind in kinds:
+        search.time_best(kind)
+    members: list[dict[str, Any]] = [{"name": kind, "settings": search.best_of[kind].settings} for kind in kinds]
+    ms = sum(search.best_of[kind].ms_per_step for kind in kinds)
+    grid = list(product(COMBINATION_GRID["eta"], COMBINATION_GRID["share"]))
+    settings = [{"members": members, "eta": eta, "share": share} for eta, share in grid]
+    if all(setting_key("combination", s) in search.known for s in settings) or search.timing.over(ms):
+        for one in settings:  # reused from an earlier call, or over the budget: nothing to run
+            search.score("combination", one, ms=ms)
+        return
+    recorded = _member_predictions(search, members)
+    for (eta, share), one in zip(grid, settings, strict=True):
+        if recorded is None:
+            search.score("combination", one, ms=ms, rmse=math.inf)
+            continue
+        search.score("combination", one, ms=ms, run=_combination_trace(search.model, recorded, search.y, eta, share))
+
+
+def _member_predictions(search: Search, members: list[dict[str, Any]]) -> Tensor | None:
+    """Each member's normalised prediction of every step before it observes it, ``[E, T, out, K]``.
+
+    A member scored on the episodes already gives them from that run; the others run now. ``None``
+    if a member refuses an observation or predicts a non-finite value: a combination of them
+    stops there too.
+    """
+    predictions = []
+    for member in members:
+        found = search.recorded(member["name"], member["settings"])
+        if found is None:
+            return None
+        predictions.append(found)
+    stacked = torch.stack(predictions, dim=-1)
+    return stacked if bool(torch.isfinite(stacked).all()) else None
+
+
+def _combination_trace(model: AdaptiveModel, predictions: Tensor, targets: Tensor, eta: float, share: float) -> Trace:
+    """The trace (one-step errors only) of a combination, from its members' recorded predictions.
+
+    ``predictions [E, T, out, K]`` are the members' normalised one-step predictions, each made
+    before its step was observed, ``targets [E, T, out]`` the normalised observations. The weights
+    follow :class:`~smcd_rl.combination.Combination` operation for operation, and the errors are
+    accumulated as :func:`smcd_rl.diagnostics.trace` accumulates them.
+    """
+    num_episodes, steps, outputs, count = predictions.shape
+    log_weights = predictions.new_full((num_episodes, count), -math.log(count), dtype=torch.float64)
+    output_std = model.output_norm.std.to(torch.float64)
+    result = Trace([], math.inf, [], [], [], [], [[] for _ in range(num_episodes)])
+    squared = 0.0
+    episode_squared = torch.zeros(num_episodes, dtype=torch.float64)
+    for t in range(steps):
+        members = predictions[:, t]
+        if t > 0:
+            combined = (members * log_weights.exp().to(members.dtype).reshape(num_episodes, 1, count)).sum(-1)
+            error = (combined - targets[:, t]).to(torch.float64) * output_std
+            step_squared = float(error.square().sum())
+            squared += step_squared
+            result.one_step_rmse.append(math.sqrt(step_squared / (num_episodes * outputs)))
+            per_episode = error.square().sum(-1).cpu()
+            episode_squared += per_episode
+            for errors, value in zip(result.one_step_errors, per_episode.tolist(), strict=True):
+                errors.append(math.sqrt(value / outputs))
+        step = (members - targets[:, t].unsqueeze(-1)).square().sum(-2)
+        log_weights = mixed_log_weights(log_weights - eta * step.to(torch.float64), share)
+    result.rmse = math.sqrt(squared / (num_episodes * (steps - 1) * outputs))
+    result.per_episode_rmse = [math.sqrt(v / ((steps - 1) * outputs)) for v in episode_squared.tolist()]
+    return result

@@ -1,0 +1,310 @@
+"""The bookkeeping of :func:`smcd_rl.tune`: each setting's score, run and time, and the race that spares work.
+
+Every setting is scored by its one-step RMSE on the tuning episodes (:func:`smcd_rl.diagnostics.trace`).
+A :class:`Search` keeps each run (its trace and predictions), so that a setting is never run
+twice and the combination and the experiments' diagnosis take the runs as they are.
+
+**Racing.** Settings whose runs are independent per episode (no adaptation, gradient descent: no
+random numbers) are raced: every setting of a batch runs first on :data:`RACE_SHARE` of the
+episodes, and only those within :data:`RACE_MARGIN` of the best on those episodes run on the
+rest. The others are dropped, by their error alone, and listed as raced out. A setting that runs
+on would give the same run in one batch: each episode's run depends on that episode only.
+
+**Times.** Under a budget every setting's time per observation is measured before it runs, and
+one over the budget is skipped; without a budget only the best of each kind is timed, once its
+kind is tuned. Times are kept per setting: a setting met again, or given by an earlier call,
+keeps its time, so that the settings that fit a budget, and the choice among them, repeat.
+
+Example:
+    >>> RACE_SHARE, RACE_MARGIN
+    (0.25, 0.1)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from smcd_rl.adaptation import Adaptation
+from smcd_rl.diagnostics import Trace, trace_pairs
+from smcd_rl.held_out import pairs
+from smcd_rl.model import AdaptiveModel
+from smcd_rl.strategy_specs import build_strategy
+
+__all__ = ["TuneCandidate", "Timing", "Search", "RACE_SHARE", "RACE_MARGIN", "setting_key"]
+
+#: The share of the episodes a raced setting runs on first (at least 2 episodes).
+RACE_SHARE = 0.25
+#: A raced setting runs on only if its RMSE on the first episodes is at most ``1 + RACE_MARGIN``
+#: times the best's there: 10 % is well beyond the spread of two settings that tie on all episodes
+#: (paired, on the same episodes), and far below what a learning rate or step count off by a grid
+#: step costs.
+RACE_MARGIN = 0.1
+
+
+@dataclass(frozen=True)
+class TuneCandidate:
+    """One setting :func:`smcd_rl.tune` tried: what it is, how well it predicted, how long a step took."""
+
+    #: One of :data:`~smcd_rl.strategy_specs.KINDS`.
+    kind: str
+    #: The strategy's settings (its ``config()``; a combination's members by name).
+    settings: dict[str, Any]
+    #: The one-step RMSE (target units) on the episodes; ``inf`` if skipped, raced out or refused.
+    one_step_rmse: float
+    #: Median wall milliseconds of one observation (observe and predict, one stream); ``nan``
+    #: where not measured (without a budget only the best of each kind is timed).
+    ms_per_step: float
+    #: Why it was not scored on every episode (``"over budget"``, ``"raced out: ..."``), or empty.
+    skipped: str = ""
+
+
+def setting_key(kind: str, settings: dict[str, Any]) -> str:
+    """The key of a setting in a search's records (and a tuning result's times)."""
+    return json.dumps([kind, settings], sort_keys=True, default=str)
+
+
+class Timing:
+    """Median wall milliseconds per observation of a strategy on one stream (one held-out episode).
+
+    Every time measured is kept in :attr:`times`, by setting, and measured once; ``known`` are
+    the times of an earlier call.
+    """
+
+    def __init__(
+        self,
+        model: AdaptiveModel,
+        x: Tensor,
+        y: Tensor,
+        budget_ms: float | None,
+        known: Mapping[str, float] | None = None,
+    ) -> None:
+        self.model, self.x, self.y, self.budget_ms = model, x, y, budget_ms
+        self.times: dict[str, float] = dict(known or {})
+
+    def ms(self, kind: str, settings: dict[str, Any]) -> float:
+        """The time per observation of ``kind`` with ``settings``, measured the first time it is asked for."""
+        key = setting_key(kind, settings)
+        if key not in self.times:
+            self.times[key] = self.ms_per_step(build_strategy(kind, settings))
+        return self.times[key]
+
+    def ms_per_step(self, strategy: Adaptation) -> float:
+        self.model.with_adaptation(strategy).reset(batch_shape=(1,))
+        times = []
+        with torch.no_grad():
+            for t in range(self.x.shape[0]):
+                started = time.perf_counter()
+                strategy.predict(self.x[t : t + 1])
+                try:
+                    strategy.observe(self.x[t : t + 1], self.y[t : t + 1])
+                except ValueError:
+                    break
+                times.append(time.perf_counter() - started)
+        return 1000 * statistics.median(times) if times else math.inf
+
+    def over(self, ms: float) -> bool:
+        return self.budget_ms is not None and ms > self.budget_ms
+
+
+class Search:
+    """The candidates so far, the best of each kind, and every run on the episodes."""
+
+    def __init__(
+        self,
+        model: AdaptiveModel,
+        td: TensorDictBase,
+        timing: Timing,
+        progress: bool,
+        known: dict[str, TuneCandidate] | None = None,
+        heads: Mapping[str, tuple[Trace, Tensor | None]] | None = None,
+    ) -> None:
+        self.model, self.td, self.timing = model, td, timing
+        self.x, self.y = pairs(model, td)
+        self.known = known or {}  # scored by an earlier call on the same data: not run again
+        #: Raced settings' runs on the first episodes (an earlier call's too): a race is decided
+        #: again against the leader of the day, from the same runs.
+        self.heads: dict[str, tuple[Trace, Tensor | None]] = dict(heads or {})
+        self.candidates: list[TuneCandidate] = []
+        self.best_of: dict[str, TuneCandidate] = {}
+        self.notes: list[str] = []
+        #: Every run on the episodes, by setting, and its normalised predictions ``[E, T, out]``
+        #: where it ran to the end: what the combination and the diagnosis take instead of running again.
+        self.traces: dict[str, Trace] = {}
+        self.predictions: dict[str, Tensor] = {}
+        self.bar = tqdm(desc="tune", unit="setting", disable=not progress)
+
+    # ------------------------------------------------------------------ runs
+    def run(self, kind: str, settings: dict[str, Any]) -> Trace:
+        """The trace of ``kind`` with ``settings`` on the episodes, run the first time it is asked for."""
+        key = setting_key(kind, settings)
+        if key not in self.traces:
+            self._record(kind, settings, slice(None))
+        return self.traces[key]
+
+    def recorded(self, kind: str, settings: dict[str, Any]) -> Tensor | None:
+        """The setting's normalised predictions ``[E, T, out]``, run again only if no run recorded them
+        (``None``: it refused an observation)."""
+        key = setting_key(kind, settings)
+        if key not in self.predictions and math.isfinite(self.run(kind, settings).rmse):
+            del self.traces[key]  # a run given from elsewhere (a calibration's) kept no predictions
+            self._record(kind, settings, slice(None))
+        return self.predictions.get(key)
+
+    def _record(self, kind: str, settings: dict[str, Any], episodes: slice) -> tuple[Trace, Tensor | None]:
+        """Run the setting on ``episodes``; a run on all of them is kept, a part is returned."""
+        predictions: list[Tensor] = []
+        x, y = self.x[episodes], self.y[episodes]
+        run = trace_pairs(self.model, x, y, build_strategy(kind, settings), predictions=predictions)
+        recorded = torch.stack(predictions, dim=1) if math.isfinite(run.rmse) else None
+        if episodes == slice(None):
+            key = setting_key(kind, settings)
+            self.traces[key] = run
+            if recorded is not None:
+                self.predictions[key] = recorded
+        return run, recorded
+
+    # ------------------------------------------------------------------ scores
+    def score(
+        self,
+        kind: str,
+        settings: dict[str, Any],
+        *,
+        ms: float | None = None,
+        rmse: float | None = None,
+        run: Trace | None = None,
+    ) -> float:
+        """Score one setting on every episode (unless over budget); its one-step RMSE.
+
+        ``ms``: its time if measured otherwise (SMCD's particle probe, a combination's members);
+        ``run``: its trace if it ran already (a calibration's); ``rmse``: its error where it is
+        known without a trace of its own.
+        """
+        key = setting_key(kind, settings)
+        if ms is not None:
+            self.timing.times.setdefault(key, ms)
+        if self._over_budget(kind, settings):
+            return math.inf
+        earlier = self.known.get(key)
+        if earlier is not None:
+            rmse = earlier.one_step_rmse
+        elif rmse is None:
+            if run is not None:
+                self.traces.setdefault(key, run)
+            rmse = self.run(kind, settings).rmse
+        return self._add(kind, settings, rmse)
+
+    def race(self, kind: str, batch: Sequence[dict[str, Any]]) -> list[float]:
+        """Score ``batch``'s settings of ``kind`` by racing (module doc); each one's RMSE, ``inf`` if dropped.
+
+        Only for kinds whose runs are independent per episode (no random numbers). The best
+        setting scored so far competes on the first episodes too, from its own run. The candidates
+        are listed in the batch's order.
+        """
+        count = self.x.shape[0]
+        first = max(2, math.ceil(RACE_SHARE * count))
+        keys = [setting_key(kind, settings) for settings in batch]
+        over = [self._over_budget(kind, settings, record=False) for settings in batch]
+        heads: dict[int, tuple[Trace, Tensor | None]] = {}
+        for i, settings in enumerate(batch):
+            if over[i] or keys[i] in self.known or keys[i] in self.traces or first >= count:
+                continue
+            if keys[i] not in self.heads:
+                self.heads[keys[i]] = self._record(kind, settings, slice(0, first))
+            heads[i] = self.heads[keys[i]]
+        # The best so far and every setting of the batch with a run on the first episodes compete (a
+        # reused one too: its run there was kept).
+        best = self.best_of.get(kind)
+        leader = self._head_rmse(setting_key(kind, best.settings), first) if best else math.inf
+        raced = [self.heads[key][0].rmse for key, out in zip(keys, over, strict=True) if not out and key in self.heads]
+        leader = min([leader, *raced])
+        scores = []
+        for i, settings in enumerate(batch):
+            if over[i]:
+                self._over_budget(kind, settings)  # listed now, in the batch's order
+                scores.append(math.inf)
+            elif i not in heads:
+                scores.append(self.score(kind, settings))
+            elif not math.isfinite(heads[i][0].rmse):  # refused on the first episodes: on all of them too
+                scores.append(self._add(kind, settings, math.inf))
+            elif heads[i][0].rmse > (1 + RACE_MARGIN) * leader:
+                why = f"raced out: {heads[i][0].rmse:.4g} on the first {first} episodes, the best {leader:.4g}"
+                ms = self.timing.times.get(keys[i], math.nan)
+                self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, why))
+                self.bar.update(1)
+                scores.append(math.inf)
+            else:
+                (head, head_predictions), (rest, rest_predictions) = (
+                    heads[i],
+                    self._record(kind, settings, slice(first, count)),
+                )
+                self.traces[keys[i]] = joined = _joined(head, rest)
+                if head_predictions is not None and rest_predictions is not None:
+                    self.predictions[keys[i]] = torch.cat([head_predictions, rest_predictions])
+                scores.append(self._add(kind, settings, joined.rmse))
+        return scores
+
+    def time_best(self, kind: str) -> None:
+        """Measure the time of ``kind``'s best setting, where it has none yet (no budget measured it)."""
+        best = self.best_of.get(kind)
+        if best is None or math.isfinite(best.ms_per_step):
+            return
+        timed = replace(best, ms_per_step=self.timing.ms(kind, best.settings))
+        self.candidates = [timed if c is best else c for c in self.candidates]
+        self.best_of[kind] = timed
+
+    def _head_rmse(self, key: str, episodes: int) -> float:
+        """A setting's RMSE over the first ``episodes`` episodes: from its run there, or its run on all of them."""
+        if key in self.heads:
+            return self.heads[key][0].rmse
+        run = self.traces.get(key)
+        if run is None or not math.isfinite(run.rmse):
+            return math.inf
+        head = run.per_episode_rmse[:episodes]  # equal lengths: the RMS of the episodes' RMSEs
+        return math.sqrt(sum(v * v for v in head) / len(head))
+
+    def _over_budget(self, kind: str, settings: dict[str, Any], *, record: bool = True) -> bool:
+        """Under a budget, time the setting first: one over it is listed as skipped (with ``record``)."""
+        if self.timing.budget_ms is None:
+            return False
+        ms = self.timing.ms(kind, settings)
+        if not self.timing.over(ms):
+            return False
+        if record:
+            self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, "over budget"))
+        return True
+
+    def _add(self, kind: str, settings: dict[str, Any], rmse: float) -> float:
+        ms = self.timing.times.get(setting_key(kind, settings), math.nan)
+        candidate = TuneCandidate(kind, settings, rmse, ms)
+        self.candidates.append(candidate)
+        if math.isfinite(rmse) and (kind not in self.best_of or rmse < self.best_of[kind].one_step_rmse):
+            self.best_of[kind] = candidate
+        self.bar.update(1)
+        self.bar.set_postfix(kind=kind, rmse=f"{rmse:.4g}")
+        return rmse
+
+
+def _joined(head: Trace, rest: Trace) -> Trace:
+    """The trace of one run on the episodes of ``head`` followed by those of ``rest`` (no SMCD entries).
+
+    Each episode's errors are its own; the per-step and overall RMSEs pool the episodes of both,
+    as one run over all of them computes them (equal lengths and dimensions).
+    """
+    if not math.isfinite(rest.rmse):
+        return Trace(head.one_step_rmse, math.inf, [], [], [], [], head.one_step_errors + rest.one_step_errors)
+    errors = head.one_step_errors + rest.one_step_errors
+    steps = [math.sqrt(sum(e[t] ** 2 for e in errors) / len(errors)) for t in range(len(errors[0]))]
+    per_episode = head.per_episode_rmse + rest.per_episode_rmse
+    rmse = math.sqrt(sum(v * v for v in per_episode) / len(per_episode))
+    return Trace(steps, rmse, [], [], [], per_episode, errors)
