@@ -167,6 +167,7 @@ class Experiment:
                     workers=workers,
                     threads=self.config.threads,
                     progress=self.progress,
+                    costs={name: self.stages.costs.get(stage, 0.0) for name, stage in stages.items()},
                 )
         results = {
             name: self._train(name, trainer, model, data, settings, announce=workers <= 1)
@@ -253,6 +254,7 @@ class Experiment:
                     threads=self.config.threads,
                     on_result=store,
                     progress=self.progress,
+                    costs={name: self.stages.costs.get(label(name), 0.0) for name in pending},
                 )
         for name in methods:
             self.timings[f"evaluate {name}"] = results[name]["seconds"]

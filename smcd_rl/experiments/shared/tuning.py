@@ -259,6 +259,7 @@ def tune_all(ex: Experiment, jobs: Mapping[str, TuneJob], config: Any) -> dict[s
                 threads=ex.config.threads,
                 on_result=store,
                 progress=ex.progress,
+                costs={name: ex.stages.costs.get(stages[name], 0.0) for name in pending},
             )
     for name in jobs:
         if workers > 1 and name in pending:

@@ -83,12 +83,15 @@ def map_jobs(
     threads: int = 1,
     on_result: Callable[[str, Any], None] | None = None,
     progress: bool = False,
+    costs: Mapping[str, float] | None = None,
 ) -> dict[str, Any]:
     """Run ``call(name, factory())`` for every ``name -> factory`` job, in ``workers`` processes.
 
     With ``workers <= 1`` (or a single job) everything runs here, in order. ``on_result(name,
     result)`` is called in this process as each job finishes, in the order they finish. With
-    ``progress``, a bar here counts the finished jobs (the workers show none of their own).
+    ``progress``, a bar here counts the finished jobs (the workers show none of their own). With
+    ``costs`` (name -> expected cost), the workers take the costliest jobs first, so that they
+    finish together rather than one waiting for the last long job (the results do not change).
 
     Raises:
         TypeError: a job cannot be sent to a worker (it holds a lambda or another local
@@ -125,7 +128,8 @@ def map_jobs(
     )
     bar = tqdm(total=len(jobs), desc="jobs", unit="job", disable=not progress)
     try:
-        futures = {pool.submit(_run_job, payload): name for name, payload in payloads.items()}
+        order = sorted(payloads, key=lambda name: -(costs or {}).get(name, 0.0))  # stable: ties keep their order
+        futures = {pool.submit(_run_job, payloads[name]): name for name in order}
         for future in concurrent.futures.as_completed(futures):
             finished(futures[future], pickle.loads(future.result()))
             bar.update()

@@ -153,18 +153,25 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
     return ex.result
 
 
-#: Seconds of each stage at the defaults on 2 cores (Intel Xeon, one thread): the overall progress
-#: line scales these by the settings and by this run's measured speed to say how long is left.
+#: Seconds of each stage at the defaults, each process on one thread beside another on a 2-core
+#: AMD EPYC (two workers): the overall progress line scales these by the settings and by this
+#: run's measured speed of each kind of stage to say how long is left.
 _REFERENCE_SECONDS = {
-    "train": 53.0,
-    "train reptile": 51.0,
-    "train task": 80.0,  # M's training and, from the second epoch, each arm's mask posterior
-    "train latent": 58.0,
-    "tune": 93.0,  # calibration, GD grid and diagnosis of one network; the options add as much again
-    "evaluate G": 45.0,  # per method over 500 arms at T = 1, 5, 10
-    "evaluate S": 56.0,
-    "evaluate C": 101.0,  # its members G and S
-    "evaluate O+P": 1.0,
+    "train": 59.0,
+    "train reptile": 66.0,
+    "train task": 66.0,  # M's training and, from the second epoch, each arm's mask posterior
+    "train latent": 92.0,
+    "tune G": 20.0,  # the raced grid of gradient descent and its extensions, on one network
+    "tune S": 75.0,  # SMCD's two calibrations (scalar and per-dimension noise), 1000 particles of 2 x 512
+    "tune S grouped": 20.0,  # the same on the task-mask network, whose particles cost a fraction
+    "tune references": 23.0,  # S(evidence): a calibration that reuses the one-step search's bracket
+    "evaluate G": 22.5,  # per method over 200 arms at T = 1, 5, 10
+    "evaluate S": 10.0,
+    "evaluate S grouped": 2.6,
+    "evaluate S(evidence)": 19.0,  # broader posteriors: more distinct particles per step
+    "evaluate S(paper)": 17.0,
+    "evaluate C": 31.5,  # its members G and S
+    "evaluate O+P": 0.3,
     "evaluate N": 0.1,
 }
 
@@ -179,8 +186,8 @@ def stage_costs(config: TwoLinkConfig) -> dict[str, float]:
     """
     ref = _REFERENCE_SECONDS
     data = config.tasks * config.episodes * config.steps / 100_000 * (config.hidden / 512) ** 2 * config.depth / 2
-    filtering = config.trials / 500 * sum(config.burn_in) / 16
-    networks = [n for n in ("M", "R", "T") if tuned_variants(n, config.methods)]
+    filtering = config.trials / 200 * sum(config.burn_in) / 16
+    particles = config.particles / 1000 * (config.hidden / 512) ** 2
     costs = {"train": ref["train"] * config.epochs / 20 * data}
     if any(m.startswith("R+") for m in config.methods):
         costs["train reptile"] = ref["train reptile"] * config.reptile_epochs / 20 * data
@@ -189,11 +196,21 @@ def stage_costs(config: TwoLinkConfig) -> dict[str, float]:
     if "LV+N" in config.methods:
         costs["train latent"] = ref["train latent"] * config.lv_epochs / 20 * config.tasks * config.episodes / 10_000
     tuning = config.tuning_episodes / 32 * max(config.burn_in) / 10 * (2 if config.tuning_options else 1)
-    costs.update({f"tune {n}": ref["tune"] * tuning * config.particles / 1000 for n in networks})
+    for name in ("M", "R", "T"):
+        variants = tuned_variants(name, config.methods)
+        if not variants:
+            continue
+        smcd = "tune S grouped" if name == "T" else "tune S"
+        cost = ref["tune G"] * (any(v in ("G", "C") for v in variants))
+        cost += ref[smcd] * particles * (any(v in ("S", "C") for v in variants))
+        cost += ref["tune references"] * particles * ("S(evidence)" in variants)
+        costs[f"tune {name}"] = cost * tuning
     for name in config.methods:
-        variant = "O+P" if name == "O+P" else "N" if name.endswith("+N") else name.split("+")[1][0]
-        particles = {"O+P": config.oracle_particles, "S": config.particles}.get(variant, 1000)
-        costs[f"evaluate {name}"] = ref[f"evaluate {variant}"] * filtering * particles / 1000
+        variant = "O+P" if name == "O+P" else "N" if name.endswith("+N") else name.split("+")[1]
+        variant = variant if variant in ("O+P", "S(evidence)", "S(paper)") else variant[0]
+        grouped = " grouped" if name == "T+S" else ""
+        scale = {"O+P": config.oracle_particles / 1000, "S": particles}.get(variant[0], 1.0)
+        costs[f"evaluate {name}"] = ref[f"evaluate {variant}{grouped}"] * filtering * scale
     return costs
 
 
