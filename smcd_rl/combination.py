@@ -21,7 +21,7 @@ from torch import Tensor
 from smcd_rl.adaptation import ADAPTATIONS, Adaptation, make_adaptation
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["Combination", "mixed_log_weights"]
+__all__ = ["Combination", "mixed_log_weights", "weight_path"]
 
 
 class Combination(Adaptation):
@@ -216,6 +216,30 @@ class Combination(Adaptation):
         if self._log_weights is None or self._losses is None:
             raise RuntimeError("Combination has no weights yet; call model.reset() first")
         return self._log_weights, self._losses
+
+
+def weight_path(predictions: Tensor, targets: Tensor, *, eta: float, share: float) -> Tensor:
+    """The log weights of a :class:`Combination` along a stream, from its members' recorded predictions.
+
+    ``predictions [*B, T, out, K]`` are the members' predictions of each step before observing it
+    and ``targets [*B, T, out]`` the observations, both in the model's normalised units. Returns
+    ``[*B, T + 1, K]``: the log weights before the first observation (uniform) and after each,
+    operation for operation as :meth:`Combination.observe` updates them, so a combination's
+    predictions can be computed from its members' runs instead of running it.
+
+    Example:
+        >>> preds = torch.tensor([[[[0.0, 1.0]]], [[[0.0, 1.0]]]]).transpose(0, 1)  # [1, 2, 1, 2]: two steps
+        >>> weight_path(preds, torch.ones(1, 2, 1), eta=10.0, share=0.0).exp()[0, -1]  # the second member is right
+        tensor([2.0612e-09, 1.0000e+00], dtype=torch.float64)
+    """
+    count = predictions.shape[-1]
+    log_weights = predictions.new_full((*predictions.shape[:-3], count), -math.log(count), dtype=torch.float64)
+    path = [log_weights]
+    for t in range(predictions.shape[-3]):
+        step = (predictions[..., t, :, :] - targets[..., t, :].unsqueeze(-1)).square().sum(-2)
+        log_weights = mixed_log_weights(log_weights - eta * step.to(torch.float64), share)
+        path.append(log_weights)
+    return torch.stack(path, dim=-2)
 
 
 def mixed_log_weights(log_scores: Tensor, share: float) -> Tensor:

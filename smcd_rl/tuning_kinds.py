@@ -21,7 +21,7 @@ from torch import Tensor
 from smcd_rl.adaptation import SMCD, GradientDescent
 from smcd_rl.calibration import Calibration, calibrate
 from smcd_rl.checks import check_count, check_real
-from smcd_rl.combination import mixed_log_weights
+from smcd_rl.combination import weight_path
 from smcd_rl.diagnostics import Trace
 from smcd_rl.model import AdaptiveModel
 from smcd_rl.tuning_search import Search, TuneCandidate, setting_key
@@ -300,25 +300,21 @@ def _combination_trace(model: AdaptiveModel, predictions: Tensor, targets: Tenso
     accumulated as :func:`smcd_rl.diagnostics.trace` accumulates them.
     """
     num_episodes, steps, outputs, count = predictions.shape
-    log_weights = predictions.new_full((num_episodes, count), -math.log(count), dtype=torch.float64)
+    weights = weight_path(predictions, targets, eta=eta, share=share).exp().to(predictions.dtype)  # [E, T + 1, K]
     output_std = model.output_norm.std.to(torch.float64)
     result = Trace([], math.inf, [], [], [], [], [[] for _ in range(num_episodes)])
     squared = 0.0
     episode_squared = torch.zeros(num_episodes, dtype=torch.float64)
-    for t in range(steps):
-        members = predictions[:, t]
-        if t > 0:
-            combined = (members * log_weights.exp().to(members.dtype).reshape(num_episodes, 1, count)).sum(-1)
-            error = (combined - targets[:, t]).to(torch.float64) * output_std
-            step_squared = float(error.square().sum())
-            squared += step_squared
-            result.one_step_rmse.append(math.sqrt(step_squared / (num_episodes * outputs)))
-            per_episode = error.square().sum(-1).cpu()
-            episode_squared += per_episode
-            for errors, value in zip(result.one_step_errors, per_episode.tolist(), strict=True):
-                errors.append(math.sqrt(value / outputs))
-        step = (members - targets[:, t].unsqueeze(-1)).square().sum(-2)
-        log_weights = mixed_log_weights(log_weights - eta * step.to(torch.float64), share)
+    for t in range(1, steps):
+        combined = (predictions[:, t] * weights[:, t].reshape(num_episodes, 1, count)).sum(-1)
+        error = (combined - targets[:, t]).to(torch.float64) * output_std
+        step_squared = float(error.square().sum())
+        squared += step_squared
+        result.one_step_rmse.append(math.sqrt(step_squared / (num_episodes * outputs)))
+        per_episode = error.square().sum(-1).cpu()
+        episode_squared += per_episode
+        for errors, value in zip(result.one_step_errors, per_episode.tolist(), strict=True):
+            errors.append(math.sqrt(value / outputs))
     result.rmse = math.sqrt(squared / (num_episodes * (steps - 1) * outputs))
     result.per_episode_rmse = [math.sqrt(v / ((steps - 1) * outputs)) for v in episode_squared.tolist()]
     return result

@@ -243,3 +243,32 @@ def test_the_same_seed_and_thread_count_repeat_every_trial_bit_for_bit(tmp_path,
         for name in ("a", "b"):
             assert cli.main(["two-link", "--out", str(tmp_path / name), *TINY, "--methods", "M+G", "M+S", "O+P"]) == 0
     assert (tmp_path / "a" / "trials.csv").read_text() == (tmp_path / "b" / "trials.csv").read_text()
+
+
+def test_the_combination_from_its_members_runs_equals_running_it(tmp_path, capsys, monkeypatch) -> None:
+    """M+C is computed from the recorded runs of M+N, M+G and M+S (its members, same settings and seed)
+    when they run too; alone, it runs as a Combination. Both give the same errors, to float rounding:
+    the members' predictions are renormalised from the model's output once."""
+    from smcd_rl.experiments.two_link import run as two_link_run
+
+    derived = []
+    real = two_link_run.combined_errors
+    monkeypatch.setattr(two_link_run, "combined_errors", lambda *a, **k: derived.append(1) or real(*a, **k))
+    with torch_threads(1):
+        both = ["--methods", "M+N", "M+G", "M+S", "M+C"]
+        assert cli.main(["two-link", "--out", str(tmp_path / "derived"), *TINY, *both, "--workers", "1"]) == 0
+        alone = ["--methods", "M+C"]
+        assert cli.main(["two-link", "--out", str(tmp_path / "run"), *TINY, *alone, "--workers", "1"]) == 0
+    capsys.readouterr()
+    assert derived == [1]  # the first run derived M+C, the second ran it
+    trials = {
+        where: {
+            (r["burn_in"], r["horizon"], r["trial"]): float(r["rmse"])
+            for r in csv.DictReader(open(tmp_path / where / "trials.csv"))
+            if r["method"] == "M+C"
+        }
+        for where in ("derived", "run")
+    }
+    assert trials["derived"].keys() == trials["run"].keys() and len(trials["run"]) == 8 * 2 * 2
+    for key, value in trials["run"].items():
+        assert trials["derived"][key] == pytest.approx(value, rel=1e-5, abs=1e-7), key

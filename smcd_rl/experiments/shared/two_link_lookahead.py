@@ -19,12 +19,13 @@ import torch
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
+from smcd_rl.combination import weight_path
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, sample_link_lengths, two_link_fk
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.two_link.config import TwoLinkConfig
 
-__all__ = ["TEST_ARMS_SEED", "test_arms", "lookahead_errors"]
+__all__ = ["TEST_ARMS_SEED", "test_arms", "lookahead_errors", "combined_errors"]
 
 #: Offset of the test arms' seed from ``--seed`` (a stream of their own, disjoint from training and tuning).
 TEST_ARMS_SEED = 1_000_003
@@ -59,23 +60,67 @@ def lookahead_errors(
     *,
     desc: str,
     progress: bool,
+    record: dict[str, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Squared look-ahead errors ``[trials, len(burn_in), max H]`` of one method.
 
     The method observes measured positions ``ee``; errors are against the noise-free ``ee_true``.
+    With ``record`` (an adaptive model's run), its predictions go into it, in the model's
+    normalised units: ``"one_step" [trials, max T, out]``, each burn-in position predicted before
+    it is observed, and ``"ahead" [trials, len(burn_in), max H, out]``, what the errors are of:
+    what :func:`combined_errors` takes.
     """
-    trials, max_h = q.shape[0], max(config.horizons)
+    trials, max_h, max_t = q.shape[0], max(config.horizons), max(config.burn_in)
     errors = torch.full((trials, len(config.burn_in), max_h), float("nan"))  # a cell left unfilled shows
+    if record is not None:
+        record["one_step"] = torch.full((trials, max_t, ee.shape[-1]), float("nan"))
+        record["ahead"] = torch.full((trials, len(config.burn_in), max_h, ee.shape[-1]), float("nan"))
     chunks = range(0, trials, config.chunk)
     for begin in tqdm(chunks, desc=desc, unit="chunk", disable=not progress):
-        qc, eec = q[begin : begin + config.chunk], ee[begin : begin + config.chunk]
+        rows = slice(begin, begin + config.chunk)
+        qc, eec = q[rows], ee[rows]
         batch = qc.shape[0]
         method.reset(batch_shape=(batch,))
-        for t in range(max(config.burn_in)):
+        for t in range(max_t):
+            if record is not None:
+                now = method(TensorDict({"q": qc[:, t]}, [batch]))["ee"]
+                record["one_step"][rows, t] = method.output_norm(now).cpu()
             method.observe(TensorDict({"q": qc[:, t], "ee": eec[:, t]}, [batch]))
             if t + 1 in config.burn_in:
                 ahead = slice(t + 1, t + 1 + max_h)
                 predicted = method(TensorDict({"q": qc[:, ahead]}, [batch, max_h]))["ee"]
-                truth = ee_true[begin : begin + batch, ahead]
-                errors[begin : begin + batch, config.burn_in.index(t + 1)] = (predicted - truth).square().sum(-1).cpu()
+                truth = ee_true[rows, ahead]
+                errors[rows, config.burn_in.index(t + 1)] = (predicted - truth).square().sum(-1).cpu()
+                if record is not None:
+                    record["ahead"][rows, config.burn_in.index(t + 1)] = method.output_norm(predicted).cpu()
+    return errors
+
+
+def combined_errors(
+    members: list[dict[str, torch.Tensor]],
+    ee: torch.Tensor,
+    ee_true: torch.Tensor,
+    output_norm: Any,
+    config: TwoLinkConfig,
+    *,
+    eta: float,
+    share: float,
+) -> torch.Tensor:
+    """Squared look-ahead errors of a :class:`~smcd_rl.combination.Combination`, from its members' records.
+
+    The members run on the same observations whatever the weights, so their recorded predictions
+    (:func:`lookahead_errors` with ``record``) give the combination's weights after each burn-in
+    step (:func:`smcd_rl.combination.weight_path`) and its weighted look-ahead predictions, what
+    running it would give, without running its members again.
+    """
+    max_t = max(config.burn_in)
+    targets = output_norm(ee[:, :max_t].cpu())
+    one_step = torch.stack([m["one_step"] for m in members], dim=-1)  # [trials, max T, out, K]
+    weights = weight_path(one_step, targets, eta=eta, share=share).exp().to(one_step.dtype)  # [trials, T + 1, K]
+    ahead = torch.stack([m["ahead"] for m in members], dim=-1)  # [trials, B, H, out, K]
+    errors = torch.empty(ahead.shape[:3])
+    for i, t in enumerate(config.burn_in):
+        combined = (ahead[:, i] * weights[:, t].unsqueeze(1).unsqueeze(1)).sum(-1)  # [trials, H, out]
+        predicted = output_norm.inverse(combined)
+        errors[:, i] = (predicted - ee_true[:, t : t + ahead.shape[2]].cpu()).square().sum(-1)
     return errors

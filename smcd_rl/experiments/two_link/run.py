@@ -11,7 +11,9 @@ trial's RMSE), ``results.json`` (settings, table, training losses, timings, mach
 
 from __future__ import annotations
 
+import copy
 import functools
+import time
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +40,7 @@ from smcd_rl.experiments.shared.two_link_family import (
     task_model,
     tuning_episodes,
 )
-from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED, lookahead_errors, test_arms
+from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED, combined_errors, lookahead_errors, test_arms
 from smcd_rl.experiments.two_link.config import DEFAULT_METHODS, FULL, METHODS, TwoLinkConfig
 
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "run", "table"]
@@ -91,9 +93,35 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
 
         # --- every method on the same held-out arms -------------------------------------------------
         q, ee, ee_true, lengths = test_arms(config, ex.device, count=config.trials, seed=config.seed + TEST_ARMS_SEED)
-        methods = {name: functools.partial(_method, name, networks, latent, tunings, config) for name in config.methods}
+        combined = _combined(config.methods, tunings)  # each combination from its members' runs, not run again
+        recorded = frozenset(member for members in combined.values() for member in members)
+        methods = {
+            name: functools.partial(_method, name, networks, latent, tunings, config)
+            for name in config.methods
+            if name not in combined
+        }
         content = {name: model_digest(m) for name, m in {**networks, "LV": latent}.items() if m is not None}
-        done = ex.evaluate(methods, functools.partial(_errors, q, ee, ee_true, config, progress), content=content)
+        done = ex.evaluate(
+            methods, functools.partial(_errors, q, ee, ee_true, config, progress, recorded), content=content
+        )
+        for name, members in combined.items():
+            with ex.stage(f"evaluate {name}"):
+                started = time.perf_counter()
+                trained = networks[method_variant(name)[0]]
+                assert trained is not None
+                spec = tunings[method_variant(name)[0]].specs["C"]["settings"]
+                errors = combined_errors(
+                    [done[m] for m in members],
+                    ee,
+                    ee_true,
+                    copy.deepcopy(trained.output_norm).cpu(),
+                    config,
+                    eta=spec["eta"],
+                    share=spec["share"],
+                )
+                done[name] = {"sq_errors": errors, "seconds": time.perf_counter() - started}
+                ex.timings[f"evaluate {name}"] = done[name]["seconds"]
+        done = {name: done[name] for name in config.methods}
 
         # --- results: per-arm RMSE per (T, H), CIs, paired verdicts ---------------------------------
         scores = {
@@ -170,7 +198,8 @@ _REFERENCE_SECONDS = {
     "evaluate S grouped": 2.6,
     "evaluate S(evidence)": 19.0,  # broader posteriors: more distinct particles per step
     "evaluate S(paper)": 17.0,
-    "evaluate C": 31.5,  # its members G and S
+    "evaluate C": 31.5,  # its members G and S, run again
+    "evaluate C derived": 0.5,  # from its members' runs, where M+N, M+G and M+S run too
     "evaluate O+P": 0.3,
     "evaluate N": 0.1,
 }
@@ -209,6 +238,8 @@ def stage_costs(config: TwoLinkConfig) -> dict[str, float]:
         variant = "O+P" if name == "O+P" else "N" if name.endswith("+N") else name.split("+")[1]
         variant = variant if variant in ("O+P", "S(evidence)", "S(paper)") else variant[0]
         grouped = " grouped" if name == "T+S" else ""
+        if variant == "C" and all(name.replace("+C", f"+{v}") in config.methods for v in "NGS"):
+            grouped = " derived"
         scale = {"O+P": config.oracle_particles / 1000, "S": particles}.get(variant[0], 1.0)
         costs[f"evaluate {name}"] = ref[f"evaluate {variant}{grouped}"] * filtering * scale
     return costs
@@ -282,11 +313,40 @@ def _errors(
     ee_true: torch.Tensor,
     config: TwoLinkConfig,
     progress: bool,
+    recorded: frozenset[str],
     name: str,
     method: Any,
 ) -> dict[str, torch.Tensor]:
-    """One method's squared look-ahead errors on the test arms (a function, so a worker process can run it)."""
-    return {"sq_errors": lookahead_errors(method, q, ee, ee_true, config, desc=name, progress=progress)}
+    """One method's squared look-ahead errors on the test arms (a function, so a worker process can run it),
+    and for a member of a combination (``recorded``) its predictions (:func:`lookahead_errors`)."""
+    record: dict[str, torch.Tensor] | None = {} if name in recorded else None
+    errors = lookahead_errors(method, q, ee, ee_true, config, desc=name, progress=progress, record=record)
+    return {"sq_errors": errors, **(record or {})}
+
+
+def _combined(methods: tuple[str, ...], tunings: dict[str, Tuning]) -> dict[str, list[str]]:
+    """Each combination method (``M+C``...) whose members run as methods of their own, with their names.
+
+    The combination's members are its network's tuned none, GD and SMCD, the strategies of
+    ``M+N``, ``M+G`` and ``M+S`` with the same seed: their runs are the members' runs, so the
+    combination's errors follow from their recorded predictions. A combination whose members do
+    not all run (``--methods M+C`` alone) is run as it is.
+    """
+    found = {}
+    for name in methods:
+        network, variant = method_variant(name)
+        if variant != "C" or network not in tunings:
+            continue
+        specs = tunings[network].specs
+        members = specs["C"]["settings"]["members"]
+        names = {"none": "N", "gradient_descent": "G", "smcd": "S"}
+        labels = [f"{network}+{names[m['name']]}" for m in members]
+        if all(
+            label in methods and (m["name"] == "none" or specs[names[m["name"]]]["settings"] == m["settings"])
+            for label, m in zip(labels, members, strict=True)
+        ):
+            found[name] = labels
+    return found
 
 
 def _plot(rows: list[dict[str, Any]], config: TwoLinkConfig, path: Path) -> None:
