@@ -11,8 +11,8 @@ error of predicting each step from the steps before it, what a planner or contro
   (the result says which edges it extended). The settings are raced: each runs first on a
   quarter of the episodes, and only those within 10 % of the best there run on the rest
   (:mod:`smcd_rl.tuning_search`); the others are listed as raced out;
-* SMCD by :func:`smcd_rl.calibrate` (noise and flip probability; scalar and per-dimension noise,
-  the better kept);
+* SMCD by :func:`smcd_rl.calibrate` (noise and flip probability; per-dimension noise, then a
+  scalar noise at the flip probability chosen for it, the better kept);
 * :class:`smcd_rl.Combination` of the best members, its ``eta`` and ``share`` chosen on the same
   episodes.
 
@@ -281,6 +281,9 @@ def tune(
 
     Returns:
         The :class:`TuneResult`, also stored as ``model.tuning`` (its :meth:`~TuneResult.to_dict`).
+        Nothing else of the model changes: its calibration is :func:`smcd_rl.calibrate`'s alone, so
+        ``tune`` and ``calibrate`` on one model from two threads each keep their own record (their
+        runs only read the network).
 
     Raises:
         ValueError: an unknown strategy or criterion, a budget that is not positive, no strategy

@@ -201,6 +201,9 @@ def tune_smcd(
 ) -> dict[str, Calibration]:
     """Halve the particles until a step fits the budget, then calibrate (both noise forms) by ``criterion``.
 
+    The per-dimension noise is searched with every flip probability, the scalar noise at the flip
+    probability the first search chose.
+
     Returns the calibrations run, by noise form (``"per-dimension"``, ``"scalar"``); the model's
     own calibration is left as it is.
     """
@@ -226,12 +229,13 @@ def tune_smcd(
         for candidate in known:
             search.score("smcd", candidate.settings)
     else:
+        flips = flip_probs
         for per_dimension in (True, False):
             result = calibrate(
                 model,
                 search.td,
                 base=SMCD(num_particles=particles),
-                flip_probs=flip_probs,
+                flip_probs=flips,
                 per_dimension=per_dimension,
                 criterion=criterion,
                 seed=seed,
@@ -241,6 +245,9 @@ def tune_smcd(
             calibrations["per-dimension" if per_dimension else "scalar"] = result
             settings = {**result.strategy.config(), "seed": seed, "device": device}
             search.score("smcd", settings, ms=None if math.isnan(ms) else ms, run=result.best.trace)
+            # The flip probability belongs to the masks' dynamics, not to the noise's form: the
+            # scalar noise is searched at the one the per-dimension search chose.
+            flips = (result.flip_prob,)
     search.time_best("smcd")
     return calibrations
 
