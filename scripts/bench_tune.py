@@ -49,9 +49,7 @@ def main() -> None:
     train = torch.cat([arms(100, 10, generator) for _ in range(20)], 1)  # 100 arms x 200 samples
     held_out, test = arms(20, 30, generator), arms(50, 30, generator)
     torch.manual_seed(args.seed)
-    model = smcd_rl.AdaptiveModel(
-        smcd_rl.MaskedMLP(3, 2, hidden=(512, 512), dropout=0.5), in_keys=["q"], out_key="ee"
-    )
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(3, 2, hidden=(512, 512), dropout=0.5), in_keys=["q"], out_key="ee")
     smcd_rl.fit(model, train, epochs=20, batch_size=256, lr=1e-3, seed=args.seed, progress=False)
 
     started = time.perf_counter()

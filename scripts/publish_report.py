@@ -2,6 +2,13 @@
 
     python scripts/publish_report.py runs/two-link docs/experiments/two-link
 
+With ``--scoreboard``, the run's scoreboard entries also replace those of the same tasks in a
+committed ``scoreboard.json``, and that scoreboard is drawn again (in ``runs/scoreboard``) and
+published beside it, so a rerun of one experiment updates its rows without the other runs:
+
+    python scripts/publish_report.py runs/two-link docs/experiments/two-link \
+        --scoreboard docs/experiments/scoreboard/scoreboard.json
+
 The docs include the report as the command wrote it; tests/test_docs_reports.py checks that its
 settings are the command's current defaults. A ``scoreboard.json`` in the run (the scoreboard's
 entries) is copied too, and given in place of the run it draws the scoreboard again from those
@@ -13,6 +20,7 @@ entries (in ``runs/scoreboard``, the command's default ``--out``), e.g. after a 
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import shutil
 from pathlib import Path
@@ -27,7 +35,12 @@ def main() -> None:
         "run", type=Path, help="the run's output directory (with report.md), or a scoreboard.json to draw again"
     )
     parser.add_argument("page", type=Path, help="the docs directory of the experiment's page")
+    parser.add_argument(
+        "--scoreboard", type=Path, help="a committed scoreboard.json whose entries of the run's tasks the run replaces"
+    )
     args = parser.parse_args()
+    if args.scoreboard is not None:
+        _replace_entries(parser, args.run, args.scoreboard)
     if args.run.is_file() and args.run.name == "scoreboard.json":
         from smcd_rl.experiments.scoreboard import run as scoreboard
 
@@ -46,6 +59,29 @@ def main() -> None:
     for name in ["report.md", *pictures, *data]:
         shutil.copyfile(args.run / name, args.page / name)
     print(f"{args.page}: report.md, {len(pictures)} pictures and {len(data)} data files from {args.run}")
+
+
+def _replace_entries(parser: argparse.ArgumentParser, run: Path, path: Path) -> None:
+    """Put the run's scoreboard entries in place of those of the same tasks in ``path``, then redraw it there."""
+    from smcd_rl.experiments.scoreboard import run as scoreboard
+
+    try:
+        fresh = scoreboard._entries(run)  # checked as the scoreboard checks them
+        data = json.loads(path.read_text())
+        scoreboard.read_entries(path)  # the committed file is a scoreboard's
+    except (ValueError, OSError) as err:
+        parser.error(str(err))
+    tasks = {entry["task"] for entry in fresh}
+    if not any(item["entry"]["task"] in tasks for item in data["entries"]):
+        parser.error(f"{path} has no entry of the run's tasks {sorted(tasks)}: nothing to replace")
+    by_task = {entry["task"]: entry for entry in fresh}
+    data["entries"] = [{**item, "entry": by_task.get(item["entry"]["task"], item["entry"])} for item in data["entries"]]
+    path.write_text(json.dumps(data, indent=1) + "\n")
+    out = Path(scoreboard.ScoreboardConfig().out)
+    scoreboard.render(path, out=out, progress=False)
+    for name in ("report.md", "scoreboard.png", "scoreboard.json"):
+        shutil.copyfile(out / name, path.parent / name)
+    print(f"{path.parent}: the entries of {sorted(tasks)} replaced and the scoreboard drawn again")
 
 
 if __name__ == "__main__":

@@ -200,3 +200,35 @@ def test_sb3_context_tiny_and_resumed(tmp_path: Path) -> None:
     cut = tmp_path / "cut" / "sb3_context_k4"
     assert rows(cut / "eval.csv") == evaluation
     assert json.loads((cut / "summary.json").read_text())["resumed"]
+
+
+def test_publish_report_replaces_a_reruns_scoreboard_rows_and_redraws_the_board(tmp_path) -> None:
+    """A rerun of one experiment updates its rows of the committed scoreboard, the others kept as they were."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+
+    committed = ROOT / "docs" / "experiments" / "scoreboard" / "scoreboard.json"
+    board = tmp_path / "board" / "scoreboard.json"
+    board.parent.mkdir()
+    shutil.copyfile(committed, board)
+    entries = json.loads(committed.read_text())["entries"]
+    rerun = json.loads(json.dumps(entries[0]["entry"]))  # the two-link entry, with another mean
+    rerun["estimates"]["GD"].update(mean=0.0123, low=0.01, high=0.015)
+    run = tmp_path / "rerun"
+    run.mkdir()
+    (run / "results.json").write_text(json.dumps({"experiment": "two-link", "scoreboard": rerun}))
+    (run / "report.md").write_text("# a report\n")
+    page = tmp_path / "page"
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "publish_report.py"), str(run), str(page), "--scoreboard", str(board)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    after = json.loads(board.read_text())["entries"]
+    assert after[0]["entry"]["estimates"]["GD"]["mean"] == 0.0123
+    assert [e["entry"] for e in after[1:]] == [e["entry"] for e in entries[1:]]
+    assert "0.012" in (board.parent / "report.md").read_text() and (page / "report.md").is_file()
