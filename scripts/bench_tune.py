@@ -43,6 +43,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the data, the network and tune")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if hasattr(smcd_rl, "keep_freed_memory"):  # as a script of its own should (older versions have none)
+        smcd_rl.keep_freed_memory()
     print({k: v for k, v in machine_info().items() if k in ("processor", "cpus", "torch_threads", "torch")})
 
     generator = torch.Generator().manual_seed(args.seed)

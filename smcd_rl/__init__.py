@@ -25,6 +25,7 @@ from smcd_rl.envs import register_all as _register_envs
 
 if TYPE_CHECKING:
     from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation, make_adaptation
+    from smcd_rl.allocator import keep_freed_memory
     from smcd_rl.calibration import Calibration, calibrate
     from smcd_rl.combination import Combination
     from smcd_rl.episode_windows import episodes
@@ -72,6 +73,7 @@ __all__ = [
     "episodes",
     "tune",
     "TuneResult",
+    "keep_freed_memory",
 ]
 
 #: Where each public name is defined: its module is imported on the name's first use.
@@ -81,6 +83,7 @@ _SOURCES: dict[str, str] = {
     "Combination": "combination",
     "episodes": "episode_windows",
     **dict.fromkeys(["tune", "TuneResult"], "tuning"),
+    "keep_freed_memory": "allocator",
     **dict.fromkeys(["FileWriteError", "UnreadableFileError"], "files"),
     **dict.fromkeys(["ParticleFilter", "SMCDFilter"], "filter"),
     "MaskedMLP": "masked_mlp",

@@ -26,7 +26,7 @@ import typing
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
-from smcd_rl.experiments.shared.allocator import keep_freed_memory
+from smcd_rl.allocator import keep_freed_memory
 
 __all__ = ["main", "COMMANDS", "Command", "build_parser", "make_config"]
 

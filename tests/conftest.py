@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import smcd_rl
+from smcd_rl.allocator import keep_freed_memory
 from smcd_rl.envs.two_link_arm import motor_babbling
-from smcd_rl.experiments.shared.allocator import keep_freed_memory
 
 keep_freed_memory()  # as every command does: large temporaries without page faults (no result changes)
 

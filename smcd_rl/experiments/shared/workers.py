@@ -30,7 +30,7 @@ from typing import Any, TypeVar
 
 from tqdm.auto import tqdm
 
-from smcd_rl.experiments.shared.allocator import keep_freed_memory
+from smcd_rl.allocator import keep_freed_memory
 from smcd_rl.experiments.shared.orphans import exit_with_parent
 
 __all__ = ["map_jobs", "computed", "auto_workers", "usable_cores", "AUTO_MIN_SECONDS"]

@@ -23,7 +23,7 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl.experiments.shared.allocator import keep_freed_memory
+from smcd_rl.allocator import keep_freed_memory
 from smcd_rl.experiments.shared.runtime import seed_everything, torch_threads
 from smcd_rl.experiments.shared.two_link_family import TUNING_ARMS_SEED
 from smcd_rl.experiments.shared.two_link_lookahead import TEST_ARMS_SEED, lookahead_errors, test_arms

@@ -10,7 +10,7 @@ import pytest
 
 SCRIPT = """
 import resource, sys, torch
-from smcd_rl.experiments.shared.allocator import keep_freed_memory
+from smcd_rl.allocator import keep_freed_memory
 if sys.argv[-1] == "keep":
     assert keep_freed_memory()
 for _ in range(10):  # the heap settles first
