@@ -267,7 +267,7 @@ MAX_ETA = 1e100
 def _checked_eta(eta: Any) -> float:
     if isinstance(eta, bool) or not isinstance(eta, numbers.Real):
         raise TypeError(f"eta must be a real number, got {eta!r} ({type(eta).__name__})")
-    if not math.isfinite(float(eta)) or not 0 <= eta <= MAX_ETA:
+    if not math.isfinite(float(eta)) or not 0 <= float(eta) <= MAX_ETA:
         raise ValueError(
             f"eta must be a finite number in [0, {MAX_ETA:g}], got {eta}: the learning rate of the weights (0 averages "
             "the members uniformly, a larger one follows the best member sooner; at 1e100 the first observation "

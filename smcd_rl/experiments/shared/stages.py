@@ -212,11 +212,11 @@ class StagePlan:
         started = time.perf_counter()
         yield
         seconds = time.perf_counter() - started
-        planned = [s for s in stages if s in self.costs]
-        if seconds >= RESUMED_SECONDS and planned:
+        costed = [s for s in stages if s in self.costs]
+        if seconds >= RESUMED_SECONDS and costed:
             # Side-by-side stages are of one kind (a command's workers train, tune or evaluate).
-            timed = self._timed.setdefault(_kind(planned[0]), [0.0, 0.0])
-            timed[0] += sum(self.costs[s] + STAGE_OVERHEAD for s in planned)
+            timed = self._timed.setdefault(_kind(costed[0]), [0.0, 0.0])
+            timed[0] += sum(self.costs[s] + STAGE_OVERHEAD for s in costed)
             timed[1] += seconds
         self.done.update(stages)
 

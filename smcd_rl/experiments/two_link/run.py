@@ -107,14 +107,14 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
         for name, members in combined.items():
             with ex.stage(f"evaluate {name}"):
                 started = time.perf_counter()
-                trained = networks[method_variant(name)[0]]
-                assert trained is not None
+                adapted = networks[method_variant(name)[0]]
+                assert adapted is not None
                 spec = tunings[method_variant(name)[0]].specs["C"]["settings"]
                 errors = combined_errors(
                     [done[m] for m in members],
                     ee,
                     ee_true,
-                    copy.deepcopy(trained.output_norm).cpu(),
+                    copy.deepcopy(adapted.output_norm).cpu(),
                     config,
                     eta=spec["eta"],
                     share=spec["share"],
