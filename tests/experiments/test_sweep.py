@@ -238,7 +238,7 @@ def test_overwriting_the_drone_dataset_makes_the_rerun_recompute(tmp_path, capsy
 @pytest.mark.slow
 def test_without_ray_the_sweep_says_how_to_install_it_and_the_rest_still_imports(tmp_path, monkeypatch) -> None:
     monkeypatch.setitem(sys.modules, "ray", None)  # makes `import ray` raise ImportError
-    config = sweep.SweepConfig(out=str(tmp_path / "run"), grid=("hidden=8",), epochs=1, tasks=4, episodes=2)
+    config = sweep.SweepConfig(out=str(tmp_path / "run"), grid=("hidden=8", "epochs=1"), tasks=4, episodes=2)
     with pytest.raises(ImportError, match=r'pip install -e "\.\[ray\]"'):
         sweep.run(config, progress=False)
 
