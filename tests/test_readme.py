@@ -21,3 +21,8 @@ def test_readme_example_adapts_a_users_model(capsys) -> None:
     # unadapted one (0.258) across the CPU kernels measured (docs/performance.md). One filter
     # ranges wider: 0.089-0.272 over 100 filters, once above 0.258; hence the mean of 16.
     assert float(printed["SMCD"]) < 0.8 * float(printed["no adaptation"])
+
+
+def test_the_readme_reads_in_five_minutes() -> None:
+    """A front door, not the manual: at most 250 lines (the docs site holds the rest)."""
+    assert len(README.read_text().splitlines()) <= 250
