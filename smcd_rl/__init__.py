@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     from smcd_rl.episode_windows import episodes
     from smcd_rl.files import FileWriteError, UnreadableFileError
     from smcd_rl.filter import ParticleFilter, SMCDFilter
+    from smcd_rl.last_layer import BayesianLastLayer
     from smcd_rl.masked_mlp import MaskedMLP
     from smcd_rl.model import (
         AdaptiveDynamicsModel,
@@ -40,6 +41,7 @@ if TYPE_CHECKING:
         load,
         save,
     )
+    from smcd_rl.smcd_last_layer import SMCDLastLayer
     from smcd_rl.training import fit, fit_dynamics, fit_reptile
     from smcd_rl.tuning import TuneResult, tune
 
@@ -56,6 +58,8 @@ __all__ = [
     "GradientDescent",
     "NoAdaptation",
     "Combination",
+    "BayesianLastLayer",
+    "SMCDLastLayer",
     "make_adaptation",
     "AdaptiveModel",
     "AdaptiveDynamicsModel",
@@ -81,6 +85,8 @@ _SOURCES: dict[str, str] = {
     **dict.fromkeys(["SMCD", "Adaptation", "GradientDescent", "NoAdaptation", "make_adaptation"], "adaptation"),
     **dict.fromkeys(["Calibration", "calibrate"], "calibration"),
     "Combination": "combination",
+    "BayesianLastLayer": "last_layer",
+    "SMCDLastLayer": "smcd_last_layer",
     "episodes": "episode_windows",
     **dict.fromkeys(["tune", "TuneResult"], "tuning"),
     "keep_freed_memory": "allocator",

@@ -7,10 +7,11 @@ by name (:func:`make_adaptation`).
 
 from __future__ import annotations
 
+import importlib
 import math
 import sys
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar, Literal
 
 import torch
@@ -230,6 +231,9 @@ class SMCD(Adaptation):
         self.filter: SMCDFilter | None = None
         #: Runs the proposed particles through the network (the path of ``forward_path``).
         self.particle_forward: ParticleForward | None = None
+        #: What turns last hidden activations ``[*B, ..., width]`` into outputs instead of the
+        #: network's output layer: an adapted readout per stream (:class:`smcd_rl.SMCDLastLayer`).
+        self.readout: Callable[[Tensor], Tensor] | None = None
         self._sigma = noise
         self._log_norm = torch.tensor(0.0)
         #: Why the strategy cannot run (an ``"auto"`` setting on a model without calibration), else None.
@@ -322,7 +326,7 @@ class SMCD(Adaptation):
         def log_likelihood(masks: Tensor) -> Tensor:
             assert filt.last_flips is not None  # the transition that proposed ``masks`` set them
             lineage = Lineage(parents, ancestors, filt.last_flips)
-            predictions = forward(inputs, masks, lineage)
+            predictions = forward(inputs, masks, lineage, readout=self.readout)
             residual = (targets.unsqueeze(-2) - predictions) / sigma
             if student:
                 return log_norm - (dof + 1) / 2 * torch.log1p(residual.square() / dof).sum(-1)
@@ -335,11 +339,13 @@ class SMCD(Adaptation):
             weights = self._mask_view(self._filter.weights, inputs, trailing=1).unsqueeze(-1)  # [*B, *1, N, 1]
             return (weights * self.predict_particles(inputs)).sum(-2)
         mask = self._mask_view(self._filter.mean_mask, inputs, trailing=1)
+        if self.readout is not None:
+            return self.readout(self.net.features(inputs, mask=mask))
         return self.net(inputs, mask=mask)
 
     def predict_particles(self, inputs: Tensor) -> Tensor:
         masks = self._mask_view(self._filter.particles, inputs, trailing=2)  # type: ignore[arg-type]
-        return self.net.forward_particles(inputs, masks)
+        return self.net.forward_particles(inputs, masks, self.readout)
 
     def predictive(self, inputs: Tensor) -> tuple[Tensor, Tensor]:
         """Mean and variance of the posterior predictive for ``inputs [*B, *extra, in]``, in normalised units.
@@ -633,17 +639,37 @@ ADAPTATIONS: dict[str, type[Adaptation]] = {
 
 
 def make_adaptation(name: Literal["none", "gradient_descent", "smcd"] | str, **kwargs: Any) -> Adaptation:
-    """Build a strategy by name: ``"none"``, ``"gradient_descent"`` (alias ``"gd"``) or ``"smcd"``.
+    """Build a strategy by name: ``"none"``, ``"gradient_descent"`` (alias ``"gd"``), ``"smcd"``,
+    ``"last_layer"``, ``"smcd_last_layer"`` or ``"combination"``.
 
     Example:
         >>> import smcd_rl
         >>> smcd_rl.make_adaptation("smcd", num_particles=10)
         SMCD(num_particles=10, flip_prob=0.01, noise_std=0.05, resampling='systematic', ess_threshold=1.0, transition='keep_rate', forward_path='auto', prediction='mask', likelihood='gaussian', dof=4.0)
     """
-    key = {"gd": "gradient_descent"}.get(name, name)
-    if key not in ADAPTATIONS:
-        raise ValueError(f"unknown adaptation {name!r}; choose one of {sorted(ADAPTATIONS)} (or 'gd')")
-    return ADAPTATIONS[key](**kwargs)
+    return adaptation_class({"gd": "gradient_descent"}.get(name, name))(**kwargs)
+
+
+#: Strategies defined in modules that build on this one: each registers its name when imported.
+_REGISTERED_BY = {
+    "combination": "smcd_rl.combination",
+    "last_layer": "smcd_rl.last_layer",
+    "smcd_last_layer": "smcd_rl.smcd_last_layer",
+}
+
+
+def adaptation_class(name: str) -> type[Adaptation]:
+    """The strategy class registered as ``name`` (importing the module that defines it).
+
+    Raises:
+        ValueError: no strategy has that name.
+    """
+    if name in _REGISTERED_BY:
+        importlib.import_module(_REGISTERED_BY[name])
+    if name not in ADAPTATIONS:
+        known = sorted({*ADAPTATIONS, *_REGISTERED_BY})
+        raise ValueError(f"unknown adaptation {name!r}; choose one of {known} (or 'gd')")
+    return ADAPTATIONS[name]
 
 
 def _log_gamma_ratio(x: float) -> float:

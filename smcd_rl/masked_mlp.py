@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Literal
 
 import torch
@@ -180,7 +180,28 @@ class MaskedMLP(nn.Module):
             mask = torch.rand(*x.shape[:-1], self.mask_dim, device=x.device) < self.keep_prob
         return self._run(x, self._scaled(mask, x.dtype))
 
-    def forward_particles(self, x: Tensor, masks: Tensor) -> Tensor:
+    @property
+    def readout_layer(self) -> nn.Linear:
+        """The output layer, which reads :meth:`features`."""
+        layer = self.linears[-1]
+        assert isinstance(layer, nn.Linear)
+        return layer
+
+    def features(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
+        """The last hidden layer's activations, what the output layer reads: ``net.readout_layer(net.features(x))``
+        is ``net(x)`` with dropout off (with ``mask``, under that mask, its kept units scaled).
+
+        Example:
+            >>> import torch, smcd_rl
+            >>> net = smcd_rl.MaskedMLP(2, 3, hidden=(8, 6)).eval()
+            >>> x = torch.rand(4, 2)
+            >>> net.features(x).shape, torch.allclose(net.readout_layer(net.features(x)), net(x))
+            (torch.Size([4, 6]), True)
+        """
+        self._check_input(x)
+        return self._hidden(x, None if mask is None else self._scaled(mask, x.dtype))
+
+    def forward_particles(self, x: Tensor, masks: Tensor, readout: Callable[[Tensor], Tensor] | None = None) -> Tensor:
         """Predict with every mask of a particle set in one batched pass.
 
         Args:
@@ -188,6 +209,8 @@ class MaskedMLP(nn.Module):
                 with one input per particle (when ``x.dim() == masks.dim()``).
             masks: ``[..., N, mask_dim]``, bool or float in ``[0, 1]``; leading dims broadcast
                 against ``x``'s.
+            readout: what turns the particles' last hidden activations ``[..., N, width]`` into
+                outputs (default: the output layer), e.g. an adapted readout per batch element.
 
         Returns:
             ``[..., N, out_features]``: one prediction per mask.
@@ -213,7 +236,7 @@ class MaskedMLP(nn.Module):
                 # One layer's bits at a time: a float copy of the whole mask set would be the
                 # largest temporary of the pass.
                 h = self._masked(h, _as_multiplier(masks[..., sl], h.dtype)).mul_(1.0 / self.keep_prob)
-        return self.linears[-1](h)
+        return (readout or self.linears[-1])(h)
 
     # ------------------------------------------------------------------ helpers
     def _scaled(self, mask: Tensor, dtype: torch.dtype) -> Tensor:
@@ -225,13 +248,16 @@ class MaskedMLP(nn.Module):
         return _as_multiplier(mask, dtype) * (1.0 / self.keep_prob)
 
     def _run(self, x: Tensor, scaled: Tensor | None) -> Tensor:
+        return self.linears[-1](self._hidden(x, scaled))
+
+    def _hidden(self, x: Tensor, scaled: Tensor | None) -> Tensor:
         h = x
         for i, linear in enumerate(list(self.linears)[:-1]):  # see forward_particles
             h = self.act(linear(h))
             sl = self.mask_slices[i]
             if scaled is not None and sl is not None:
                 h = self._masked(h, scaled[..., sl])
-        return self.linears[-1](h)
+        return h
 
     def _masked(self, h: Tensor, multiplier: Tensor) -> Tensor:
         """``h [..., width]`` times one layer's mask values ``[..., bits]`` (bits = width, or one per group)."""

@@ -17,7 +17,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from smcd_rl.adaptation import ADAPTATIONS, SMCD, Adaptation, NoAdaptation, _checked_noise
+from smcd_rl.adaptation import SMCD, Adaptation, NoAdaptation, _checked_noise, adaptation_class
 from smcd_rl.checks import check_key, check_real, check_real_tensor, check_shape, check_tensordict, read_tensor
 from smcd_rl.files import CheckpointMismatchError, UnreadableFileError, load_file, save_file
 from smcd_rl.masked_mlp import MaskedMLP
@@ -337,19 +337,20 @@ class AdaptiveModel(TensorDictModuleBase):
         return smcd._filter.weights.clone()
 
     def predictive(self, td: TensorDictBase) -> tuple[Tensor, Tensor]:
-        """Mean and variance of SMCD's posterior predictive, in the target's units, each ``[*batch, out]``.
+        """Mean and variance of the strategy's posterior predictive, in the target's units, each ``[*batch, out]``.
 
-        The mean is the weighted mean of the particles' predictions (what ``forward`` predicts with
-        ``SMCD(prediction="predictive")``); the variance, per output, is their weighted spread
-        around it plus the variance of the likelihood's noise (``noise_std**2`` for the Gaussian,
-        see :meth:`smcd_rl.SMCD.predictive`). With a ``base_key`` the mean is of the target
+        For SMCD the mean is the weighted mean of the particles' predictions (what ``forward``
+        predicts with ``SMCD(prediction="predictive")``); the variance, per output, is their
+        weighted spread around it plus the variance of the likelihood's noise (``noise_std**2``
+        for the Gaussian, see :meth:`smcd_rl.SMCD.predictive`). For the Bayesian last layer it is
+        the readout's posterior predictive (:meth:`smcd_rl.BayesianLastLayer.predictive`). With a ``base_key`` the mean is of the target
         (base plus predicted change), and the variance that of the change, the base being known.
 
         Args:
             td: inputs, as :meth:`forward` takes them; batch dims beyond the model's broadcast.
 
         Raises:
-            TypeError: the strategy is not :class:`smcd_rl.SMCD`.
+            TypeError: the strategy has no posterior (no adaptation, gradient descent).
             RuntimeError: the model was not reset since it was built.
 
         Example:
@@ -364,11 +365,17 @@ class AdaptiveModel(TensorDictModuleBase):
             (torch.Size([2]), True)
         """
         check_tensordict(td, "predictive")
-        smcd = self._smcd("predictive")
+        strategy = self.adaptation
+        if not callable(getattr(strategy, "predictive", None)):
+            raise TypeError(
+                f"model.predictive needs an SMCD strategy (weighted mask particles) or another with a posterior "
+                f"(BayesianLastLayer, SMCDLastLayer), but this model adapts with {type(strategy).__name__}; use "
+                "model.with_adaptation(smcd_rl.SMCD(...)) and reset it"
+            )
         self._require_reset()
         inputs = self._inputs(td, what="predictive", check_finite=False)
-        smcd._extra_dims(inputs)  # the batch check, before any work
-        mean, variance = smcd.predictive(inputs)
+        strategy._extra_dims(inputs)  # the batch check, before any work
+        mean, variance = strategy.predictive(inputs)  # type: ignore[attr-defined]
         mean = self.output_norm.inverse(mean)
         variance = variance * self.output_norm.std.square()
         if self.base_key is not None:
@@ -998,9 +1005,7 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
         net = MaskedMLP(**checkpoint["net"], dtype=_saved_dtype(checkpoint))
         if adaptation is None:
             saved = checkpoint["adaptation"]
-            if saved["name"] == "combination":
-                import smcd_rl.combination  # noqa: F401 - registers the name (it builds on this module's strategies)
-            adaptation = ADAPTATIONS[saved["name"]](**saved["config"])
+            adaptation = adaptation_class(saved["name"])(**saved["config"])
         cls = _CLASSES[checkpoint["class"]]
     except (TypeError, ValueError, KeyError) as err:  # a configuration this version cannot rebuild
         raise UnreadableFileError(

@@ -40,6 +40,7 @@ for every layer after it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal, NamedTuple
 
 import torch
@@ -122,22 +123,37 @@ class ParticleForward:
         self._table_cache: tuple[tuple[int, int], Tensor] | None = None
         self._buffers: dict[int, Tensor] = {}
 
-    def __call__(self, x: Tensor, masks: Tensor, lineage: Lineage | None = None) -> Tensor:
-        """Predictions ``[*B, N, out]`` for inputs ``x [*B, in]`` and masks ``[*B, N, D]`` (no gradients)."""
-        with torch.no_grad():
-            return self._forward(x, masks, lineage)
+    def __call__(
+        self,
+        x: Tensor,
+        masks: Tensor,
+        lineage: Lineage | None = None,
+        readout: Callable[[Tensor], Tensor] | None = None,
+    ) -> Tensor:
+        """Predictions ``[*B, N, out]`` for inputs ``x [*B, in]`` and masks ``[*B, N, D]`` (no gradients).
 
-    def _forward(self, x: Tensor, masks: Tensor, lineage: Lineage | None) -> Tensor:
+        ``readout`` turns the particles' last hidden activations ``[*B, N, width]`` into outputs
+        instead of the network's output layer (:meth:`MaskedMLP.forward_particles`).
+        """
+        with torch.no_grad():
+            return self._forward(x, masks, lineage, readout)
+
+    def _forward(
+        self, x: Tensor, masks: Tensor, lineage: Lineage | None, readout: Callable[[Tensor], Tensor] | None = None
+    ) -> Tensor:
         self.last_path, self.last_distinct_parents = "dense", None
         valid = (
             lineage is not None and masks.dtype == torch.bool and x.dim() == masks.dim() - 1 and not self._grouped_masks
         )
         if self.path == "incremental" and not valid:
             raise ValueError("the incremental path needs a lineage, bool masks and one input [*B, in] per particle set")
+        if readout is not None and self._layer == len(self.net.hidden) - 1:
+            # The first masked layer feeds the output layer: no later layer for the readout to replace.
+            return self.net.forward_particles(x, masks, readout)
         if self.path == "auto" and self._grouped_masks and x.dim() == masks.dim() - 1:
-            return self._grouped(x, masks)
+            return self._grouped(x, masks, readout)
         if self.path == "dense" or not valid:
-            return self.net.forward_particles(x, masks)
+            return self.net.forward_particles(x, masks, readout)
         assert lineage is not None
         self._check(x, masks, lineage)
         n = masks.shape[-2]
@@ -145,11 +161,11 @@ class ParticleForward:
         groups, child_group = group_copies(flat_particle_index(lineage.ancestors, n))
         self.last_distinct_parents = groups.numel()
         if self.path == "auto" and not self._pays(groups.numel(), total, lineage.flips.numel()):
-            return self.net.forward_particles(x, masks)
+            return self.net.forward_particles(x, masks, readout)
         self.last_path = "incremental"
-        return self._incremental(x, masks, lineage, groups, child_group)
+        return self._incremental(x, masks, lineage, groups, child_group, readout)
 
-    def _grouped(self, x: Tensor, masks: Tensor) -> Tensor:
+    def _grouped(self, x: Tensor, masks: Tensor, readout: Callable[[Tensor], Tensor] | None = None) -> Tensor:
         """A grouped network's particles: the layer after the first masked one from its groups' contributions.
 
         With ``G`` bits on the first masked layer, each bit switches a block of units, so that
@@ -181,6 +197,9 @@ class ParticleForward:
             later = net.mask_slices[i]
             if later is not None:
                 h = net._masked(h, flat_masks[:, later].to(h.dtype) * (1.0 / net.keep_prob))
+            if i == len(net.hidden) - 1 and readout is not None:
+                self.last_path = "grouped"
+                return readout(h.reshape(*batch, n, h.shape[-1]))
             h = _linear(net, i + 1)(h)
         self.last_path = "grouped"
         return h.reshape(*batch, n, h.shape[-1])
@@ -192,7 +211,15 @@ class ParticleForward:
         # Flips outside the first masked layer's bits cost nothing; counting all of them errs dense.
         return distinct * width + SPARSE_COST * flips < total * width
 
-    def _incremental(self, x: Tensor, masks: Tensor, lineage: Lineage, groups: Tensor, child_group: Tensor) -> Tensor:
+    def _incremental(
+        self,
+        x: Tensor,
+        masks: Tensor,
+        lineage: Lineage,
+        groups: Tensor,
+        child_group: Tensor,
+        readout: Callable[[Tensor], Tensor] | None = None,
+    ) -> Tensor:
         net, layer = self.net, self._layer
         batch, n, dim = masks.shape[:-2], masks.shape[-2], masks.shape[-1]
         total = child_group.numel()
@@ -243,6 +270,8 @@ class ParticleForward:
                 bits = self._buffer(-1, tuple(h.shape), h).copy_(flat_masks[:, later].view(torch.uint8))
                 h.mul_(bits)
                 scale = inv_keep
+            if i == last and readout is not None:
+                return readout((h * scale).reshape(*batch, n, h.shape[-1]))
             linear = _linear(net, i + 1)
             out = None if i == last else self._buffer(i - layer, (total, linear.out_features), h)
             h = torch.addmm(linear.bias, h, linear.weight.t(), alpha=scale, out=out)

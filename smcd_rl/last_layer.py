@@ -1,0 +1,230 @@
+"""The Bayesian last layer: a Gaussian posterior over the network's readout, updated in closed form.
+
+The network's last hidden layer, with dropout off, gives features ``phi(x)``; the output layer
+reads them, ``y = K^T [phi(x), 1]`` (weights and bias, ``D = width + 1`` rows, one column per
+output). :class:`BayesianLastLayer` keeps a Gaussian posterior over ``K`` for every stream,
+centred at first on the trained readout, and updates it after every observation (Bayesian linear
+regression; ALPaCA, Harrison, Sharma and Pavone 2018; Neural-Fly's Kalman-style adaptation,
+O'Connell et al. 2022). The prior is ALPaCA's matrix-normal one: output ``o``'s weights have prior
+covariance ``noise_o^2 * prior_scale^2 * I``, so one ``D x D`` matrix ``P`` (the posterior
+covariance in units of each output's noise variance) serves every output:
+
+* after an observation ``(phi, y)``: ``k = P phi / (1 + phi^T P phi)``, ``K += k (y - K^T phi)^T``,
+  ``P = (I - k phi^T) P (I - k phi^T)^T + k k^T`` (Joseph's form, which keeps ``P`` symmetric and
+  positive definite in float32 over long streams), the exact posterior of all observations so far;
+* ``drift`` adds ``drift * prior_scale^2 * I`` to ``P`` before each observation: the readout
+  follows a random walk, so old observations lose weight and the posterior follows a task that
+  drifts or switches (Kalman's process noise);
+* ``likelihood="student-t"`` weighs each observation by ``(dof + m) / (dof + r^2)``, ``r^2`` its
+  squared residual over its predictive variance summed over the ``m`` outputs (one EM step of a
+  Student-t likelihood), so that one gross outlier barely moves the readout.
+
+It predicts with the posterior mean; :meth:`BayesianLastLayer.predictive` gives the predictive mean
+and variance. Everything is in the model's normalised units.
+
+Example:
+    >>> import torch, smcd_rl
+    >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(16,))
+    >>> readout = BayesianLastLayer(prior_scale=0.5, noise_std=0.1)
+    >>> model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee", adaptation=readout)
+    >>> model.fitted = True  # a toy network: declare it trained
+    >>> model.reset(batch_shape=(3,))
+    >>> readout.observe(torch.rand(3, 2), torch.rand(3, 2))
+    >>> mean, variance = readout.predictive(torch.rand(3, 2))
+    >>> mean.shape, bool((variance > 0.1**2).all())
+    (torch.Size([3, 2]), True)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
+
+import torch
+from torch import Tensor
+
+from smcd_rl.adaptation import ADAPTATIONS, Adaptation, _checked_noise
+from smcd_rl.checks import check_real
+from smcd_rl.masked_mlp import MaskedMLP
+
+__all__ = ["BayesianLastLayer"]
+
+
+class BayesianLastLayer(Adaptation):
+    """Adapt the network's readout by exact Bayesian linear regression on its last hidden features.
+
+    Args:
+        prior_scale: the prior standard deviation of each readout weight, in units of its output's
+            noise: how far the readout may move from the trained one before the data say more.
+        noise_std: the observation noise, in the model's normalised units (one per output, or a
+            scalar): what one observation's residual is worth.
+        drift: the random walk of the readout per observation, as a share of the prior variance
+            (``0``: a task that stays put; ``0.01`` forgets an observation's information over about a
+            hundred).
+        likelihood: ``"gaussian"`` or ``"student-t"`` (robust: an outlier is down-weighted).
+        dof: the Student-t's degrees of freedom.
+
+    Example:
+        >>> BayesianLastLayer(prior_scale=0.3, noise_std=[0.1, 0.2], likelihood="student-t").config()["dof"]
+        4.0
+    """
+
+    name = "last_layer"
+
+    def __init__(
+        self,
+        prior_scale: float = 1.0,
+        noise_std: float | Sequence[float] = 0.1,
+        drift: float = 0.0,
+        likelihood: Literal["gaussian", "student-t"] = "gaussian",
+        dof: float = 4.0,
+    ) -> None:
+        super().__init__()
+        self.prior_scale = check_real(prior_scale, "prior_scale", low=0.0, high=1e6, open_low=True)
+        self._noise = _checked_noise(noise_std)
+        self.noise_std = noise_std if isinstance(noise_std, (int, float)) else [float(v) for v in noise_std]
+        self.drift = check_real(drift, "drift", low=0.0, high=1e6)
+        if likelihood not in ("gaussian", "student-t"):
+            raise ValueError(f"likelihood must be 'gaussian' or 'student-t', got {likelihood!r}")
+        self.likelihood: Literal["gaussian", "student-t"] = likelihood
+        self.dof = check_real(dof, "dof", low=0.0, high=1e12, open_low=True)
+        self._mean: Tensor | None = None  # [B, D, out]: the posterior mean of the readout per stream
+        self._cov: Tensor | None = None  # [B, D, D]: its covariance, in units of each output's noise variance
+        self._sigma = torch.ones(1)
+
+    def config(self) -> dict[str, Any]:
+        return {
+            "prior_scale": self.prior_scale,
+            "noise_std": self.noise_std,
+            "drift": self.drift,
+            "likelihood": self.likelihood,
+            "dof": self.dof,
+        }
+
+    # -------------------------------------------------------------- called by the model
+    def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
+        super().bind(net, output_scale, calibration=calibration)
+        if self._noise.dim() == 1 and self._noise.shape[0] not in (1, net.out_features):
+            raise ValueError(f"noise_std has {self._noise.shape[0]} values but the model predicts {net.out_features}")
+        weight = net.readout_layer.weight
+        self._sigma = self._noise.to(device=weight.device, dtype=weight.dtype).expand(net.out_features)
+
+    def reset(self, batch_shape: tuple[int, ...]) -> None:
+        self._batch_shape = batch_shape
+        streams = math.prod(batch_shape)
+        output = self.net.readout_layer
+        prior = torch.cat([output.weight.detach().t(), output.bias.detach().unsqueeze(0)])  # [D, out]
+        self._mean = prior.expand(streams, *prior.shape).clone()
+        eye = torch.eye(prior.shape[0], dtype=prior.dtype, device=prior.device)
+        self._cov = (self.prior_scale**2 * eye).expand(streams, *eye.shape).clone()
+
+    def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        mean, _ = self._state()
+        self.update(self.net.features(inputs.reshape(mean.shape[0], -1)), targets)
+
+    def update(self, features: Tensor, targets: Tensor) -> None:
+        """The posterior after one observation per stream of last hidden ``features [*B, width]`` and ``targets``.
+
+        What :meth:`observe` does with the features of the network with dropout off; a strategy that
+        reads other features (a mask's: :class:`smcd_rl.SMCDLastLayer`) passes them here.
+
+        Raises:
+            ValueError: the posterior would become inf or NaN; it is left as it was.
+        """
+        self._mean, self._cov = self.updated(features, targets)
+
+    def updated(self, features: Tensor, targets: Tensor) -> tuple[Tensor, Tensor]:
+        """The posterior mean and covariance :meth:`update` would set, without setting them."""
+        mean, cov = self._state()
+        phi = self._augmented(features.reshape(mean.shape[0], -1))  # [B, D]
+        targets = targets.reshape(mean.shape[0], -1)
+        if self.drift > 0:
+            cov = cov + self.drift * self.prior_scale**2 * torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+        spread = torch.einsum("bij,bj->bi", cov, phi)  # P phi
+        variance = 1.0 + (phi * spread).sum(-1)  # the predictive variance, in units of each output's noise variance
+        residual = targets - torch.einsum("bdo,bd->bo", mean, phi)
+        weight = torch.ones_like(variance)
+        if self.likelihood == "student-t":
+            squared = (residual / self._sigma).square().sum(-1) / variance
+            weight = (self.dof + residual.shape[-1]) / (self.dof + squared)
+        # An observation of weight w is one with noise variance 1 / w: its gain k = c P phi grows with w.
+        denominator = 1.0 + weight * (variance - 1.0)
+        c = weight / denominator
+        gain = spread * c.unsqueeze(-1)  # [B, D]
+        new_mean = mean + gain.unsqueeze(-1) * residual.unsqueeze(-2)
+        # Joseph's form: (I - k phi^T) P (I - k phi^T)^T + k k^T / w, with P phi = spread; the last two
+        # terms' factor c^2 phi^T P phi + w / denominator^2 is written without 1 / w, so that an
+        # outlier the Student-t weighs at w = 0 leaves P exactly as it was.
+        outer = gain.unsqueeze(-1) * spread.unsqueeze(-2)  # k (P phi)^T
+        scale = c.square() * (variance - 1.0) + weight / denominator.square()
+        new_cov = (
+            cov - outer - outer.transpose(-1, -2) + scale[:, None, None] * spread.unsqueeze(-1) * spread.unsqueeze(-2)
+        )
+        if not (bool(torch.isfinite(new_mean).all()) and bool(torch.isfinite(new_cov).all())):
+            raise ValueError(
+                "the last layer's posterior became inf or NaN on this observation (a target of inf or of a far "
+                "larger scale than the model's); the adaptation state is unchanged"
+            )
+        return new_mean, new_cov
+
+    def predict(self, inputs: Tensor) -> Tensor:
+        mean, _ = self._state()
+        self._extra_dims(inputs)
+        return self.readout(self.net.features(inputs))
+
+    def readout(self, features: Tensor) -> Tensor:
+        """Each stream's posterior-mean readout of last hidden ``features [*B, ..., width]`` -> ``[*B, ..., out]``."""
+        return self.readout_with(self._state()[0], features)
+
+    @staticmethod
+    def readout_with(mean: Tensor, features: Tensor) -> Tensor:
+        """:meth:`readout` with the readout ``mean [B, width + 1, out]`` given (one per stream)."""
+        flat = features.reshape(mean.shape[0], -1, features.shape[-1])
+        out = torch.baddbmm(mean[:, -1:, :], flat, mean[:, :-1, :])
+        return out.reshape(*features.shape[:-1], out.shape[-1])
+
+    def predictive(self, inputs: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean and variance of the posterior predictive for ``inputs [*B, *extra, in]``, in normalised units.
+
+        The variance is the noise's plus the readout's uncertainty at the input:
+        ``noise^2 * (1 + phi^T P phi)`` per output.
+        """
+        self._extra_dims(inputs)
+        return self.predictive_of(self.net.features(inputs))
+
+    def predictive_of(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`predictive` for last hidden ``features [*B, ..., width]`` given."""
+        mean, cov = self._state()
+        phi = self._augmented(features.reshape(mean.shape[0], -1, features.shape[-1]))  # [B, n, D]
+        spread = (torch.bmm(phi, cov) * phi).sum(-1)  # [B, n]
+        variance = (1.0 + spread).unsqueeze(-1) * self._sigma.square()
+        return self.readout(features), variance.reshape(*features.shape[:-1], -1)
+
+    def state_dict(self) -> dict[str, Any]:
+        mean, cov = self._state()
+        return {"mean": mean.clone(), "cov": cov.clone()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._mean, self._cov = state["mean"].clone(), state["cov"].clone()
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+        mean, cov = self._state()
+        keep = rows.to(mean.device).reshape(-1, 1, 1)
+        self._mean = torch.where(keep, state["mean"], mean)
+        self._cov = torch.where(keep, state["cov"], cov)
+
+    # -------------------------------------------------------------- helpers
+    @staticmethod
+    def _augmented(features: Tensor) -> Tensor:
+        """``[features, 1]``: the bias is the readout's last row."""
+        return torch.cat([features, features.new_ones(*features.shape[:-1], 1)], dim=-1)
+
+    def _state(self) -> tuple[Tensor, Tensor]:
+        if self._mean is None or self._cov is None:
+            raise RuntimeError("BayesianLastLayer has no posterior yet; call model.reset() first")
+        return self._mean, self._cov
+
+
+# Known by name, so that a model saved with it loads with smcd_rl.load(path).
+ADAPTATIONS["last_layer"] = BayesianLastLayer

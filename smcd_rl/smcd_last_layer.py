@@ -1,0 +1,135 @@
+"""SMCD with a Bayesian readout: the mask filter infers the context, the readout adapts on the masked features.
+
+:class:`SMCDLastLayer` composes an :class:`smcd_rl.SMCD` (the filter over dropout masks) and a
+:class:`smcd_rl.BayesianLastLayer` (the posterior over the output layer), one of each per stream,
+and updates them in two stages per observation:
+
+1. **the readout**: its exact Bayesian update on the features of the MMSE mask it predicted the
+   observation with, so it corrects the prediction that was made;
+2. **the filter**: each particle's likelihood is that of the particle's own last hidden features
+   read out by the *updated readout's mean*, so the filter weighs the sub-networks by how well the
+   adapted readout explains the observation through each.
+
+The new readout is set only once the filter has accepted the observation: a refused observation
+leaves both as they were. It predicts with the readout's posterior mean on the MMSE mask's
+features. Why this coupling:
+the mask filter finds which sub-network the task looks like, and the readout absorbs what no
+sub-network explains (a shift, a scale); reading the particles out with the readout's mean costs
+each particle the readout's multiply-adds, the same as the network's own output layer, where the
+readout's full predictive density per particle (``phi^T P phi``) would cost ``width^2`` more per
+particle. The filter's noise and flip probability and the readout's prior and noise are the
+settings of the two parts.
+
+Example:
+    >>> import torch, smcd_rl
+    >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(16, 16))
+    >>> both = SMCDLastLayer(smcd_rl.SMCD(num_particles=50, noise_std=0.1), smcd_rl.BayesianLastLayer(noise_std=0.1))
+    >>> model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee", adaptation=both)
+    >>> model.fitted = True  # a toy network: declare it trained
+    >>> model.reset(batch_shape=(3,))
+    >>> both.observe(torch.rand(3, 2), torch.rand(3, 2))
+    >>> both.predict(torch.rand(3, 2)).shape, both.mask.shape
+    (torch.Size([3, 2]), torch.Size([3, 32]))
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping
+from typing import Any
+
+from torch import Tensor
+
+from smcd_rl.adaptation import ADAPTATIONS, SMCD, Adaptation
+from smcd_rl.last_layer import BayesianLastLayer
+from smcd_rl.masked_mlp import MaskedMLP
+
+__all__ = ["SMCDLastLayer"]
+
+
+class SMCDLastLayer(Adaptation):
+    """The SMCD mask filter and a Bayesian readout, updated in two stages (see the module doc).
+
+    Args:
+        smcd: the filter, or its ``config()`` dict.
+        last_layer: the readout, or its ``config()`` dict.
+    """
+
+    name = "smcd_last_layer"
+
+    def __init__(self, smcd: SMCD | Mapping[str, Any], last_layer: BayesianLastLayer | Mapping[str, Any]) -> None:
+        super().__init__()
+        self.smcd = smcd if isinstance(smcd, SMCD) else SMCD(**dict(smcd))
+        self.last_layer = last_layer if isinstance(last_layer, BayesianLastLayer) else BayesianLastLayer(**last_layer)
+        if not isinstance(self.smcd, SMCD) or not isinstance(self.last_layer, BayesianLastLayer):
+            raise TypeError("SMCDLastLayer takes an smcd_rl.SMCD and an smcd_rl.BayesianLastLayer")
+
+    def config(self) -> dict[str, Any]:
+        return {"smcd": self.smcd.config(), "last_layer": self.last_layer.config()}
+
+    def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
+        super().bind(net, output_scale, calibration=calibration)
+        self.smcd.bind(net, output_scale, calibration=calibration)
+        self.last_layer.bind(net, output_scale, calibration=calibration)
+        self.smcd.readout = self.last_layer.readout  # the particles read out by the adapted readout
+
+    def reset(self, batch_shape: tuple[int, ...]) -> None:
+        self._batch_shape = batch_shape
+        self.smcd.reset(batch_shape)
+        self.last_layer.reset(batch_shape)
+
+    def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        mask = self.smcd.mask.reshape(-1, self.net.mask_dim)
+        features = self.net.features(inputs.reshape(mask.shape[0], -1), mask=mask)
+        mean, cov = self.last_layer.updated(features, targets)  # nothing set yet: it may refuse
+        self.smcd.readout = functools.partial(BayesianLastLayer.readout_with, mean)
+        try:
+            self.smcd.observe(inputs, targets)  # a refused observation leaves the filter as it was
+        finally:
+            self.smcd.readout = self.last_layer.readout
+        self.last_layer.load_state_dict({"mean": mean, "cov": cov})
+
+    def predict(self, inputs: Tensor) -> Tensor:
+        return self.smcd.predict(inputs)  # the readout's mean on the MMSE mask's features
+
+    def predict_particles(self, inputs: Tensor) -> Tensor:
+        return self.smcd.predict_particles(inputs)
+
+    def predictive(self, inputs: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean and variance of the predictive for ``inputs [*B, *extra, in]``, in normalised units.
+
+        The mean is :meth:`predict`'s; the variance the readout's predictive variance on the MMSE
+        mask's features (noise and readout uncertainty) plus the particles' weighted spread.
+        """
+        mask = self.smcd._mask_view(self.smcd.mask, inputs, trailing=1)
+        mean, variance = self.last_layer.predictive_of(self.net.features(inputs, mask=mask))
+        weights = self.smcd._mask_view(self.smcd._filter.weights, inputs, trailing=1).unsqueeze(-1)
+        spread = (weights * (self.predict_particles(inputs) - mean.unsqueeze(-2)).square()).sum(-2)
+        return mean, variance + spread
+
+    @property
+    def mask(self) -> Tensor:
+        return self.smcd.mask
+
+    @property
+    def particles(self) -> Tensor:
+        """The filter's mask particles ``[*B, N, mask_dim]``."""
+        return self.smcd.particles
+
+    def summary(self) -> dict[str, Tensor]:
+        return self.smcd.summary()
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"smcd": self.smcd.state_dict(), "last_layer": self.last_layer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.smcd.load_state_dict(state["smcd"])
+        self.last_layer.load_state_dict(state["last_layer"])
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+        self.smcd.restore_rows(state["smcd"], rows)
+        self.last_layer.restore_rows(state["last_layer"], rows)
+
+
+# Known by name, so that a model saved with it loads with smcd_rl.load(path).
+ADAPTATIONS["smcd_last_layer"] = SMCDLastLayer

@@ -1,0 +1,332 @@
+"""The Bayesian last layer: the exact batch posterior, its robust and drifting forms, and SMCD with a Bayesian readout."""
+
+import functools
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torch import Tensor
+
+import smcd_rl
+from smcd_rl.particle_forward import Lineage, ParticleForward
+
+WIDTH = 12
+
+
+def _net(dtype: torch.dtype = torch.float64, seed: int = 0, hidden: tuple[int, ...] = (16, WIDTH)) -> smcd_rl.MaskedMLP:
+    torch.manual_seed(seed)
+    # tanh keeps every feature alive, so every readout weight is identifiable from data.
+    return smcd_rl.MaskedMLP(2, 2, hidden=hidden, activation="tanh", dtype=dtype).eval()
+
+
+def _bound(readout: smcd_rl.Adaptation, net: smcd_rl.MaskedMLP, batch: tuple[int, ...] = (3,)) -> smcd_rl.Adaptation:
+    readout.bind(net, torch.ones(2, dtype=net.linears[0].weight.dtype))
+    readout.reset(batch)
+    return readout
+
+
+def _prior(net: smcd_rl.MaskedMLP) -> Tensor:
+    """The trained readout ``[width + 1, out]``: weights, then the bias."""
+    output = net.linears[-1]
+    return torch.cat([output.weight.detach().t(), output.bias.detach().unsqueeze(0)])
+
+
+def _task(
+    net: smcd_rl.MaskedMLP, steps: int, streams: int, seed: int, noise: float = 0.0, change: Tensor | None = None
+):
+    """Inputs ``[steps, streams, 2]`` and targets read out from the network's features by ``prior + change``."""
+    g = torch.Generator().manual_seed(seed)
+    dtype = net.linears[0].weight.dtype
+    if change is None:
+        change = torch.randn(streams, WIDTH + 1, 2, generator=g, dtype=dtype) * 0.5
+    readout = _prior(net) + change
+    inputs = torch.rand(steps, streams, 2, generator=g, dtype=dtype) * 4 - 2
+    with torch.no_grad():
+        phi = torch.cat([net.features(inputs), torch.ones(steps, streams, 1, dtype=dtype)], -1)
+    targets = torch.einsum("tbd,bdo->tbo", phi, readout) + noise * torch.randn(
+        steps, streams, 2, generator=g, dtype=dtype
+    )
+    return inputs, targets, readout
+
+
+def test_sequential_updates_reach_the_exact_batch_posterior() -> None:
+    """After 40 observations the posterior is the closed-form one of all 40 at once, to float64 rounding."""
+    net, prior_scale, noise = _net(), 0.7, 0.05
+    layer = _bound(smcd_rl.BayesianLastLayer(prior_scale=prior_scale, noise_std=noise), net)
+    inputs, targets, _ = _task(net, 40, 3, seed=1, noise=noise)
+    for x, y in zip(inputs, targets, strict=True):
+        layer.observe(x, y)
+    state = layer.state_dict()
+    with torch.no_grad():
+        phi = torch.cat([net.features(inputs), torch.ones(40, 3, 1, dtype=torch.float64)], -1).transpose(0, 1)
+    eye = torch.eye(WIDTH + 1, dtype=torch.float64)
+    precision = eye / prior_scale**2 + phi.transpose(1, 2) @ phi  # [B, D, D], in units of the noise variance
+    cov = torch.linalg.inv(precision)
+    mean = cov @ (_prior(net) / prior_scale**2 + phi.transpose(1, 2) @ targets.transpose(0, 1))
+    torch.testing.assert_close(state["mean"], mean, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(state["cov"], cov, rtol=1e-9, atol=1e-9)
+    # The predictive variance is the noise's plus the readout's uncertainty at the input.
+    x = torch.rand(3, 2, dtype=torch.float64)
+    with torch.no_grad():
+        phi_x = torch.cat([net.features(x), torch.ones(3, 1, dtype=torch.float64)], -1)
+    predicted, variance = layer.predictive(x)
+    torch.testing.assert_close(predicted, torch.einsum("bd,bdo->bo", phi_x, mean))
+    spread = torch.einsum("bi,bij,bj->b", phi_x, cov, phi_x)
+    torch.testing.assert_close(variance, (noise**2 * (1 + spread)).unsqueeze(-1).expand(3, 2))
+
+
+def test_a_known_readout_change_is_recovered_from_noiseless_observations() -> None:
+    """With more observations than readout weights and no noise, the posterior mean is the true readout."""
+    net = _net()
+    layer = _bound(smcd_rl.BayesianLastLayer(prior_scale=1e5, noise_std=1e-3), net)
+    inputs, targets, truth = _task(net, 60, 3, seed=2)
+    for x, y in zip(inputs, targets, strict=True):
+        layer.observe(x, y)
+    # The features' design matrix has condition number ~3e3, so its weakest direction carries a
+    # precision of ~1e-5; the prior's, 1 / prior_scale^2 = 1e-10, moves the answer by ~1e-5 there.
+    torch.testing.assert_close(layer.state_dict()["mean"], truth, rtol=0, atol=1e-4)
+
+
+def test_the_robust_form_barely_moves_under_one_gross_outlier() -> None:
+    """30 clean readings, then one 50 normalised units off: Gaussian follows it, Student-t stays."""
+    net = _net()
+    inputs, targets, _ = _task(net, 31, 3, seed=3, noise=0.05)
+    corrupted = targets.clone()
+    corrupted[-1] += 50.0
+    probe = torch.rand(3, 20, 2, dtype=torch.float64)
+    moved = {}
+    for likelihood in ("gaussian", "student-t"):
+        layer = _bound(smcd_rl.BayesianLastLayer(prior_scale=1.0, noise_std=0.05, likelihood=likelihood), net)
+        for x, y in zip(inputs[:-1], targets[:-1], strict=True):
+            layer.observe(x, y)
+        before = layer.predict(probe)
+        layer.observe(inputs[-1], corrupted[-1])
+        moved[likelihood] = (layer.predict(probe) - before).abs().max().item()
+    # The Gaussian update moves the prediction at the outlier's input by ~50 * (phi'P phi) / (1 + phi'P phi),
+    # a sizeable share of 50; the Student-t weight (dof + 2) / (dof + r^2) with r ~ 1000 is ~1e-5.
+    assert moved["gaussian"] > 1.0, moved
+    assert moved["student-t"] < 0.01, moved
+
+
+def test_drift_follows_a_switch_that_the_static_posterior_averages() -> None:
+    """200 readings of one readout, then 200 of another: with drift the posterior ends at the second."""
+    net = _net()
+    first = _task(net, 200, 2, seed=4, noise=0.02)
+    second = _task(net, 200, 2, seed=5, noise=0.02)
+    error = {}
+    for drift in (0.0, 0.01):
+        layer = _bound(smcd_rl.BayesianLastLayer(prior_scale=1.0, noise_std=0.02, drift=drift), net, (2,))
+        for inputs, targets, _ in (first, second):
+            for x, y in zip(inputs, targets, strict=True):
+                layer.observe(x, y)
+        probe = first[0][:50]
+        truth = torch.einsum(
+            "tbd,bdo->tbo", torch.cat([net.features(probe), torch.ones(50, 2, 1, dtype=torch.float64)], -1), second[2]
+        )
+        error[drift] = (layer.predict(probe.transpose(0, 1)).transpose(0, 1) - truth).abs().mean().item()
+    # The static posterior weighs both tasks equally (an error of about half their difference); the
+    # drifting one forgets the first over ~100 readings.
+    assert error[0.01] < 0.2 * error[0.0], error
+
+
+def test_float32_follows_float64_over_ten_thousand_observations() -> None:
+    """Joseph's form keeps the float32 covariance symmetric positive definite and the mean on the float64 one."""
+    net64 = _net()
+    net32 = _net(torch.float32)
+    net32.load_state_dict({k: v.float() for k, v in net64.state_dict().items()})
+    inputs, targets, _ = _task(net64, 10_000, 2, seed=6, noise=0.1)
+    layers = {
+        dtype: _bound(smcd_rl.BayesianLastLayer(prior_scale=1.0, noise_std=0.1, drift=1e-4), net, (2,))
+        for dtype, net in ((torch.float64, net64), (torch.float32, net32))
+    }
+    features = {
+        dtype: net.features(inputs.to(dtype)).detach()
+        for dtype, net in ((torch.float64, net64), (torch.float32, net32))
+    }
+    for t in range(inputs.shape[0]):
+        for dtype, layer in layers.items():
+            layer.update(features[dtype][t], targets[t].to(dtype))
+    mean64, cov64 = layers[torch.float64].state_dict().values()
+    mean32, cov32 = layers[torch.float32].state_dict().values()
+    # float32 rounding of ~1e-7 per step, forgotten at the drift's rate: the means agree to ~1e-3 of their scale.
+    assert (mean32.double() - mean64).abs().max() < 1e-3 * mean64.abs().max()
+    assert torch.allclose(cov32, cov32.transpose(-1, -2), atol=1e-6)
+    assert bool((torch.linalg.eigvalsh(cov32.double()) > 0).all())
+    torch.testing.assert_close(cov32.double(), cov64, rtol=0, atol=1e-3 * cov64.abs().max().item())
+
+
+def test_reset_returns_to_the_prior_and_the_network_output() -> None:
+    net = _net()
+    layer = _bound(smcd_rl.BayesianLastLayer(prior_scale=0.5, noise_std=0.1), net)
+    x = torch.rand(3, 2, dtype=torch.float64)
+    torch.testing.assert_close(layer.predict(x), net(x))
+    inputs, targets, _ = _task(net, 5, 3, seed=7)
+    for xs, ys in zip(inputs, targets, strict=True):
+        layer.observe(xs, ys)
+    assert not torch.allclose(layer.predict(x), net(x))
+    layer.reset((3,))
+    torch.testing.assert_close(layer.predict(x), net(x))
+    torch.testing.assert_close(
+        layer.state_dict()["cov"], 0.25 * torch.eye(WIDTH + 1, dtype=torch.float64).expand(3, -1, -1)
+    )
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        ({"prior_scale": 0.0}, "prior_scale"),
+        ({"prior_scale": float("nan")}, "prior_scale"),
+        ({"noise_std": -0.1}, "noise_std"),
+        ({"drift": -1.0}, "drift"),
+        ({"likelihood": "laplace"}, "likelihood must be 'gaussian' or 'student-t'"),
+        ({"dof": 0.0}, "dof"),
+    ],
+)
+def test_bad_settings_are_refused_with_the_setting_named(settings, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        smcd_rl.BayesianLastLayer(**settings)
+
+
+def test_a_noise_per_output_of_the_wrong_length_is_refused_at_bind() -> None:
+    with pytest.raises(ValueError, match="noise_std has 3 values but the model predicts 2"):
+        _bound(smcd_rl.BayesianLastLayer(noise_std=[0.1, 0.1, 0.1]), _net())
+
+
+def test_an_inf_target_raises_and_leaves_the_posterior_unchanged() -> None:
+    net = _net(torch.float32)
+    layer = _bound(smcd_rl.BayesianLastLayer(noise_std=0.1), net)
+    with pytest.raises(RuntimeError, match="reset"):
+        smcd_rl.BayesianLastLayer().predict(torch.rand(3, 2))  # never bound nor reset
+    layer.observe(torch.rand(3, 2), torch.rand(3, 2))
+    before = layer.state_dict()
+    with pytest.raises(ValueError, match="inf or NaN.*unchanged"):
+        layer.observe(torch.rand(3, 2), torch.tensor([[0.0, 0.0], [0.0, float("inf")], [0.0, 0.0]]))
+    after = layer.state_dict()
+    assert torch.equal(before["mean"], after["mean"]) and torch.equal(before["cov"], after["cov"])
+
+
+def test_the_robust_form_ignores_a_reading_at_the_edge_of_float32_without_nan() -> None:
+    """A residual of 3e38 squares to inf, its Student-t weight to 0: the posterior stays exactly as it was."""
+    net = _net(torch.float32)
+    layer = _bound(smcd_rl.BayesianLastLayer(noise_std=0.1, likelihood="student-t"), net)
+    layer.observe(torch.rand(3, 2), torch.rand(3, 2))
+    before = layer.state_dict()
+    layer.observe(torch.rand(3, 2), torch.full((3, 2), 3e38))
+    after = layer.state_dict()
+    assert torch.equal(before["mean"], after["mean"]) and torch.equal(before["cov"], after["cov"])
+
+
+def _adaptive(adaptation: smcd_rl.Adaptation, seed: int = 0) -> smcd_rl.AdaptiveModel:
+    torch.manual_seed(seed)
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(32, 32)), in_keys=["q"], out_key="ee")
+    model.fitted = True  # a random network: the tasks below are defined from its own predictions
+    return model.with_adaptation(adaptation)
+
+
+def test_the_model_saves_loads_and_predicts_its_variance_in_target_units(tmp_path) -> None:
+    model = _adaptive(smcd_rl.BayesianLastLayer(prior_scale=0.5, noise_std=[0.1, 0.2], likelihood="student-t"))
+    path = tmp_path / "model.pt"
+    smcd_rl.save(model, path)
+    loaded = smcd_rl.load(path)
+    assert isinstance(loaded.adaptation, smcd_rl.BayesianLastLayer)
+    assert loaded.adaptation.config() == model.adaptation.config()
+    loaded.reset(batch_shape=(4,))
+    td = TensorDict({"q": torch.rand(4, 2)}, [4])
+    mean, variance = loaded.predictive(td)
+    # Before any observation the variance is noise^2 * (1 + prior_scale^2 * |phi|^2) >= noise^2, per output.
+    noise = torch.tensor([0.1, 0.2]) * loaded.output_norm.std
+    assert mean.shape == variance.shape == (4, 2) and bool((variance >= noise.square() * (1 - 1e-6)).all())
+
+
+def _shifted(model: smcd_rl.AdaptiveModel, steps: int, seed: int, shift: float = 1.0) -> list[TensorDict]:
+    """Readings the frozen network misses by ``shift`` in every output: what a readout's bias absorbs."""
+    g = torch.Generator().manual_seed(seed)
+    frozen = model.with_adaptation(smcd_rl.NoAdaptation())
+    frozen.reset(batch_shape=(4,))
+    stream = []
+    for _ in range(steps):
+        q = torch.rand(4, 2, generator=g) * 2 - 1
+        with torch.no_grad():
+            ee = frozen(TensorDict({"q": q}, [4]))["ee"] + shift
+        stream.append(TensorDict({"q": q, "ee": ee}, [4]))
+    return stream
+
+
+def _error_after(model: smcd_rl.AdaptiveModel, stream: list[TensorDict]) -> float:
+    model.reset(batch_shape=(4,))
+    for td in stream[:-5]:
+        model.observe(td)
+    return sum((model(td.exclude("ee"))["ee"] - td["ee"]).abs().mean().item() for td in stream[-5:]) / 5
+
+
+def test_smcd_with_a_bayesian_readout_learns_a_shift_the_masks_cannot_express() -> None:
+    """A constant output shift is one bias change for the readout; the mask filter alone cannot make it."""
+    smcd = {"num_particles": 64, "noise_std": 0.3, "flip_prob": 0.01}
+    stream = _shifted(_adaptive(smcd_rl.NoAdaptation()), 30, seed=8)
+    alone = _error_after(_adaptive(smcd_rl.SMCD(**smcd, generator=torch.Generator().manual_seed(0))), stream)
+    both = smcd_rl.SMCDLastLayer(
+        smcd_rl.SMCD(**smcd, generator=torch.Generator().manual_seed(0)), smcd_rl.BayesianLastLayer(noise_std=0.3)
+    )
+    coupled = _error_after(_adaptive(both), stream)
+    # A shift of 1.0 in target units: the readout's bias learns it from 25 readings to a few hundredths;
+    # masks of a random network change outputs by far less than the shift.
+    assert coupled < 0.1 and alone > 0.5, (coupled, alone)
+
+
+def test_smcd_last_layer_with_an_unadapted_readout_is_smcd() -> None:
+    """Before any observation the readout is the trained output layer: the coupled filter predicts SMCD's particles."""
+    smcd = {"num_particles": 32, "noise_std": 0.3}
+    alone = _adaptive(smcd_rl.SMCD(**smcd, generator=torch.Generator().manual_seed(1)))
+    both = _adaptive(smcd_rl.SMCDLastLayer(smcd_rl.SMCD(**smcd, generator=torch.Generator().manual_seed(1)), {}))
+    td = TensorDict({"q": torch.rand(4, 2)}, [4])
+    for model in (alone, both):
+        model.reset(batch_shape=(4,))
+    torch.testing.assert_close(both(td.clone())["ee"], alone(td.clone())["ee"])
+    torch.testing.assert_close(both.adaptation.particles, alone.adaptation.particles)
+
+
+def test_smcd_last_layer_refuses_an_observation_without_touching_either_part(tmp_path) -> None:
+    model = _adaptive(smcd_rl.SMCDLastLayer({"num_particles": 16, "noise_std": 0.1}, {"noise_std": 0.1}))
+    model.reset(batch_shape=(4,))
+    stream = _shifted(model, 2, seed=9)
+    model.observe(stream[0])
+    before = model.adaptation.state_dict()
+    bad = stream[1].clone()
+    bad["ee"] = torch.full((4, 2), 3e38)
+    with pytest.raises(ValueError, match="zero likelihood"):
+        model.observe(bad)
+    after = model.adaptation.state_dict()
+    assert torch.equal(before["last_layer"]["mean"], after["last_layer"]["mean"])
+    assert torch.equal(before["smcd"]["particles"], after["smcd"]["particles"])
+    path = tmp_path / "both.pt"
+    smcd_rl.save(model, path)
+    assert smcd_rl.load(path).adaptation.config() == model.adaptation.config()
+
+
+@pytest.mark.parametrize(
+    ("hidden", "groups", "path"),
+    [
+        ((16, WIDTH), None, "incremental"),
+        ((16, WIDTH), 4, "auto"),
+        ((WIDTH,), None, "incremental"),
+        ((16, WIDTH), None, "dense"),
+    ],
+)
+def test_every_particle_path_reads_out_the_same_last_hidden_features(hidden, groups, path) -> None:
+    """Incremental, grouped and dense paths hand the readout the features the network computes per mask."""
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(2, 2, hidden=hidden, mask_groups=groups).eval()
+    n, dim = 24, net.mask_dim
+    mean = torch.randn(1, hidden[-1] + 1, 2)  # one stream's readout, not the network's
+    parents = (torch.rand(1, dim) < 0.5).expand(n, dim).clone()
+    flips = (torch.rand(n * dim) < 0.1).nonzero().squeeze(-1)
+    masks = parents.clone().reshape(-1)
+    masks[flips] ^= True
+    masks = masks.reshape(n, dim)
+    x = torch.randn(2)
+    readout = functools.partial(smcd_rl.BayesianLastLayer.readout_with, mean)
+    forward = ParticleForward(net, path=path)
+    got = forward(x, masks, Lineage(parents, torch.zeros(n, dtype=torch.long), flips), readout=readout)
+    expected = readout(torch.stack([net.features(x, mask=masks[k]) for k in range(n)]))
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
+    assert path != "auto" or forward.last_path == "grouped"
