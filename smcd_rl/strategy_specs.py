@@ -1,8 +1,8 @@
 """Strategies from their settings: what a tuning result records and how it rebuilds each strategy.
 
 A tuned setting is a plain dict (JSON types only, so that ``model.tuning`` can hold it): a
-strategy's ``config()``, plus for SMCD the ``seed`` and ``device`` of its random generator, and
-for a combination its members by name. :func:`build_strategy` turns it back into a strategy,
+strategy's ``config()``, plus for SMCD the ``seed`` and ``device`` of its random generator, for
+SMCD with a Bayesian readout its two parts' settings, and for a combination its members by name. :func:`build_strategy` turns it back into a strategy,
 :func:`describe_settings` into a few words for a table.
 
 Example:
@@ -20,11 +20,14 @@ import torch
 
 from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation
 from smcd_rl.combination import Combination
+from smcd_rl.last_layer import BayesianLastLayer
+from smcd_rl.smcd_last_layer import SMCDLastLayer
 
 __all__ = ["KINDS", "build_strategy", "describe_settings", "on_device"]
 
-#: The strategies :func:`smcd_rl.tune` knows, in the order it tunes them (a combination needs the others).
-KINDS = ("none", "gradient_descent", "smcd", "combination")
+#: The strategies :func:`smcd_rl.tune` knows, in the order it tunes them (SMCD with a Bayesian
+#: readout starts from the tuned SMCD and last layer; a combination needs the others).
+KINDS = ("none", "gradient_descent", "smcd", "last_layer", "smcd_last_layer", "combination")
 
 
 def build_strategy(kind: str, settings: dict[str, Any]) -> Adaptation:
@@ -42,6 +45,8 @@ def build_strategy(kind: str, settings: dict[str, Any]) -> Adaptation:
         "none": NoAdaptation,
         "gradient_descent": GradientDescent,
         "smcd": _smcd,
+        "last_layer": BayesianLastLayer,
+        "smcd_last_layer": _smcd_last_layer,
         "combination": _combination,
     }
     return builders[kind](**settings)
@@ -57,10 +62,16 @@ def _smcd(seed: int = 0, device: str = "cpu", **settings: Any) -> SMCD:
     return SMCD(**settings, generator=torch.Generator(device=device).manual_seed(seed))
 
 
+def _smcd_last_layer(smcd: dict[str, Any], last_layer: dict[str, Any]) -> SMCDLastLayer:
+    return SMCDLastLayer(_smcd(**smcd), BayesianLastLayer(**last_layer))
+
+
 def on_device(kind: str, settings: dict[str, Any], device: str) -> dict[str, Any]:
     """``settings`` with every SMCD's generator on ``device`` (a combination's members too)."""
     if kind == "smcd":
         return {**settings, "device": device}
+    if kind == "smcd_last_layer":
+        return {**settings, "smcd": on_device("smcd", settings["smcd"], device)}
     if kind == "combination":
         members = [{**m, "settings": on_device(m["name"], m["settings"], device)} for m in settings["members"]]
         return {**settings, "members": members}
@@ -83,11 +94,15 @@ def describe_settings(settings: dict[str, Any]) -> str:
         'lr 0.1, steps 5, window 10'
         >>> describe_settings({**SMCD(num_particles=500, noise_std=[0.0134, 0.01325]).config(), "seed": 3})
         'num_particles 500, flip_prob 0.01, noise_std [0.0134, 0.0132]'
+        >>> describe_settings(BayesianLastLayer(prior_scale=0.3, drift=0.01).config())
+        'prior_scale 0.3, noise_std 0.1, drift 0.01, likelihood gaussian'
     """
     if "members" in settings:
         return f"{' + '.join(m['name'] for m in settings['members'])}, eta {settings['eta']:g}, share {settings['share']:g}"
-    searched = ("num_particles", "flip_prob", "noise_std", "lr", "steps", "window")
-    defaults = _DEFAULTS["smcd" if "num_particles" in settings else "gradient_descent"]
+    if "last_layer" in settings:
+        return f"{describe_settings(settings['smcd'])}; readout {describe_settings(settings['last_layer'])}"
+    kind = "smcd" if "num_particles" in settings else "last_layer" if "prior_scale" in settings else "gradient_descent"
+    searched, defaults = _SEARCHED[kind], _DEFAULTS[kind]
     shown = {
         k: v
         for k, v in settings.items()
@@ -105,6 +120,16 @@ def describe_settings(settings: dict[str, Any]) -> str:
     return ", ".join(parts) or "-"
 
 
+#: What :func:`smcd_rl.tune` searches of each kind: :func:`describe_settings` always shows it.
+_SEARCHED = {
+    "smcd": ("num_particles", "flip_prob", "noise_std"),
+    "gradient_descent": ("lr", "steps", "window"),
+    "last_layer": ("prior_scale", "noise_std", "drift", "likelihood"),
+}
 #: Each kind's default settings: :func:`describe_settings` leaves out what equals them.
-_DEFAULTS: dict[str, dict[str, Any]] = {"smcd": SMCD().config(), "gradient_descent": GradientDescent().config()}
+_DEFAULTS: dict[str, dict[str, Any]] = {
+    "smcd": SMCD().config(),
+    "gradient_descent": GradientDescent().config(),
+    "last_layer": BayesianLastLayer().config(),
+}
 _UNSET = object()

@@ -13,6 +13,11 @@ error of predicting each step from the steps before it, what a planner or contro
   (:mod:`smcd_rl.tuning_search`); the others are listed as raced out;
 * SMCD by :func:`smcd_rl.calibrate` (noise and flip probability; per-dimension noise, then a
   scalar noise at the flip probability chosen for it, the better kept);
+* :class:`smcd_rl.BayesianLastLayer` over prior scale x drift x likelihood (Gaussian, or
+  Student-t at two noise scales), raced, the prior scale extended past an edge
+  (:data:`~smcd_rl.tuning_kinds.LAST_LAYER_GRID`);
+* :class:`smcd_rl.SMCDLastLayer`: the tuned SMCD with the tuned last layer's readout at three
+  prior scales around its best (it tunes both first);
 * :class:`smcd_rl.Combination` of the best members, its ``eta`` and ``share`` chosen on the same
   episodes.
 
@@ -32,7 +37,7 @@ Example:
     >>> episodes = TensorDict({"q": q.reshape(6, 10, 2), "ee": q.cos().reshape(6, 10, 2) + 0.1}, [6, 10])
     >>> result = smcd_rl.tune(model, episodes, num_particles=20, progress=False)
     >>> sorted(result.best_of), isinstance(result.best, smcd_rl.Adaptation)
-    (['combination', 'gradient_descent', 'none', 'smcd'], True)
+    (['combination', 'gradient_descent', 'last_layer', 'none', 'smcd', 'smcd_last_layer'], True)
 """
 
 from __future__ import annotations
@@ -59,13 +64,16 @@ from smcd_rl.tuning_kinds import (
     COMBINATION_GRID,
     EXTENSIBLE,
     GD_GRID,
+    LAST_LAYER_GRID,
     MAX_EXTENSIONS,
     MIN_PARTICLES,
     checked_gd_grid,
     checked_gd_limits,
     tune_combination,
     tune_gd,
+    tune_last_layer,
     tune_smcd,
+    tune_smcd_last_layer,
 )
 from smcd_rl.tuning_search import Search, Timing, TuneCandidate, setting_key
 
@@ -78,6 +86,7 @@ __all__ = [
     "MAX_EXTENSIONS",
     "EXTENSIBLE",
     "COMBINATION_GRID",
+    "LAST_LAYER_GRID",
     "MIN_PARTICLES",
     "build_strategy",
     "ms_per_observation",
@@ -255,8 +264,9 @@ def tune(
         model: a fitted model; its network is not changed.
         episodes: batch ``[E, T]`` in the model's keys (or a list of ``[T]``): held-out episodes
             of the *training* tasks, at least 2 of 2 steps.
-        strategies: which of :data:`KINDS` to tune; ``"combination"`` mixes the others tuned
-            with no adaptation (tuned too, at no cost), so it needs ``"gradient_descent"`` or ``"smcd"``.
+        strategies: which of :data:`KINDS` to tune; ``"smcd_last_layer"`` starts from the tuned
+            SMCD and last layer (tuned too); ``"combination"`` mixes the others tuned with no
+            adaptation (tuned too, at no cost), so it needs another strategy that adapts.
         criterion: how SMCD's noise and flip are chosen: ``"one-step"`` (default) or the
             filter's ``"evidence"``. The kinds are compared by one-step error either way.
         budget_ms: skip settings whose median time per observation exceeds this (``None``: no budget).
@@ -297,10 +307,10 @@ def tune(
         raise ValueError(f"strategies: unknown {unknown}; choose one or more of {list(KINDS)}")
     if criterion not in ("one-step", "evidence"):
         raise ValueError(f"criterion must be 'one-step' or 'evidence', got {criterion!r}")
-    if "combination" in strategies and not {"gradient_descent", "smcd"} & set(strategies):
+    if "combination" in strategies and not set(_ADAPTING) & set(strategies):
         raise ValueError(
-            "strategies: a 'combination' mixes the other strategies tuned (and no adaptation); add "
-            "'gradient_descent' and/or 'smcd', e.g. strategies=['gradient_descent', 'smcd', 'combination']"
+            "strategies: a 'combination' mixes the other strategies tuned (and no adaptation); add one or more "
+            f"of {list(_ADAPTING)}, e.g. strategies=['gradient_descent', 'smcd', 'combination']"
         )
     if budget_ms is not None:
         budget_ms = check_real(budget_ms, "budget_ms", low=0.0, open_low=True)
@@ -315,8 +325,11 @@ def tune(
     known = _reusable(reuse, data, criterion)
     timing = Timing(model, x[0], y[0], budget_ms, known=None if reuse is None else reuse.timings)
     search = Search(model, td, timing, progress, known, heads=None if reuse is None else reuse.heads)
-    # A combination mixes no adaptation too, which costs nothing to tune.
-    kinds = [k for k in KINDS if k in strategies or (k == "none" and "combination" in strategies)]
+    # A combination mixes no adaptation too, which costs nothing to tune; SMCD with a Bayesian
+    # readout starts from the tuned SMCD and last layer.
+    needed = {*strategies, *(("none",) if "combination" in strategies else ())}
+    needed |= {"smcd", "last_layer"} if "smcd_last_layer" in strategies else set()
+    kinds = [k for k in KINDS if k in needed]
     calibrations: dict[str, Calibration] = {}
     try:
         if "none" in kinds:
@@ -325,8 +338,12 @@ def tune(
             tune_gd(search, grid, limits)
         if "smcd" in kinds:
             calibrations = tune_smcd(search, num_particles, criterion, tuple(flips), seed, progress)
+        if "last_layer" in kinds:
+            tune_last_layer(search)
+        if "smcd_last_layer" in kinds:
+            tune_smcd_last_layer(search)
         if "combination" in kinds:
-            tune_combination(search, [k for k in ("none", "gradient_descent", "smcd") if k in search.best_of])
+            tune_combination(search, [k for k in ("none", *_ADAPTING) if k in search.best_of])
         for kind in kinds:
             search.time_best(kind)
     finally:
@@ -350,6 +367,10 @@ def tune(
     )
     model.tuning = result.to_dict()
     return result
+
+
+#: The kinds that adapt: what a combination mixes (with no adaptation).
+_ADAPTING = ("gradient_descent", "smcd", "last_layer", "smcd_last_layer")
 
 
 def _reusable(reuse: TuneResult | None, data: str, criterion: str) -> dict[str, TuneCandidate]:

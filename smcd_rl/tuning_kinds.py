@@ -1,4 +1,5 @@
-"""How :func:`smcd_rl.tune` searches each kind of strategy: gradient descent's grid, SMCD's calibration, the combination.
+"""How :func:`smcd_rl.tune` searches each kind of strategy: gradient descent's grid, SMCD's calibration,
+the Bayesian last layer's grid, SMCD with a Bayesian readout, the combination.
 
 Each function adds its kind's candidates to a :class:`~smcd_rl.tuning_search.Search`; the
 module doc of :mod:`smcd_rl.tuning` says what each searches.
@@ -23,6 +24,7 @@ from smcd_rl.calibration import Calibration, calibrate
 from smcd_rl.checks import check_count, check_real
 from smcd_rl.combination import weight_path
 from smcd_rl.diagnostics import Trace
+from smcd_rl.last_layer import BayesianLastLayer
 from smcd_rl.model import AdaptiveModel
 from smcd_rl.tuning_search import Search, TuneCandidate, setting_key
 
@@ -31,11 +33,14 @@ __all__ = [
     "MAX_EXTENSIONS",
     "EXTENSIBLE",
     "COMBINATION_GRID",
+    "LAST_LAYER_GRID",
     "MIN_PARTICLES",
     "checked_gd_grid",
     "checked_gd_limits",
     "tune_gd",
     "tune_smcd",
+    "tune_last_layer",
+    "tune_smcd_last_layer",
     "tune_combination",
 ]
 
@@ -53,6 +58,16 @@ MAX_EXTENSIONS = 3
 EXTENSIBLE = ("lr", "steps", "window")
 #: The combination's grid: the weights' learning rate and the fixed share.
 COMBINATION_GRID = {"eta": (0.1, 1.0, 10.0, 100.0), "share": (0.0, 0.02)}
+#: The Bayesian last layer's grid: prior scale x drift x likelihood; the Student-t form also
+#: tries its noise at these multiples of the unadapted network's residual (the Gaussian form's
+#: posterior mean does not depend on its noise: it takes the residual itself, for its predictive
+#: variance). The prior scale extends past an edge as gradient descent's learning rate does.
+LAST_LAYER_GRID: dict[str, tuple[Any, ...]] = {
+    "prior_scale": (0.1, 0.3, 1.0, 3.0),
+    "drift": (0.0, 0.01),
+    "likelihood": ("gaussian", "student-t"),
+    "noise_factor": (0.3, 1.0),
+}
 #: SMCD never halves its particles below this to meet a budget.
 MIN_PARTICLES = 8
 
@@ -250,6 +265,76 @@ def tune_smcd(
             flips = (result.flip_prob,)
     search.time_best("smcd")
     return calibrations
+
+
+# ---------------------------------------------------------------------------- Bayesian last layer
+def tune_last_layer(search: Search) -> None:
+    """Race :data:`LAST_LAYER_GRID`; while the best prior scale lies on an edge, go on past it (x3).
+
+    The noise is in the model's normalised units, per output: the root-mean-square residual of
+    the unadapted network on the episodes (what a readout that starts at the trained one has to
+    explain), times each ``noise_factor`` for the Student-t form, whose down-weighting of an
+    observation depends on it.
+    """
+    residual = _unadapted_residual(search)
+    grid = LAST_LAYER_GRID
+    forms: list[tuple[Any, list[float]]] = [("gaussian", residual)]
+    forms += [("student-t", [f * r for r in residual]) for f in grid["noise_factor"]]
+    scales = list(grid["prior_scale"])
+
+    def race(points: list[tuple[Any, Any, tuple[Any, list[float]]]]) -> None:
+        configs = [
+            BayesianLastLayer(prior_scale=p, drift=d, likelihood=likelihood, noise_std=noise).config()
+            for p, d, (likelihood, noise) in points
+        ]
+        search.race("last_layer", configs)
+
+    race(list(product(scales, grid["drift"], forms)))
+    extensions = {"low": 0, "high": 0}
+    while True:
+        best = search.best_of.get("last_layer")
+        if best is None:
+            search.notes.append("last layer: every setting refused an observation, so none is kept")
+            return
+        scale = best.settings["prior_scale"]
+        side = "low" if scale == scales[0] else "high" if scale == scales[-1] else None
+        if side is None or extensions[side] == MAX_EXTENSIONS:
+            break
+        extensions[side] += 1
+        new = scales[0] / 3 if side == "low" else scales[-1] * 3
+        scales = sorted({*scales, new})
+        form = (best.settings["likelihood"], best.settings["noise_std"])
+        race([(new, best.settings["drift"], form)])
+        search.notes.append(f"last layer: best prior_scale {scale:g} on the grid's edge; tried {new:g}")
+    search.time_best("last_layer")
+
+
+def _unadapted_residual(search: Search) -> list[float]:
+    """The unadapted network's root-mean-square one-step residual per output, normalised units."""
+    with torch.no_grad():
+        residual = search.model.net(search.x) - search.y
+    return [max(float(v), 1e-6) for v in residual.square().mean(dim=(0, 1)).sqrt()]
+
+
+def tune_smcd_last_layer(search: Search) -> None:
+    """SMCD with a Bayesian readout: the tuned SMCD's filter with the tuned last layer's readout,
+    its prior scale a grid step below, at and above the last layer's best.
+
+    The readout takes over part of what the masks explained, so a readout alone at its best may
+    be too free beside the filter (or too tight); the three scales say which. The filter's
+    settings are the tuned SMCD's: calibrating them again would cost as many runs as SMCD's own.
+    """
+    smcd, readout = search.best_of.get("smcd"), search.best_of.get("last_layer")
+    if smcd is None or readout is None:
+        search.notes.append("SMCD with a Bayesian readout: needs a tuned SMCD and last layer, so not tuned")
+        return
+    scale = readout.settings["prior_scale"]
+    for factor in (1.0, 1 / 3, 3.0):
+        search.score(
+            "smcd_last_layer",
+            {"smcd": smcd.settings, "last_layer": {**readout.settings, "prior_scale": scale * factor}},
+        )
+    search.time_best("smcd_last_layer")
 
 
 # ---------------------------------------------------------------------------- combination

@@ -35,13 +35,15 @@ def result(model) -> smcd_rl.TuneResult:
 
 
 def test_every_kind_is_scored_by_one_step_error_and_the_best_is_the_lowest(model, result) -> None:
-    assert set(result.best_of) == {"none", "gradient_descent", "smcd", "combination"}
+    assert set(result.best_of) == set(smcd_rl.tuning.KINDS)
     lowest = min(c.one_step_rmse for c in result.best_of.values())
     assert result.best_of[result.best_kind].one_step_rmse == lowest
     # A shift of 0.5 in every output is what gradient descent can learn and the frozen network
     # cannot: no adaptation's error is at least the shift's size, GD's must be well below it.
     assert result.best_of["none"].one_step_rmse > 0.4
     assert result.best_of["gradient_descent"].one_step_rmse < 0.8 * result.best_of["none"].one_step_rmse
+    # The shift is the readout's bias moving: the Bayesian last layer learns it in a few observations.
+    assert result.best_of["last_layer"].one_step_rmse < 0.5 * result.best_of["none"].one_step_rmse
     assert isinstance(result.best, smcd_rl.Adaptation) and isinstance(result.combination, smcd_rl.Combination)
     assert model.tuning["best_kind"] == result.best_kind
     assert "one-step RMSE" in str(result)
@@ -329,13 +331,17 @@ def test_the_record_is_json_and_rebuilds_the_result(model) -> None:
 def test_a_tuning_recorded_on_a_gpu_rebuilds_on_the_cpu(model, result) -> None:
     record = result.to_dict()
     record["best_of"]["smcd"]["settings"]["device"] = "cuda"
+    record["best_of"]["smcd_last_layer"]["settings"]["smcd"]["device"] = "cuda"
     for member in record["best_of"]["combination"]["settings"]["members"]:
         if member["name"] == "smcd":
             member["settings"]["device"] = "cuda"
+        if member["name"] == "smcd_last_layer":
+            member["settings"]["smcd"]["device"] = "cuda"
     gpu = smcd_rl.TuneResult.from_dict(record)
-    with pytest.raises(ValueError, match=r"tuned on cuda, which this machine does not have.*device='cpu'"):
-        gpu.strategy("smcd")
-    for kind in ("smcd", "combination"):
+    for kind in ("smcd", "smcd_last_layer", "combination"):
+        with pytest.raises(ValueError, match=r"tuned on cuda, which this machine does not have.*device='cpu'"):
+            gpu.strategy(kind)
+    for kind in ("smcd", "smcd_last_layer", "combination"):
         adaptive = model.with_adaptation(gpu.strategy(kind, device="cpu"))
         adaptive.reset()
     assert gpu.strategy("smcd", device="cpu").config() == result.strategy("smcd").config()
@@ -467,3 +473,39 @@ def test_calibrate_reuses_an_earlier_searchs_runs_and_chooses_the_same(model) ->
     assert 0 < len(ran) <= len(alone.candidates) - 7  # at least the seven runs of the bracket
     with pytest.raises(ValueError, match="another model, other episodes"):
         smcd_rl.calibrate(model, shifted_episodes(0.3), base=base, progress=False, store=False, reuse=one_step)
+
+
+def _with_outliers(shift: float) -> TensorDict:
+    """:func:`shifted_episodes`, with one reading in the middle of every episode 30 units off."""
+    episodes = shifted_episodes(shift)
+    episodes["ee"][:, 6] += 30.0
+    return episodes
+
+
+def test_the_last_layer_takes_the_robust_form_where_readings_are_corrupted(model) -> None:
+    """After a reading 30 units off, a Gaussian readout predicts tens of units off for the rest of the
+    episode; the Student-t one weighs it ~1e-4 and stays at the shift: the criterion must pick it."""
+    result = smcd_rl.tune(model, _with_outliers(0.5), strategies=["last_layer"], progress=False)
+    assert result.best_of["last_layer"].settings["likelihood"] == "student-t"
+    clean = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["last_layer"], progress=False)
+    gaussian = [
+        c for c in clean.candidates if c.settings.get("likelihood") == "gaussian" and math.isfinite(c.one_step_rmse)
+    ]
+    # The Gaussian form's noise is the unadapted residual (the 0.5 shift, in normalised units): it
+    # only sets the predictive variance, so model.predictive covers the shift before adapting.
+    assert all(v > 0.1 for v in gaussian[0].settings["noise_std"])
+
+
+def test_smcd_with_a_bayesian_readout_starts_from_the_tuned_smcd_and_last_layer(model) -> None:
+    result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["smcd_last_layer"], **FAST)
+    assert {"smcd", "last_layer", "smcd_last_layer"} <= set(result.best_of)
+    both = [c for c in result.candidates if c.kind == "smcd_last_layer"]
+    assert len(both) == 3 and all(c.settings["smcd"] == result.best_of["smcd"].settings for c in both)
+    scales = sorted(c.settings["last_layer"]["prior_scale"] for c in both)
+    assert scales[1] == result.best_of["last_layer"].settings["prior_scale"]
+    assert scales[0] == pytest.approx(scales[1] / 3) and scales[2] == pytest.approx(scales[1] * 3)
+    strategy = result.strategy("smcd_last_layer")
+    assert isinstance(strategy, smcd_rl.SMCDLastLayer)
+    # The tuned strategy repeats the scored run: its one-step error on the episodes is the candidate's.
+    rerun = smcd_rl.diagnostics.trace(model, shifted_episodes(0.5), strategy)
+    assert rerun.rmse == pytest.approx(result.best_of["smcd_last_layer"].one_step_rmse, rel=1e-6)

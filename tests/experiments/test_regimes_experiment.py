@@ -57,8 +57,8 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
     for name in ("results.csv", "trials.csv", "comparisons.csv", "results.json", "regimes.png", "report.md"):
         assert (out / name).is_file(), name
     rows = list(csv.DictReader((out / "results.csv").open()))
-    methods = ["N", "G", "S", "S(evidence)", "S(paper)", "C", "G@1000ms", "S@1000ms", "C@1000ms"]
-    other = ["T+N", "T+G", "T+S", "R+G"]  # the pendulum family's task-mask and Reptile networks
+    methods = ["N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL", "G@1000ms", "S@1000ms", "C@1000ms"]
+    other = ["T+N", "T+G", "T+S", "T+SL", "R+G"]  # the pendulum family's task-mask and Reptile networks
     cells = {(r["family"], r["regime"], r["method"]) for r in rows}
     expected = {(f, r, m) for f in FAMILIES for r in regime_names((1, 3), f) for m in methods}
     assert cells == expected | {("pendulum", r, m) for r in regime_names((1, 3), "pendulum") for m in other}
@@ -74,10 +74,16 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
     result = json.loads((out / "results.json").read_text())
     assert len(result["scoreboard"]) == 3 * 3  # per family T=3, the switch and the outlier (T=30 did not run)
     assert "S vs G" in printed and "Median time per observation" in printed
+    assert all(f"| {pair}" in printed or f" {pair} |" in printed for pair in ("L vs G", "L vs S", "SL vs S"))
     assert "pendulum: T+S (masks trained to identify the task) paired with G, R+G, S, T+G, T+N" in printed
     # T and R tune only what their methods need: no SMCD for R, no GD budget view for either.
     tuned = result["tuning"]
-    assert set(tuned["pendulum-reptile"]["specs"]) == {"G"} and set(tuned["pendulum-task"]["specs"]) == {"N", "G", "S"}
+    assert set(tuned["pendulum-reptile"]["specs"]) == {"G"} and set(tuned["pendulum-task"]["specs"]) == {
+        "N",
+        "G",
+        "S",
+        "SL",
+    }
     pendulum_t3 = [e for e in result["scoreboard"] if e["task"] == "pendulum T=3"][0]
     assert pendulum_t3["estimates"]["SMCD (task masks)"]["method"] == "T+S"
     assert "SMCD (task masks)" in pendulum_t3["ms_per_observation"]

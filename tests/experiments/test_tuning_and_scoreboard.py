@@ -51,7 +51,7 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     assert result.traces["S"]["rmse"] < result.traces["S(paper)"]["rmse"]
     # The diagnosis takes tuning's own runs where it has them: each equals a fresh run of the variant
     # (G's, raced, joins two runs: the same errors per episode, its means pooled in another order).
-    for variant in ("N", "G", "S", "S(evidence)", "S(paper)"):
+    for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "L", "SL"):
         fresh = dataclasses.asdict(trace(model, episodes, result.strategy(variant, seed=config.seed + 23)))
         kept = result.traces[variant]
         assert kept["one_step_errors"] == fresh["one_step_errors"], variant
@@ -61,7 +61,8 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     paper = result.strategy("S(paper)", seed=0)
     assert isinstance(paper, smcd_rl.SMCD) and paper.noise_std == 0.3 and paper.flip_prob == config.flip_prob
     combination = result.strategy("C", seed=0)
-    assert isinstance(combination, smcd_rl.Combination) and len(combination.members) == 3
+    # It mixes no adaptation and every tuned strategy: G, S, the last layer and SMCD with a readout.
+    assert isinstance(combination, smcd_rl.Combination) and len(combination.members) == 5
     # Every variant has a measured time per observation, in the table too.
     assert set(result.ms) == set(tuning.VARIANTS) and all(0 < ms < math.inf for ms in result.ms.values())
     assert "ms / observation" in result.table()

@@ -7,6 +7,7 @@ import pytest
 
 import smcd_rl
 from smcd_rl import cli
+from smcd_rl.experiments.shared import scoreboard_entry
 from smcd_rl.experiments.shared.runtime import torch_threads
 from smcd_rl.experiments.two_link import run as two_link
 
@@ -49,7 +50,7 @@ SMALL = [
 @pytest.mark.slow
 def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> None:
     """60 held-out arms after 10 burn-in steps. Measured: O+P ~0.01 m, M+S ~0.2 m, M+N ~0.4 m,
-    R+N ~0.9 m, R+S ~0.4 m, R+G ~0.5 m.
+    R+N ~0.9 m, R+S ~0.4 m, R+G ~0.5 m, M+L ~0.06 m at H=1.
 
     The oracle knows the kinematics, so it must beat M+N by a factor of 5; SMCD must cut M+N's
     error by 25%: a per-trial spread of ~0.2 m gives a standard error of ~0.03 m on 60 trials.
@@ -80,6 +81,8 @@ def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> 
     assert rows[("M+S", 10, 1)] < 0.75 * rows[("M+N", 10, 1)]
     assert rows[("R+S", 10, 1)] < 0.75 * rows[("R+N", 10, 1)]
     assert rows[("M+S", 10, 10)] < rows[("R+S", 10, 10)]
+    # The Bayesian last layer adapts the readout to the arm: measured ~0.06 m against M+N's ~0.4 m.
+    assert rows[("M+L", 10, 1)] < 0.75 * rows[("M+N", 10, 1)]
     assert {m for m, _, _ in rows} == set(methods)
     payload = json.loads((out / "results.json").read_text())
     assert payload["config"]["trials"] == 60 and payload["machine"]["torch_threads"] >= 1
@@ -88,7 +91,10 @@ def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> 
     # The fair protocol: both networks tuned by smcd_rl.tune on the same held-out episodes.
     config = two_link.TwoLinkConfig()
     # Each network is tuned for the variants of its methods that run (--full leaves out R+S(paper)).
-    expected = {"M": {"N", "G", "S", "S(evidence)", "S(paper)", "C"}, "R": {"N", "G", "S", "S(evidence)", "C"}}
+    expected = {
+        "M": {"N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL"},
+        "R": {"N", "G", "S", "S(evidence)", "C", "L", "SL"},
+    }
     assert payload["tuning"]["M"]["specs"]["S(paper)"]["settings"]["noise_std"] == config.noise_std  # fixed
     for name in ("M", "R"):
         tuning = payload["tuning"][name]
@@ -100,11 +106,17 @@ def test_two_link_command_writes_results_and_ranks_methods(tmp_path, capsys) -> 
     assert float(timed["M+S"]) > 0 and timed["O+P"] == "" and "ms / observation" in printed
     board = payload["scoreboard"]
     assert board["cell"] == {"burn_in": 10, "horizon": 1}
-    columns = {"none", "GD", "SMCD (paper)", "SMCD (calibrated)", "SMCD (one-step)", "combination", "SMCD (task masks)"}
+    columns = set(scoreboard_entry.COLUMNS)
     assert set(board["estimates"]) == columns == set(board["ms_per_observation"])
     assert board["estimates"]["none"]["mean"] == pytest.approx(rows[("M+N", 10, 1)])
     assert board["verdicts"]["SMCD (calibrated) vs none"].startswith("better")
-    assert {"SMCD (one-step) vs GD", "combination vs GD"} <= set(board["verdicts"])
+    assert {"SMCD (one-step) vs GD", "combination vs GD", "SMCD + last layer vs SMCD (one-step)"} <= set(
+        board["verdicts"]
+    )
+    assert "The Bayesian last layer (L) and SMCD with a Bayesian readout (SL) paired" in printed
+    # The combination mixes every tuned strategy, the readouts too.
+    members = [m["name"] for m in payload["tuning"]["M"]["specs"]["C"]["settings"]["members"]]
+    assert members == ["none", "gradient_descent", "smcd", "last_layer", "smcd_last_layer"]
 
     # A rerun finds the trained model and every method's trials done, and prints the same table.
     assert cli.main(["two-link", "--out", str(out), *SMALL, "--methods", *methods]) == 0

@@ -22,6 +22,7 @@ __all__ = [
     "PLANNERS",
     "ADAPTATIONS",
     "DEFAULT_ADAPTATIONS",
+    "PREDICTED",
     "CONDITIONS",
     "CELLS",
 ]
@@ -56,6 +57,8 @@ PLANNERS: dict[str, str] = {"cem": "CEM", "mppi": "MPPI", "rs": "RS"}
 ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
 #: Conditions: the Ant the model was trained on, and the Ant with one leg crippled per episode.
 CONDITIONS: tuple[str, ...] = ("healthy", "crippled")
+#: The adaptations whose prediction error is measured, whichever run the return episodes.
+PREDICTED: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C")
 #: The adaptations of the default return episodes: all but S(paper), whose prediction error is still measured.
 DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "C")
 #: Every (planner, adaptation, condition) cell of Fig. 15.

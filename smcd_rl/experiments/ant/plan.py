@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import math
 
-from smcd_rl.experiments.ant.config import CELLS, AntConfig
+from smcd_rl.experiments.ant.config import CELLS, PREDICTED, AntConfig
 from smcd_rl.experiments.ant.episodes import ACTION_DIM, OBS_DIM
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
-from smcd_rl.experiments.shared.tuning import VARIANTS
 
 __all__ = ["stage_costs", "predictions"]
 
@@ -59,7 +58,7 @@ def stage_costs(config: AntConfig) -> dict[str, float]:
     }
     horizon = config.prediction_horizon
     for condition in config.conditions:
-        for variant in VARIANTS:
+        for variant in PREDICTED:
             overhead, update = update_cost(variant, config)
             rollout = predictions(variant) * horizon
             forwards = config.prediction_episodes * config.prediction_steps * (update + rollout)

@@ -79,7 +79,7 @@ Example:
     >>> from smcd_rl.experiments.ant.config import AntConfig, CELLS
     >>> config = AntConfig()
     >>> len(CELLS), config.planners, config.adaptations, config.conditions
-    (36, ('cem',), ('N', 'G', 'S', 'S(evidence)', 'C'), ('healthy', 'crippled'))
+    (48, ('cem',), ('N', 'G', 'S', 'S(evidence)', 'C'), ('healthy', 'crippled'))
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ import torch
 
 import smcd_rl
 from smcd_rl.digests import content_digest, model_digest
-from smcd_rl.experiments.ant.config import ADAPTATIONS, CELLS, CONDITIONS, FULL, PLANNERS, TASKS, AntConfig
+from smcd_rl.experiments.ant.config import ADAPTATIONS, CELLS, CONDITIONS, FULL, PLANNERS, PREDICTED, TASKS, AntConfig
 from smcd_rl.experiments.ant.episodes import ACTION_DIM, OBS_DIM, collect, run_cell, validation_error
 from smcd_rl.experiments.ant.plan import stage_costs
 from smcd_rl.experiments.ant.prediction import prediction_errors, random_episodes
@@ -107,7 +107,7 @@ from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.shared.tuned_methods import ms_column
-from smcd_rl.experiments.shared.tuning import VARIANTS, Tuning, tune
+from smcd_rl.experiments.shared.tuning import Tuning, tune
 from smcd_rl.experiments.shared.workers import computed
 
 __all__ = [
@@ -170,7 +170,15 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
             steps=config.tuning_steps,
             seed=config.seed + TUNING_SEED,
         )
-        tuning = tune(ex, model, tuning_episodes.to(ex.device), config, name="M", paper_noise_std=paper_noise.tolist())
+        tuning = tune(
+            ex,
+            model,
+            tuning_episodes.to(ex.device),
+            config,
+            name="M",
+            paper_noise_std=paper_noise.tolist(),
+            variants=tuple(dict.fromkeys((*PREDICTED, *config.adaptations))),
+        )
         strategy = functools.partial(_strategy, tuning, config, ex.device)
         content = {"model": model_digest(model), "specs": tuning.specs}
         ms = ms_column(list(ADAPTATIONS.values()), {"M": tuning})
@@ -357,7 +365,7 @@ def _prediction(
         )
         episodes = episodes.to(ex.device)
         results[condition] = ex.evaluate(
-            {variant: functools.partial(strategy, variant) for variant in VARIANTS},
+            {variant: functools.partial(strategy, variant) for variant in PREDICTED},
             functools.partial(_errors, model, episodes, config.prediction_horizon),
             content={**content, "episodes": content_digest(episodes)},
             kind=f"prediction-{condition}",

@@ -24,6 +24,8 @@ FAMILIES: dict[str, str] = {
 PLANNERS: dict[str, str] = {"cem": "CEM", "mppi": "MPPI"}
 #: Adaptation names (:data:`~smcd_rl.experiments.shared.adaptation_config.VARIANTS`) and their method labels.
 ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
+#: The adaptations of the default run.
+DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C")
 
 
 @dataclass
@@ -55,11 +57,11 @@ class FetchConfig(TuningConfig):
     )
     planners: tuple[str, ...] = setting(("cem", "mppi"), "planners: cem, mppi", choices=tuple(PLANNERS))
     adaptations: tuple[str, ...] = setting(
-        VARIANTS,
+        DEFAULT_ADAPTATIONS,
         "adaptations: N (none), G (tuned gradient descent), S (SMCD tuned by one-step error), S(evidence) (SMCD "
         "calibrated by its evidence), S(paper) (SMCD at fixed settings: noise --noise-scale x held-out RMSE, "
-        "--flip-prob), C (the combination of N, G and S: it predicts with all three, so its cells cost about "
-        "theirs together)",
+        "--flip-prob), C (the combination of N and the tuned ones: it predicts with all of them, so its cells "
+        "cost about theirs together), L (Bayesian last layer), SL (SMCD with a Bayesian readout)",
         choices=tuple(ADAPTATIONS),
     )
     episodes: int = setting(100, "held-out test draws per family (one MPC episode each, the same in every cell)", low=2)

@@ -156,7 +156,15 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
 
             # --- the fair protocol: tuned on fresh training draws, never the test draws ----------
             tuning_data = tuning_episodes(family, config, seed=config.seed + TUNING_SEED).to(ex.device)
-            tuning = tune(ex, model, tuning_data, config, name=family, paper_noise_std=paper_noise.tolist())
+            tuning = tune(
+                ex,
+                model,
+                tuning_data,
+                config,
+                name=family,
+                paper_noise_std=paper_noise.tolist(),
+                variants=config.adaptations,
+            )
             tunings[family] = tuning
             ms[family] = ms_column(list(ADAPTATIONS.values()), {"M": tuning})  # the family's model is "M"
             content: dict[str, Any] = {"model": model_digest(model), "specs": tuning.specs}

@@ -83,7 +83,7 @@ from smcd_rl.experiments.shared.outputs import format_table
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.tuned_methods import ms_column
+from smcd_rl.experiments.shared.tuned_methods import ms_column, tuned_variants
 from smcd_rl.experiments.shared.tuning import Tuning, tune
 from smcd_rl.experiments.shared.video import video_name, write_gif
 
@@ -124,7 +124,18 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
         held_out_rmse = _held_out_rmse(model, held_out.to(ex.device))
 
         # --- the fair protocol: SMCD and GD tuned on held-out episodes of fresh training tools ------
-        tuning = tune(ex, model, tuning_episodes(config, ex.device), config, name="M") if _adapts(config) else None
+        tuning = (
+            tune(
+                ex,
+                model,
+                tuning_episodes(config, ex.device),
+                config,
+                name="M",
+                variants=tuned_variants("M", config.methods),
+            )
+            if _adapts(config)
+            else None
+        )
         tunings = {"M": tuning} if tuning is not None else {}
 
         # --- every (method, n) on the same arms: each seed's tasks run as one batch -----------------

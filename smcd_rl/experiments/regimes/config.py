@@ -36,13 +36,15 @@ SEQUENTIAL = ("pendulum",)
 #: The methods, each with settings from ``smcd_rl.tune`` on held-out training-task episodes:
 #: N none; G gradient descent (MSE or Huber loss); S SMCD calibrated by one-step error;
 #: S(evidence) SMCD calibrated by the filter's evidence; S(paper) SMCD at the paper's noise and
-#: flips; C the combination of N, G and S.
-METHODS = ("N", "G", "S", "S(evidence)", "S(paper)", "C")
+#: flips; C the combination of N and the tuned ones; L the Bayesian last layer (Gaussian or
+#: Student-t); SL SMCD with a Bayesian readout.
+METHODS = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 #: Methods on the pendulum family's two other networks, trained on the same data: T, whose dropout
 #: masks were trained to identify the pendulum (``fit(mask_training="task")``), with no adaptation,
-#: gradient descent or SMCD, and R, trained by Reptile, with gradient descent. The arm families
-#: have no such networks (``smcd-rl two-link`` and ``smcd-rl telescoping`` run them).
-OTHER_NETWORK_METHODS = ("T+N", "T+G", "T+S", "R+G")
+#: gradient descent, SMCD or SMCD with a Bayesian readout, and R, trained by Reptile, with gradient
+#: descent. The arm families have no such networks (``smcd-rl two-link`` and ``smcd-rl telescoping``
+#: run them).
+OTHER_NETWORK_METHODS = ("T+N", "T+G", "T+S", "T+SL", "R+G")
 #: The methods tuned again under ``--budget-ms`` per observation (the budgeted view).
 BUDGETED = ("G", "S", "C")
 #: The regimes besides ``T=<t>``: a switch to a new task, the switch back, one corrupted

@@ -32,13 +32,13 @@ SCOREBOARD_REGIMES = ("T=3", "T=30", "switch: new task", "outlier")
 #: The verdict of a difference whose 95 % interval holds 0 (the tables' word for "no significant difference").
 TIE = "tie"
 #: The single methods the combination is held against (afterwards, on the test tasks).
-SINGLES = ("N", "G", "S")
+SINGLES = ("N", "G", "S", "L", "SL")
 #: What T+S is paired with in its table (the pendulum network's methods carry no prefix).
 TASK_AGAINST = ("S", "G", "R+G", "T+G", "T+N")
 
 
 def best_single(rows: Sequence[Mapping[str, Any]], family: str, regime: str) -> str:
-    """The single method (of N, G, S) of lowest mean error in a cell: what the combination is held against."""
+    """The single method (of :data:`SINGLES`) of lowest mean error in a cell: what the combination is held against."""
     found = {r["method"]: r["rmse_mean"] for r in rows if r["family"] == family and r["regime"] == regime}
     present = [m for m in SINGLES if m in found]
     return min(present, key=lambda m: found[m]) if present else ""
@@ -75,6 +75,9 @@ def tables(
                 _verdict(pairs, family, regime, "S", "S(evidence)"),
                 _verdict(pairs, family, regime, "C", best) + f" ({best})" if best and best != "C" else "-",
                 _verdict(pairs, family, regime, budgeted_label("S", config), budgeted_label("G", config)),
+                _verdict(pairs, family, regime, "L", "G"),
+                _verdict(pairs, family, regime, "L", "S"),
+                _verdict(pairs, family, regime, "SL", "S"),
             ]
             verdicts.append([regime, *cells])
         budget = f"{config.budget_ms:g} ms"
@@ -82,7 +85,17 @@ def tables(
             f"{family}: paired over the same tasks, difference [95% CI] (negative: the first has the lower error; "
             f"{TIE}: the interval holds 0; C against the single method of lowest mean error, picked afterwards)"
         ] = format_table(
-            verdicts, ["regime", "S vs G", "S vs S(evidence)", "C vs best single", f"S vs G within {budget}"]
+            verdicts,
+            [
+                "regime",
+                "S vs G",
+                "S vs S(evidence)",
+                "C vs best single",
+                f"S vs G within {budget}",
+                "L vs G",
+                "L vs S",
+                "SL vs S",
+            ],
         )
         of_family = [c for c in comparisons if c["family"] == family]
         task = task_verdict_table(of_family, cell=("regime",), over="tasks", against=TASK_AGAINST)

@@ -198,6 +198,7 @@ _REFERENCE_SECONDS = {
     "evaluate G": 70.0,
     "evaluate G@": 4.0,
     "evaluate S": 25.0,
+    "evaluate L": 1.0,
     "evaluate C": 100.0,
     "evaluate C@": 30.0,
 }

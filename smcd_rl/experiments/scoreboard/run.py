@@ -125,12 +125,13 @@ def _write(
         verdicts = [[row["task"], *(row[f"{m} vs {a}"] for m, a in CORE_VERDICTS)] for row in rows]
         # Experiments tuned by smcd_rl.tune add SMCD by one-step error, the combination and the
         # time per observation: tables of their own, of the tasks that have them.
-        extra_columns = [c for c in COLUMNS if c not in (*CORE_COLUMNS, TASK_MASKS)]
+        extra_columns = ["SMCD (one-step)", "combination"]
         tuned = [row for row in rows if any(math.isfinite(row[c]) for c in extra_columns)]
-        extra_verdicts = [v for v in VERDICTS if v not in CORE_VERDICTS and TASK_MASKS not in v]
+        extra_verdicts = [v for v in VERDICTS if v[0] in extra_columns]
         task_verdicts = [v for v in VERDICTS if v[0] == TASK_MASKS]
         task_rows = [row for row in rows if math.isfinite(row[TASK_MASKS])]
         timed = [row for row in rows if row["ms"]]
+        timed_columns = [c for c in TIMED if any(c in row["ms"] for row in timed)]
         write_json(
             ex.out / "scoreboard.json",
             {
@@ -168,6 +169,12 @@ def _write(
                 )
                 if tuned
                 else "",
+                **{
+                    f"{READOUT_CAPTIONS[column]}, where it ran: mean [95% CI] and paired verdicts": _readout_table(
+                        rows, column
+                    )
+                    for column in READOUT_COLUMNS
+                },
                 "SMCD on a network whose masks were trained to identify the task (T+S), where it ran: mean [95% CI], "
                 "paired verdicts and median ms per observation": format_table(
                     [
@@ -185,7 +192,8 @@ def _write(
                 else "",
                 # Not "none": a forward pass, a fraction of a millisecond everywhere (results.csv has it).
                 "Median time per observation (ms; one stream, one thread), where the experiment measured it": format_table(
-                    [[row["task"], *(_ms(row["ms"].get(c)) for c in TIMED)] for row in timed], ["task", *TIMED]
+                    [[row["task"], *(_ms(row["ms"].get(c)) for c in timed_columns)] for row in timed],
+                    ["task", *timed_columns],
                 )
                 if timed
                 else "",
@@ -196,6 +204,24 @@ def _write(
             files=["scoreboard.json"],
         )
     return ex.result
+
+
+#: The readouts' columns, each in a table of its own where it ran, with its verdicts against GD and SMCD.
+READOUT_COLUMNS = ("last layer", "SMCD + last layer")
+READOUT_CAPTIONS = {
+    "last layer": "The Bayesian last layer",
+    "SMCD + last layer": "SMCD with a Bayesian readout",
+}
+
+
+def _readout_table(rows: Sequence[Mapping[str, Any]], column: str) -> str:
+    """``column``'s mean and its paired verdicts against GD and SMCD (one-step), for the tasks that ran it."""
+    verdicts = [v for v in VERDICTS if v[0] == column]
+    ran = [row for row in rows if math.isfinite(row[column])]
+    if not ran:
+        return ""
+    body = [[row["task"], row[f"{column} text"], *(row[f"{m} vs {a}"] for m, a in verdicts)] for row in ran]
+    return format_table(body, ["task", column, *(VERDICT_LABELS[v] for v in verdicts)])
 
 
 def _rows(entries: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict[str, Any]]:
@@ -341,6 +367,8 @@ _BAR_LABELS = {
     "SMCD (calibrated)": "SMCD\n(calibrated)",
     "SMCD (one-step)": "SMCD\n(one-step)",
     "combination": "combi-\nnation",
+    "last layer": "last\nlayer",
+    "SMCD + last layer": "SMCD +\nlast layer",
     TASK_MASKS: "SMCD\n(task masks)",
 }
 

@@ -1,7 +1,8 @@
 """The scoreboard in one compact table: per task, the best mean, the SMCD family against tuned GD, the cost.
 
 Each row says which strategy has the best mean on the task's headline metric; how each member of
-the SMCD family (SMCD tuned by one-step error, SMCD on task-trained masks, the combination) fares
+the SMCD family (SMCD tuned by one-step error, SMCD on task-trained masks, the combination, SMCD
+with a Bayesian readout) and the Bayesian last layer fares
 against tuned gradient descent, by the experiment's own paired verdict over the same trials
 (``better``, ``worse`` or ``tie`` where the difference's 95 % interval holds zero; ``-`` where it
 did not run); and each one's median time per observation. The scoreboard's other tables hold
@@ -23,8 +24,8 @@ from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, TASK_MASKS
 
 __all__ = ["FAMILY", "SHORT", "summary_table", "verdict_word", "milliseconds"]
 
-#: The SMCD family, in the order the table lists it.
-FAMILY = ("SMCD (one-step)", TASK_MASKS, "combination")
+#: The SMCD family and the Bayesian last layer, in the order the table lists them.
+FAMILY = ("SMCD (one-step)", TASK_MASKS, "combination", "SMCD + last layer", "last layer")
 #: Each strategy's short name in the table.
 SHORT = {
     "none": "none",
@@ -33,6 +34,8 @@ SHORT = {
     "SMCD (calibrated)": "SMCD (evidence)",
     "SMCD (one-step)": "SMCD",
     "combination": "combination",
+    "last layer": "last layer",
+    "SMCD + last layer": "SMCD+L",
     TASK_MASKS: "T+S",
 }
 
@@ -49,21 +52,25 @@ def verdict_word(verdict: str) -> str:
 
 
 def summary_table(rows: Sequence[Mapping[str, Any]]) -> str:
-    """The compact table of scoreboard rows (as the scoreboard builds them, one per task)."""
+    """The compact table of scoreboard rows (as the scoreboard builds them, one per task).
+
+    A member of :data:`FAMILY` that no task ran has no column.
+    """
+    family = [member for member in FAMILY if any(math.isfinite(row[member]) for row in rows)]
     body = []
     for row in rows:
         present = [c for c in COLUMNS if math.isfinite(row[c])]
         pick = min if row["lower_is_better"] else max
         best = pick(present, key=lambda c: row[c])
         unit = row["metric"].split("(", 1)[1].rstrip(")") if "(" in row["metric"] else ""
-        verdicts = " · ".join(verdict_word(row.get(f"{member} vs GD", "")) for member in FAMILY)
-        times = " · ".join(milliseconds(row["ms"].get(c)) for c in ("GD", *FAMILY))
+        verdicts = " · ".join(verdict_word(row.get(f"{member} vs GD", "")) for member in family)
+        times = " · ".join(milliseconds(row["ms"].get(c)) for c in ("GD", *family))
         body.append([row["task"], f"{SHORT[best]} {row[best]:.3f} {unit}".rstrip(), verdicts, times])
     header = [
         "task",
         "best mean",
-        "against tuned GD: " + " · ".join(SHORT[c] for c in FAMILY),
-        "ms / observation: " + " · ".join(SHORT[c] for c in ("GD", *FAMILY)),
+        "against tuned GD: " + " · ".join(SHORT[c] for c in family),
+        "ms / observation: " + " · ".join(SHORT[c] for c in ("GD", *family)),
     ]
     return format_table(body, header)
 

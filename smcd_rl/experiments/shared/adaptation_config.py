@@ -2,7 +2,7 @@
 
 Example:
     >>> AdaptationConfig().particles, TuningConfig().gd_steps, VARIANTS
-    (1000, (1, 5), ('N', 'G', 'S', 'S(evidence)', 'S(paper)', 'C'))
+    (1000, (1, 5), ('N', 'G', 'S', 'S(evidence)', 'S(paper)', 'C', 'L', 'SL'))
 """
 
 from __future__ import annotations
@@ -15,8 +15,9 @@ from smcd_rl.experiments.shared.config import EvaluationConfig, setting
 __all__ = ["TuningConfig", "AdaptationConfig", "VARIANTS", "LearntDynamicsSettings", "check_learnt_dynamics"]
 
 #: The strategies a method name may end in: none, tuned GD, SMCD tuned by one-step error, SMCD
-#: calibrated by its evidence, SMCD at the paper's settings, the combination of N, G and S.
-VARIANTS = ("N", "G", "S", "S(evidence)", "S(paper)", "C")
+#: calibrated by its evidence, SMCD at the paper's settings, the combination of the tuned ones, the
+#: Bayesian last layer, SMCD with a Bayesian readout.
+VARIANTS = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 
 
 @dataclass

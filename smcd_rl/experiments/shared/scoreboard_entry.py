@@ -34,9 +34,20 @@ __all__ = [
 
 #: The scoreboard's strategies, in order: "SMCD (calibrated)" is SMCD calibrated by its evidence,
 #: "SMCD (one-step)" SMCD tuned by one-step error like GD (:func:`smcd_rl.tune`), "combination"
-#: the tuned combination of none, GD and SMCD, "SMCD (task masks)" one-step SMCD on a network whose
-#: masks were trained to identify the task; an experiment that did not run one reads "not run".
-COLUMNS = ("none", "GD", "SMCD (paper)", "SMCD (calibrated)", "SMCD (one-step)", "combination", "SMCD (task masks)")
+#: the tuned combination of the others, "last layer" the Bayesian last layer, "SMCD + last layer"
+#: SMCD with a Bayesian readout, "SMCD (task masks)" one-step SMCD on a network whose masks were
+#: trained to identify the task; an experiment that did not run one reads "not run".
+COLUMNS = (
+    "none",
+    "GD",
+    "SMCD (paper)",
+    "SMCD (calibrated)",
+    "SMCD (one-step)",
+    "combination",
+    "last layer",
+    "SMCD + last layer",
+    "SMCD (task masks)",
+)
 #: The column of SMCD on the task-mask network (``fit(mask_training="task")``), and its method label.
 TASK_MASKS, TASK_MASKS_METHOD = "SMCD (task masks)", "T+S"
 #: The columns every experiment's entry has.
@@ -49,8 +60,10 @@ HEADLINE = {
     "SMCD (calibrated)": "S(evidence)",
     "SMCD (one-step)": "S",
     "combination": "C",
+    "last layer": "L",
+    "SMCD + last layer": "SL",
 }
-#: The paired verdicts shown: (method, against); the last four where those strategies ran.
+#: The paired verdicts shown: (method, against); those after the first four where those strategies ran.
 VERDICTS = (
     ("SMCD (calibrated)", "none"),
     ("SMCD (calibrated)", "GD"),
@@ -58,6 +71,10 @@ VERDICTS = (
     ("SMCD (paper)", "GD"),
     ("SMCD (one-step)", "GD"),
     ("combination", "GD"),
+    ("last layer", "GD"),
+    ("last layer", "SMCD (one-step)"),
+    ("SMCD + last layer", "GD"),
+    ("SMCD + last layer", "SMCD (one-step)"),
     (TASK_MASKS, "GD"),
     (TASK_MASKS, "SMCD (one-step)"),
 )

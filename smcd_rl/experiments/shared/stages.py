@@ -92,8 +92,10 @@ def update_cost(variant: str, config: Any) -> tuple[float, float]:
         >>> update_cost("G", SimpleNamespace(gd_steps=(1, 5), gd_window=(5, 10), particles=100))
         (9.0, 67.5)
     """
-    if variant.startswith("S"):
+    if variant.startswith("S"):  # SMCD, and SMCD with a Bayesian readout
         return 2.0, float(config.particles)
+    if variant == "L":  # one forward and a readout update of (width + 1)^2
+        return 1.0, 1.0
     if variant == "G":
         steps = sum(config.gd_steps) / len(config.gd_steps)
         return 3.0 * steps, 3.0 * steps * sum(config.gd_window) / len(config.gd_window)

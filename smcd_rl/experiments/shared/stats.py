@@ -31,6 +31,7 @@ __all__ = [
     "paired_comparisons",
     "bootstrap_indices",
     "cell_statistics",
+    "oriented",
     "verdict_table",
 ]
 
@@ -229,6 +230,40 @@ def cell_statistics(
             pairs = []
         comparisons += [{**where, **dataclasses.asdict(c)} for c in pairs]
     return rows, comparisons
+
+
+def oriented(comparisons: Sequence[Mapping[str, Any]], pairs: Sequence[tuple[str, str]]) -> list[dict[str, Any]]:
+    """The comparisons of ``pairs`` ``(method, against)``, each read as ``method`` minus ``against``.
+
+    A pair stored the other way round is flipped: its difference and interval negated, ``better``
+    and ``worse`` swapped. Pairs not compared are left out.
+
+    Example:
+        >>> rows = [{"T": 1, "method": "M+S", "against": "M+L", "difference": 0.1, "low": 0.05, "high": 0.2,
+        ...          "verdict": "worse"}]
+        >>> [(c["method"], c["difference"], c["low"], c["verdict"]) for c in oriented(rows, [("M+L", "M+S")])]
+        [('M+L', -0.1, -0.2, 'better')]
+    """
+    flip = {"better": "worse", "worse": "better"}
+    wanted = set(pairs)
+    found = []
+    for c in comparisons:
+        if (c["method"], c["against"]) in wanted:
+            found.append(dict(c))
+        elif (c["against"], c["method"]) in wanted:
+            found.append(
+                {
+                    **c,
+                    "method": c["against"],
+                    "against": c["method"],
+                    "difference": -c["difference"],
+                    "low": -c["high"],
+                    "high": -c["low"],
+                    "verdict": flip.get(c["verdict"], c["verdict"]),
+                }
+            )
+    order = {pair: i for i, pair in enumerate(pairs)}
+    return sorted(found, key=lambda c: order[(c["method"], c["against"])])
 
 
 def verdict_table(comparisons: Sequence[Mapping[str, Any]], *, cell: Sequence[str]) -> str:

@@ -7,7 +7,10 @@ one criterion, the one-step prediction error:
 - **gradient descent (``G``)** over the grid ``--gd-lr`` x ``--gd-steps`` x ``--gd-window`` x
   {squared error, Huber}, extended past an edge while the best point lies there;
 - **SMCD (``S``)**: noise (scalar or per dimension) and flip probability (``--calibrate-flips``);
-- **the combination (``C``)** of N, G and S, its ``eta`` and fixed share;
+- **the Bayesian last layer (``L``)** over prior scale x drift x likelihood, and **SMCD with a
+  Bayesian readout (``SL``)**: the tuned S with L's readout (:class:`smcd_rl.SMCDLastLayer`);
+- **the combination (``C``)** of N and the other tuned methods (G, S, and L and SL where they
+  run), its ``eta`` and fixed share;
 - **SMCD calibrated by its evidence (``S(evidence)``)** and **SMCD at the paper's settings
   (``S(paper)``)**, the two references: what the filter's own criterion and no tuning give.
 
@@ -169,11 +172,13 @@ def _kinds(variants: Sequence[str]) -> list[str]:
     Example:
         >>> _kinds(["G"]), _kinds(["C"]), _kinds(["S(paper)"])
         (['none', 'gradient_descent'], ['none', 'gradient_descent', 'smcd', 'combination'], ['none'])
+        >>> _kinds(["SL"])
+        ['none', 'smcd', 'last_layer', 'smcd_last_layer']
     """
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise ValueError(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
-    needed = {"N", *variants, *(("G", "S") if "C" in variants else ())}
+    needed = {"N", *variants, *(("G", "S") if "C" in variants else ()), *(("S", "L") if "SL" in variants else ())}
     return [kind for variant, kind in TUNED.items() if variant in needed]
 
 

@@ -25,7 +25,14 @@ from smcd_rl.tuning import build_strategy, describe_settings
 __all__ = ["Tuning", "TUNED", "reseeded"]
 
 #: Variant -> the kind of :func:`smcd_rl.tune`'s result it takes.
-TUNED = {"N": "none", "G": "gradient_descent", "S": "smcd", "C": "combination"}
+TUNED = {
+    "N": "none",
+    "G": "gradient_descent",
+    "S": "smcd",
+    "L": "last_layer",
+    "SL": "smcd_last_layer",
+    "C": "combination",
+}
 
 
 @dataclass
@@ -100,6 +107,8 @@ def reseeded(kind: str, settings: dict[str, Any], seed: int, device: str) -> dic
     """``settings`` with every SMCD's generator seeded by ``seed`` on ``device`` (a combination's members too)."""
     if kind == "smcd":
         return {**settings, "seed": seed, "device": device}
+    if kind == "smcd_last_layer":
+        return {**settings, "smcd": reseeded("smcd", settings["smcd"], seed, device)}
     if kind == "combination":
         members = [{**m, "settings": reseeded(m["name"], m["settings"], seed, device)} for m in settings["members"]]
         return {**settings, "members": members}

@@ -4,7 +4,7 @@ Example:
     >>> TwoLinkConfig().burn_in, FULL["tasks"], "R+S" in DEFAULT_METHODS, "R+S" in FULL["methods"]
     ((1, 5, 10), 1000, False, True)
     >>> [m for m in DEFAULT_METHODS if m.startswith("T+")]
-    ['T+N', 'T+G', 'T+S']
+    ['T+N', 'T+G', 'T+S', 'T+SL']
 """
 
 from __future__ import annotations
@@ -17,19 +17,25 @@ from smcd_rl.experiments.shared.two_link_family_config import FAMILY_FULL, TwoLi
 __all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "REPTILE_METHODS"]
 
 #: Method labels that this command runs: Fig. 2's, with S SMCD tuned by one-step error, S(evidence)
-#: SMCD calibrated by its evidence, S(paper) SMCD at the paper's settings and C the combination,
-#: and the network T trained for mask adaptation (``fit(mask_training="task")``).
+#: SMCD calibrated by its evidence, S(paper) SMCD at the paper's settings, C the combination, L the
+#: Bayesian last layer and SL SMCD with a Bayesian readout, and the network T trained for mask
+#: adaptation (``fit(mask_training="task")``).
 METHODS = (
     "O+P",
-    *(f"{network}+{variant}" for network in ("M", "R") for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C")),
-    *(f"T+{variant}" for variant in ("N", "G", "S")),
+    *(
+        f"{network}+{variant}"
+        for network in ("M", "R")
+        for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
+    ),
+    *(f"T+{variant}" for variant in ("N", "G", "S", "L", "SL")),
     "LV+N",
 )
 #: The Reptile network's methods (``--full`` runs them; R+S(paper) only on request).
-REPTILE_METHODS = ("R+N", "R+G", "R+S", "R+S(evidence)", "R+C")
+REPTILE_METHODS = ("R+N", "R+G", "R+S", "R+S(evidence)", "R+C", "R+L", "R+SL")
 #: What runs by default: the multi-task network's methods, the baselines, the task-trained network's
-#: methods and Reptile's gradient descent (the method T+S is to be compared with). Reptile's other
-#: methods run with ``--full`` or on request (``--methods ... R+N R+S``).
+#: methods (SMCD with a Bayesian readout on T too) and Reptile's gradient descent (the method T+S
+#: is to be compared with). Reptile's other methods run with ``--full`` or on request
+#: (``--methods ... R+N R+S``).
 DEFAULT_METHODS = (
     "O+P",
     "M+N",
@@ -38,10 +44,13 @@ DEFAULT_METHODS = (
     "M+S(evidence)",
     "M+S(paper)",
     "M+C",
+    "M+L",
+    "M+SL",
     "R+G",
     "T+N",
     "T+G",
     "T+S",
+    "T+SL",
     "LV+N",
 )
 
@@ -60,8 +69,9 @@ class TwoLinkConfig(TwoLinkFamilyConfig):
     methods: tuple[str, ...] = setting(
         DEFAULT_METHODS,
         "methods to run: O+P (oracle PF); M (multi-task) or R (Reptile) + N, G (tuned GD), S (SMCD tuned by "
-        "one-step error), S(evidence) (SMCD calibrated by its evidence), S(paper) or C (combination of N, G "
-        "and S); T (masks trained to identify the arm) + N, G or S; LV+N (VRNN)",
+        "one-step error), S(evidence) (SMCD calibrated by its evidence), S(paper), C (combination of the "
+        "tuned ones), L (Bayesian last layer) or SL (SMCD with a Bayesian readout); T (masks trained to "
+        "identify the arm) + N, G, S, L or SL; LV+N (VRNN)",
         choices=METHODS,
     )
     tuning_options: bool = setting(

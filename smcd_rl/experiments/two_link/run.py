@@ -25,7 +25,7 @@ from smcd_rl.digests import model_digest
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
-from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.shared.stats import cell_statistics, oriented, verdict_table
 from smcd_rl.experiments.shared.task_family import task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column, strategy_for, tuned_variants
 from smcd_rl.experiments.shared.tuning import TuneJob, Tuning, tune_all
@@ -49,12 +49,29 @@ __all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "run", "table"
 #: (each as the method against those after it: T+S first, so its pairs read T+S minus the other).
 ADAPTIVE = (
     "T+S",
-    *(f"{network}+{variant}" for network in ("M", "R") for variant in ("S", "S(evidence)", "S(paper)", "G", "C")),
+    "T+SL",
+    *(
+        f"{network}+{variant}"
+        for network in ("M", "R")
+        for variant in ("S", "SL", "L", "S(evidence)", "S(paper)", "G", "C")
+    ),
+    "T+L",
     "T+G",
     "T+N",
     "R+N",
     "LV+N",
     "O+P",
+)
+
+#: The Bayesian last layer and SMCD with a Bayesian readout, each paired with GD and SMCD on its network.
+READOUT_PAIRS = (
+    ("M+L", "M+G"),
+    ("M+L", "M+S"),
+    ("M+SL", "M+G"),
+    ("M+SL", "M+S"),
+    ("M+SL", "M+L"),
+    ("T+SL", "T+S"),
+    ("T+SL", "M+SL"),
 )
 
 
@@ -143,6 +160,7 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
             for c in comparisons
             if c["method"] == "M+S" and c["against"] in ("M+N", "M+G", "M+S(evidence)", "M+S(paper)")
         ]
+        readouts = oriented(comparisons, READOUT_PAIRS)
         ms = ms_column(config.methods, tunings)
         rows = [{**r, "ms_per_observation": ms.get(r["method"])} for r in rows]
         ex.write(
@@ -153,6 +171,16 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
                 ),
                 "M+S paired with M+N, M+G, M+S(evidence) and M+S(paper) over the same arms "
                 "(negative: M+S's error is lower)": verdict_table(headline, cell=("burn_in", "horizon")),
+                **(
+                    {
+                        "The Bayesian last layer (L) and SMCD with a Bayesian readout (SL) paired with GD and SMCD "
+                        "over the same arms (negative: the first method's error is lower)": verdict_table(
+                            readouts, cell=("burn_in", "horizon")
+                        )
+                    }
+                    if readouts
+                    else {}
+                ),
                 **task_verdict_table(comparisons, cell=("burn_in", "horizon"), over="arms"),
                 **{caption: text for t in tunings.values() for caption, text in t.tables().items()},
             },
@@ -193,11 +221,16 @@ _REFERENCE_SECONDS = {
     "tune S": 75.0,  # SMCD's two calibrations (scalar and per-dimension noise), 1000 particles of 2 x 512
     "tune S grouped": 20.0,  # the same on the task-mask network, whose particles cost a fraction
     "tune references": 23.0,  # S(evidence): a calibration that reuses the one-step search's bracket
+    "tune L": 3.0,  # the last layer's raced grid
+    "tune SL": 8.0,  # three filter runs of SMCD with the tuned readout
     "evaluate G": 22.5,  # per method over 200 arms at T = 1, 5, 10
     "evaluate S": 10.0,
     "evaluate S grouped": 2.6,
     "evaluate S(evidence)": 19.0,  # broader posteriors: more distinct particles per step
     "evaluate S(paper)": 17.0,
+    "evaluate L": 1.0,  # one forward and a readout update per observation
+    "evaluate SL": 12.0,  # SMCD's filter with the readout's update
+    "evaluate SL grouped": 3.5,
     "evaluate C": 31.5,  # its members G and S, run again
     "evaluate C derived": 0.5,  # from its members' runs, where M+N, M+G and M+S run too
     "evaluate O+P": 0.3,
@@ -233,14 +266,17 @@ def stage_costs(config: TwoLinkConfig) -> dict[str, float]:
         cost = ref["tune G"] * (any(v in ("G", "C") for v in variants))
         cost += ref[smcd] * particles * (any(v in ("S", "C") for v in variants))
         cost += ref["tune references"] * particles * ("S(evidence)" in variants)
+        cost += ref["tune L"] * (any(v in ("L", "SL") for v in variants))
+        cost += ref["tune SL"] * particles * ("SL" in variants) * (0.3 if name == "T" else 1.0)
         costs[f"tune {name}"] = cost * tuning
     for name in config.methods:
         variant = "O+P" if name == "O+P" else "N" if name.endswith("+N") else name.split("+")[1]
-        variant = variant if variant in ("O+P", "S(evidence)", "S(paper)") else variant[0]
-        grouped = " grouped" if name == "T+S" else ""
+        variant = variant if variant in ("O+P", "S(evidence)", "S(paper)", "SL") else variant[0]
+        grouped = " grouped" if name in ("T+S", "T+SL") else ""
         if variant == "C" and all(name.replace("+C", f"+{v}") in config.methods for v in "NGS"):
             grouped = " derived"
         scale = {"O+P": config.oracle_particles / 1000, "S": particles}.get(variant[0], 1.0)
+        grouped = "" if (variant, grouped) == ("L", " grouped") else grouped
         costs[f"evaluate {name}"] = ref[f"evaluate {variant}{grouped}"] * filtering * scale
     return costs
 
@@ -327,8 +363,9 @@ def _errors(
 def _combined(methods: tuple[str, ...], tunings: dict[str, Tuning]) -> dict[str, list[str]]:
     """Each combination method (``M+C``...) whose members run as methods of their own, with their names.
 
-    The combination's members are its network's tuned none, GD and SMCD, the strategies of
-    ``M+N``, ``M+G`` and ``M+S`` with the same seed: their runs are the members' runs, so the
+    The combination's members are its network's tuned none, GD, SMCD (and last layer and SMCD
+    with a Bayesian readout where they are tuned), the strategies of ``M+N``, ``M+G``, ``M+S``
+    (``M+L``, ``M+SL``) with the same seed: their runs are the members' runs, so the
     combination's errors follow from their recorded predictions. A combination whose members do
     not all run (``--methods M+C`` alone) is run as it is.
     """
@@ -339,7 +376,7 @@ def _combined(methods: tuple[str, ...], tunings: dict[str, Tuning]) -> dict[str,
             continue
         specs = tunings[network].specs
         members = specs["C"]["settings"]["members"]
-        names = {"none": "N", "gradient_descent": "G", "smcd": "S"}
+        names = {"none": "N", "gradient_descent": "G", "smcd": "S", "last_layer": "L", "smcd_last_layer": "SL"}
         labels = [f"{network}+{names[m['name']]}" for m in members]
         if all(
             label in methods and (m["name"] == "none" or specs[names[m["name"]]]["settings"] == m["settings"])
