@@ -10,8 +10,9 @@ covariance ``noise_o^2 * prior_scale^2 * I``, so one ``D x D`` matrix ``P`` (the
 covariance in units of each output's noise variance) serves every output:
 
 * after an observation ``(phi, y)``: ``k = P phi / (1 + phi^T P phi)``, ``K += k (y - K^T phi)^T``,
-  ``P = (I - k phi^T) P (I - k phi^T)^T + k k^T`` (Joseph's form, which keeps ``P`` symmetric and
-  positive definite in float32 over long streams), the exact posterior of all observations so far;
+  ``P -= u u^T`` with ``u = P phi / sqrt(1 + phi^T P phi)`` (a rank-one downdate: one pass over
+  ``P``, exactly symmetric; float32 follows float64 over 10^4 observations), the exact posterior
+  of all observations so far;
 * ``drift`` adds ``drift * prior_scale^2 * I`` to ``P`` before each observation: the readout
   follows a random walk, so old observations lose weight and the posterior follows a task that
   drifts or switches (Kalman's process noise);
@@ -139,33 +140,32 @@ class BayesianLastLayer(Adaptation):
         mean, cov = self._state()
         phi = self._augmented(features.reshape(mean.shape[0], -1))  # [B, D]
         targets = targets.reshape(mean.shape[0], -1)
-        if self.drift > 0:
-            cov = cov + self.drift * self.prior_scale**2 * torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
-        spread = torch.einsum("bij,bj->bi", cov, phi)  # P phi
+        # With drift the prior of this step is P + q I: its product with phi, without forming it.
+        q = self.drift * self.prior_scale**2
+        spread = torch.einsum("bij,bj->bi", cov, phi) + q * phi  # P phi
         variance = 1.0 + (phi * spread).sum(-1)  # the predictive variance, in units of each output's noise variance
         residual = targets - torch.einsum("bdo,bd->bo", mean, phi)
         weight = torch.ones_like(variance)
         if self.likelihood == "student-t":
             squared = (residual / self._sigma).square().sum(-1) / variance
             weight = (self.dof + residual.shape[-1]) / (self.dof + squared)
-        # An observation of weight w is one with noise variance 1 / w: its gain k = c P phi grows with w.
-        denominator = 1.0 + weight * (variance - 1.0)
-        c = weight / denominator
-        gain = spread * c.unsqueeze(-1)  # [B, D]
-        new_mean = mean + gain.unsqueeze(-1) * residual.unsqueeze(-2)
-        # Joseph's form: (I - k phi^T) P (I - k phi^T)^T + k k^T / w, with P phi = spread; the last two
-        # terms' factor c^2 phi^T P phi + w / denominator^2 is written without 1 / w, so that an
-        # outlier the Student-t weighs at w = 0 leaves P exactly as it was.
-        outer = gain.unsqueeze(-1) * spread.unsqueeze(-2)  # k (P phi)^T
-        scale = c.square() * (variance - 1.0) + weight / denominator.square()
-        new_cov = (
-            cov - outer - outer.transpose(-1, -2) + scale[:, None, None] * spread.unsqueeze(-1) * spread.unsqueeze(-2)
-        )
-        if not (bool(torch.isfinite(new_mean).all()) and bool(torch.isfinite(new_cov).all())):
+        # An observation of weight w is one with noise variance 1 / w: its gain k = c P phi grows with w,
+        # and an outlier the Student-t weighs at w = 0 leaves the posterior exactly as it was.
+        c = weight / (1.0 + weight * (variance - 1.0))
+        new_mean = mean + (spread * c.unsqueeze(-1)).unsqueeze(-1) * residual.unsqueeze(-2)
+        # P - c (P phi)(P phi)^T as the rank-one downdate P - u u^T, u = sqrt(c) P phi: one pass over P,
+        # and u_i u_j = u_j u_i, so P stays exactly symmetric in any precision.
+        u = spread * c.sqrt().unsqueeze(-1)
+        # P is finite, so P - u u^T is too where every |u_i u_j| is: checked on u, not on the D x D result.
+        largest = math.sqrt(torch.finfo(u.dtype).max) / 2
+        if not (bool(torch.isfinite(new_mean).all()) and bool((u.abs() < largest).all())):
             raise ValueError(
                 "the last layer's posterior became inf or NaN on this observation (a target of inf or of a far "
                 "larger scale than the model's); the adaptation state is unchanged"
             )
+        new_cov = torch.baddbmm(cov, u.unsqueeze(-1), u.unsqueeze(-2), alpha=-1.0)
+        if q > 0:
+            new_cov.diagonal(dim1=-2, dim2=-1).add_(q)
         return new_mean, new_cov
 
     def predict(self, inputs: Tensor) -> Tensor:
