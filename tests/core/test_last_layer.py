@@ -1,14 +1,11 @@
 """The Bayesian last layer: the exact batch posterior, its robust and drifting forms, and SMCD with a Bayesian readout."""
 
-import functools
-
 import pytest
 import torch
 from tensordict import TensorDict
 from torch import Tensor
 
 import smcd_rl
-from smcd_rl.particle_forward import Lineage, ParticleForward
 
 WIDTH = 12
 
@@ -305,32 +302,3 @@ def test_smcd_last_layer_refuses_an_observation_without_touching_either_part(tmp
     path = tmp_path / "both.pt"
     smcd_rl.save(model, path)
     assert smcd_rl.load(path).adaptation.config() == model.adaptation.config()
-
-
-@pytest.mark.parametrize(
-    ("hidden", "groups", "path"),
-    [
-        ((16, WIDTH), None, "incremental"),
-        ((16, WIDTH), 4, "auto"),
-        ((WIDTH,), None, "incremental"),
-        ((16, WIDTH), None, "dense"),
-    ],
-)
-def test_every_particle_path_reads_out_the_same_last_hidden_features(hidden, groups, path) -> None:
-    """Incremental, grouped and dense paths hand the readout the features the network computes per mask."""
-    torch.manual_seed(0)
-    net = smcd_rl.MaskedMLP(2, 2, hidden=hidden, mask_groups=groups).eval()
-    n, dim = 24, net.mask_dim
-    mean = torch.randn(1, hidden[-1] + 1, 2)  # one stream's readout, not the network's
-    parents = (torch.rand(1, dim) < 0.5).expand(n, dim).clone()
-    flips = (torch.rand(n * dim) < 0.1).nonzero().squeeze(-1)
-    masks = parents.clone().reshape(-1)
-    masks[flips] ^= True
-    masks = masks.reshape(n, dim)
-    x = torch.randn(2)
-    readout = functools.partial(smcd_rl.BayesianLastLayer.readout_with, mean)
-    forward = ParticleForward(net, path=path)
-    got = forward(x, masks, Lineage(parents, torch.zeros(n, dtype=torch.long), flips), readout=readout)
-    expected = readout(torch.stack([net.features(x, mask=masks[k]) for k in range(n)]))
-    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
-    assert path != "auto" or forward.last_path == "grouped"

@@ -5,6 +5,8 @@ order. Particles are compared bit for bit: with the same generator both filters 
 weigh and resample identically.
 """
 
+import functools
+
 import pytest
 import torch
 
@@ -18,6 +20,15 @@ LAYOUTS = [((48, 40), None), ((32, 32, 24), None), ((32, 40), (0,)), ((32, 40, 2
 def _net(hidden, masked, seed=0, dropout=0.5):
     torch.manual_seed(seed)
     return smcd_rl.MaskedMLP(3, 2, hidden=hidden, dropout=dropout, masked_layers=masked).eval()
+
+
+def _collapsed(n, dim, flip_rate, generator=None):
+    """One parent copied ``n`` times and children with random flips: ``(parents, masks, flips)``."""
+    parents = (torch.rand(1, dim, generator=generator) < 0.5).expand(n, dim).clone()
+    flips = (torch.rand(n * dim, generator=generator) < flip_rate).nonzero().squeeze(-1)
+    masks = parents.clone().reshape(-1)
+    masks[flips] ^= True
+    return parents, masks.reshape(n, dim), flips
 
 
 def _run_pair(net, n, batch, flip_prob, steps=12, ess_threshold=1.0, noise=0.05):
@@ -87,11 +98,7 @@ def test_all_duplicate_particles(hidden, masked) -> None:
     net = _net(hidden, masked)
     n, dim = 40, net.mask_dim
     g = torch.Generator().manual_seed(1)
-    parents = (torch.rand(1, dim, generator=g) < 0.5).expand(n, dim).clone()
-    flips = (torch.rand(n * dim, generator=g) < 0.05).nonzero().squeeze(-1)
-    masks = parents.clone().reshape(-1)
-    masks[flips] ^= True
-    masks = masks.reshape(n, dim)
+    parents, masks, flips = _collapsed(n, dim, 0.05, g)
     lineage = Lineage(parents, torch.zeros(n, dtype=torch.long), flips)
     x = torch.randn(3, generator=g)
     forward = ParticleForward(net, path="incremental")
@@ -102,11 +109,7 @@ def test_all_duplicate_particles(hidden, masked) -> None:
 def test_auto_takes_the_incremental_path_only_when_it_pays() -> None:
     net = _net((256, 256), None)
     n, dim = 200, net.mask_dim
-    parents = (torch.rand(1, dim) < 0.5).expand(n, dim).clone()
-    flips = (torch.rand(n * dim) < 0.01).nonzero().squeeze(-1)
-    masks = parents.clone().reshape(-1)
-    masks[flips] ^= True
-    masks = masks.reshape(n, dim)
+    parents, masks, flips = _collapsed(n, dim, 0.01)
     x = torch.randn(3)
     auto = ParticleForward(net)
     auto(x, masks, Lineage(parents, torch.zeros(n, dtype=torch.long), flips))
@@ -226,3 +229,28 @@ def test_the_grouped_path_equals_the_dense_pass(hidden, masked, groups, batch) -
             smcd.observe(x, z)
         assert torch.equal(filters[0].particles, filters[1].particles)
         torch.testing.assert_close(filters[0].filter.log_evidence, filters[1].filter.log_evidence)
+
+
+@pytest.mark.parametrize(
+    ("hidden", "groups", "path"),
+    [
+        ((16, 12), None, "incremental"),
+        ((16, 12), 4, "auto"),
+        ((12,), None, "incremental"),
+        ((16, 12), None, "dense"),
+    ],
+)
+def test_every_particle_path_reads_out_the_same_last_hidden_features(hidden, groups, path) -> None:
+    """Incremental, grouped and dense paths hand the readout the features the network computes per mask."""
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(2, 2, hidden=hidden, mask_groups=groups).eval()
+    n = 24
+    mean = torch.randn(1, hidden[-1] + 1, 2)  # one stream's readout, not the network's
+    parents, masks, flips = _collapsed(n, net.mask_dim, 0.1)
+    x = torch.randn(2)
+    readout = functools.partial(smcd_rl.BayesianLastLayer.readout_with, mean)
+    forward = ParticleForward(net, path=path)
+    got = forward(x, masks, Lineage(parents, torch.zeros(n, dtype=torch.long), flips), readout=readout)
+    expected = readout(torch.stack([net.features(x, mask=masks[k]) for k in range(n)]))
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
+    assert path != "auto" or forward.last_path == "grouped"

@@ -62,7 +62,7 @@ def regime_names(burn_in: tuple[int, ...], family: str = "pendulum") -> tuple[st
 
 @dataclass
 class RegimesConfig(TwoLinkFamilyConfig):
-    """Settings of ``smcd-rl regimes``; the defaults finish in about 15 minutes on 2 CPU cores.
+    """Settings of ``smcd-rl regimes``; the defaults finish in about 8 minutes on an idle 2-core CPU.
 
     Example:
         >>> RegimesConfig(families=("pendulum",)).switch_steps

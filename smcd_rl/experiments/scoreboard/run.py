@@ -170,9 +170,8 @@ def _write(
                 if tuned
                 else "",
                 **{
-                    f"{READOUT_CAPTIONS[column]}, where it ran: mean [95% CI] and paired verdicts": _readout_table(
-                        rows, column
-                    )
+                    f"{READOUT_CAPTIONS[column]}, where it ran: mean [95% CI], paired verdicts and median ms per "
+                    "observation": _readout_table(rows, column)
                     for column in READOUT_COLUMNS
                 },
                 "SMCD on a network whose masks were trained to identify the task (T+S), where it ran: mean [95% CI], "
@@ -215,13 +214,17 @@ READOUT_CAPTIONS = {
 
 
 def _readout_table(rows: Sequence[Mapping[str, Any]], column: str) -> str:
-    """``column``'s mean and its paired verdicts against GD and SMCD (one-step), for the tasks that ran it."""
+    """``column``'s mean, its paired verdicts against GD and SMCD (one-step) and its median ms per
+    observation, for the tasks that ran it."""
     verdicts = [v for v in VERDICTS if v[0] == column]
     ran = [row for row in rows if math.isfinite(row[column])]
     if not ran:
         return ""
-    body = [[row["task"], row[f"{column} text"], *(row[f"{m} vs {a}"] for m, a in verdicts)] for row in ran]
-    return format_table(body, ["task", column, *(VERDICT_LABELS[v] for v in verdicts)])
+    body = [
+        [row["task"], row[f"{column} text"], *(row[f"{m} vs {a}"] for m, a in verdicts), _ms(row["ms"].get(column))]
+        for row in ran
+    ]
+    return format_table(body, ["task", column, *(VERDICT_LABELS[v] for v in verdicts), "ms / observation"])
 
 
 def _rows(entries: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict[str, Any]]:
@@ -355,8 +358,8 @@ def _csv_row(row: Mapping[str, Any]) -> dict[str, Any]:
     return {**flat, **{f"{column} ms": row["ms"].get(column) for column in COLUMNS}}
 
 
-#: The strategies whose times the report's table shows (SMCD on task masks: in its own table).
-TIMED = tuple(c for c in COLUMNS if c not in ("none", TASK_MASKS))
+#: The strategies whose times the report's table shows (SMCD on task masks and the readouts: in their own tables).
+TIMED = tuple(c for c in COLUMNS if c not in ("none", TASK_MASKS, "last layer", "SMCD + last layer"))
 
 
 #: The strategies' names under the bars.
