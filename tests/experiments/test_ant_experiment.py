@@ -90,7 +90,7 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     rows = list(csv.DictReader(open(out / "results.csv")))
     returns = [r for r in rows if r["part"] == "return"]
     cells = [(r["planner"], r["method"], r["condition"]) for r in returns]
-    assert cells == [(ant.PLANNERS[p], ant.ADAPTATIONS[a], c) for p, a, c in ant.CELLS]
+    assert cells == [(ant.PLANNERS[p], ant.ADAPTATIONS[a], c) for p, a, c in ant.CELLS if a in VARIANTS]
     assert all(float(r["return_low"]) <= float(r["return_mean"]) <= float(r["return_high"]) for r in returns)
     predictions = [r for r in rows if r["part"] == "prediction"]
     assert len(predictions) == 2 * 2 * 6  # condition x (one-step, 3-step) x strategy
@@ -159,7 +159,8 @@ def test_results_json_has_the_tuning_and_two_scoreboard_entries(tmp_path) -> Non
         assert all(e["trials"] == 6 for e in entry["estimates"].values())
         assert set(entry["ms_per_observation"]) == COLUMNS
         assert entry["ms_per_observation"]["SMCD (one-step)"] == tuning["ms_per_observation"]["S"]
-        assert all(v != "not compared" for v in entry["verdicts"].values())
+        # Every verdict between strategies that ran (the last layers run on request).
+        assert all(v != "not compared" for k, v in entry["verdicts"].items() if "last layer" not in k)
 
 
 def test_prediction_error_is_paired_over_the_same_episodes(tmp_path) -> None:

@@ -18,7 +18,6 @@ from smcd_rl.experiments.interpret import lookahead as interpret_lookahead
 from smcd_rl.experiments.interpret import run as interpret
 from smcd_rl.experiments.shared import stages
 from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, TASK_MASKS
-from smcd_rl.experiments.shared.tuning import VARIANTS
 from smcd_rl.interpret import top_k_neighbour_accuracy
 from tests.experiments.test_stages import planned_stages
 
@@ -344,7 +343,7 @@ def test_lookahead_tunes_on_held_out_flights_and_writes_a_scoreboard_entry(tmp_p
     tuning = payload["tuning"]["M"]
     assert tuning["episodes"] == 4 and tuning["steps"] == 5
     specs = tuning["specs"]
-    assert set(specs) == set(VARIANTS) == {m[2:] for m in methods[1:]}
+    assert set(specs) == {m[2:] for m in methods[1:]}  # the variants that run, each tuned
     assert specs["G"]["kind"] == "gradient_descent" and specs["C"]["kind"] == "combination"
     assert specs["S"]["kind"] == specs["S(evidence)"]["kind"] == "smcd"
     paper = specs["S(paper)"]["settings"]
@@ -356,10 +355,10 @@ def test_lookahead_tunes_on_held_out_flights_and_writes_a_scoreboard_entry(tmp_p
     assert all(r["ms_per_observation"] == tuning["ms_per_observation"][r["method"][2:]] for r in rows)
     board = payload["scoreboard"]
     assert board["task"] == "drone look-ahead" and board["cell"] == {"set": "unknown", "burn_in": 0.5, "horizon": 0.25}
-    assert set(board["estimates"]) == set(COLUMNS) - {TASK_MASKS}  # no task-mask network here
+    ran = set(COLUMNS) - {TASK_MASKS, "last layer", "SMCD + last layer"}  # no task masks, no last layers here
+    assert set(board["estimates"]) == ran == set(board["ms_per_observation"])
     assert {e["method"] for e in board["estimates"].values()} == set(methods[1:])
-    assert all(v != "not compared" for v in board["verdicts"].values())
-    assert set(board["ms_per_observation"]) == set(COLUMNS) - {TASK_MASKS}
+    assert all(v != "not compared" for k, v in board["verdicts"].items() if "last layer" not in k)
     assert all(0 < ms < math.inf for ms in board["ms_per_observation"].values())
     pairs = {(c["method"], c["against"]) for c in payload["comparisons"]}
     assert {("M+S", m) for m in ("M+N", "M+G", "M+S(evidence)", "M+S(paper)", "M+C")} <= pairs

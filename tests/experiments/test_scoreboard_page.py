@@ -9,6 +9,7 @@ from pathlib import Path
 from PIL import Image
 
 from smcd_rl.experiments.scoreboard import run as scoreboard
+from smcd_rl.experiments.scoreboard.plot import draw
 
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "experiments" / "scoreboard"
 
@@ -51,7 +52,7 @@ def test_each_panel_of_the_plot_is_readable_at_page_width(tmp_path: Path) -> Non
     """Seven panels in one row were squeezed to ~100 px each on the page; two to a row they keep ~half its width."""
     entries = scoreboard.read_entries(PAGE / "scoreboard.json")[1]
     path = tmp_path / "board.png"
-    scoreboard._plot(scoreboard._rows(entries), path)
+    draw(scoreboard._rows(entries), path)
     with Image.open(path) as image:
         width, height = image.size
     assert width <= 1100 and width / 2 >= 480 and height > width  # two columns, rows of panels below each other

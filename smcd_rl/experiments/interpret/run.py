@@ -66,7 +66,7 @@ from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import verdict_table
-from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column
+from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column, tuned_variants
 from smcd_rl.experiments.shared.tuning import Tuning, tune
 
 __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SIMULATED_LABELS", "run"]
@@ -282,7 +282,15 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
             if tuning_episodes is not None:
                 for key in adapting:
                     paper_noise = drone.noise_std(bases[key], fitted, config, ex.device)
-                    tunings[key] = tune(ex, bases[key], tuning_episodes, config, name=key, paper_noise_std=paper_noise)
+                    tunings[key] = tune(
+                        ex,
+                        bases[key],
+                        tuning_episodes,
+                        config,
+                        name=key,
+                        paper_noise_std=paper_noise,
+                        variants=tuned_variants(key, config.methods),
+                    )
                     report.tables.update(tunings[key].tables())
                     report.plots[f"tuning-{key}.png"] = tunings[key].plot
                 report.payload["tuning"] = {key: t.payload() for key, t in tunings.items()}

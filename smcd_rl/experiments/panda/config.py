@@ -17,6 +17,7 @@ __all__ = [
     "PandaConfig",
     "FULL",
     "METHODS",
+    "DEFAULT_METHODS",
     "DEFAULT_INTERVALS",
     "DEFAULT_DT",
     "GOAL_TOLERANCE",
@@ -38,10 +39,13 @@ MAX_EPISODE_STEPS: int = 200
 #: The measurement intervals n run by default.
 DEFAULT_INTERVALS = (1, 2, 5, 10, 20)
 
-#: Methods of Fig. 3 that this command runs, all by default: N none, G tuned GD, S SMCD tuned by
-#: one-step error, S(evidence) SMCD calibrated by its evidence, S(paper) SMCD at the paper's
-#: settings, C the combination of N, G and S.
-METHODS = ("FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C")
+#: Methods that this command runs: Fig. 3's N none, G tuned GD, S SMCD tuned by one-step error,
+#: S(evidence) SMCD calibrated by its evidence, S(paper) SMCD at the paper's settings, C the
+#: combination of N and the tuned ones; L the Bayesian last layer and SL SMCD with a Bayesian
+#: readout, on request.
+METHODS = ("FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL")
+#: What runs by default: Fig. 3's methods.
+DEFAULT_METHODS = METHODS[:-2]
 
 # Power (the default trial count). The methods run on the same arms, so a verdict such as M+S
 # against M+G is a paired comparison of binary outcomes: only the discordant arms (one method
@@ -88,10 +92,11 @@ class PandaConfig(AdaptationConfig):
     )
     steps: int = setting(MAX_EPISODE_STEPS, "control steps per task: success is reaching the goal within them", low=1)
     methods: tuple[str, ...] = setting(
-        METHODS,
+        DEFAULT_METHODS,
         "methods to run: FK (chain without the tool); M (the network) + N (none), G (GD, tuned), S (SMCD tuned "
         "by one-step error), S(evidence) (SMCD calibrated by its evidence), S(paper) (SMCD at --noise-std and "
-        "--flip-prob) or C (the combination of N, G and S)",
+        "--flip-prob), C (the combination of N and the tuned ones), L (Bayesian last layer) or SL (SMCD with a "
+        "Bayesian readout)",
         choices=METHODS,
     )
     particles: int = setting(100, "SMCD mask particles (every SMCD method, M+C's too, and the tuning)", low=1)

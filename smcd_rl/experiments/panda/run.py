@@ -124,19 +124,11 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
         held_out_rmse = _held_out_rmse(model, held_out.to(ex.device))
 
         # --- the fair protocol: SMCD and GD tuned on held-out episodes of fresh training tools ------
-        tuning = (
-            tune(
-                ex,
-                model,
-                tuning_episodes(config, ex.device),
-                config,
-                name="M",
-                variants=tuned_variants("M", config.methods),
-            )
-            if _adapts(config)
-            else None
+        variants = tuned_variants("M", config.methods)  # every M+ method but M+N, or none
+        tunings = (
+            {"M": tune(ex, model, tuning_episodes(config, ex.device), config, variants=variants)} if variants else {}
         )
-        tunings = {"M": tuning} if tuning is not None else {}
+        tuning = tunings.get("M")
 
         # --- every (method, n) on the same arms: each seed's tasks run as one batch -----------------
         labels = method_labels(config)
@@ -160,7 +152,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             (n,): {label: r["reached"].reshape(-1).double() for (label, m), r in results.items() if m == n}
             for n in intervals
         }
-        adaptive = [m for m in ("M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+G", "FK") if m in labels]
+        adaptive = [m for m in ("M+S", "M+SL", "M+L", "M+S(evidence)", "M+S(paper)", "M+C", "M+G", "FK") if m in labels]
         rows, comparisons = cell_statistics(
             scores,
             cell=("interval",),

@@ -26,16 +26,22 @@ TARGET_ANGULAR_SPEED: float = math.pi / (100 * TELESCOPING_DT)
 #: Fig. 8's methods, plus "true": the PD law with the true telescoping kinematics (the floor
 #: that the controller's lag behind the moving target and link sets for every method). On each
 #: network: N none, G tuned GD, S SMCD tuned by one-step error, S(evidence) SMCD calibrated by its
-#: evidence, S(paper) SMCD at the paper's settings, C the combination of N, G and S. T is the
-#: network whose masks were trained to identify the arm (``fit(mask_training="task")``).
+#: evidence, S(paper) SMCD at the paper's settings, C the combination of N and the tuned ones, L
+#: the Bayesian last layer, SL SMCD with a Bayesian readout. T is the network whose masks were
+#: trained to identify the arm (``fit(mask_training="task")``).
 METHODS = (
     "true",
     "O+P",
-    *(f"{network}+{variant}" for network in ("M", "R") for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C")),
-    *(f"T+{variant}" for variant in ("N", "G", "S")),
+    *(
+        f"{network}+{variant}"
+        for network in ("M", "R")
+        for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
+    ),
+    *(f"T+{variant}" for variant in ("N", "G", "S", "L", "SL")),
 )
-#: What runs by default (R+S(paper) only on request: the R network's comparison is R+S against R+G).
-DEFAULT_METHODS = tuple(m for m in METHODS if m != "R+S(paper)")
+#: What runs by default: Fig. 8's methods and T's N, G and S (R+S(paper) only on request: the R
+#: network's comparison is R+S against R+G; the last layers on request).
+DEFAULT_METHODS = tuple(m for m in METHODS if m != "R+S(paper)" and not m.endswith(("+L", "+SL")))
 
 
 @dataclass
@@ -74,8 +80,9 @@ class TelescopingConfig(TwoLinkFamilyConfig):
     methods: tuple[str, ...] = setting(
         DEFAULT_METHODS,
         "methods: true, O+P (oracle PF); M or R + N, G (tuned GD), S (SMCD tuned by one-step error), S(evidence) "
-        "(SMCD calibrated by its evidence), S(paper) or C (the combination of N, G and S); T (masks trained to "
-        "identify the arm) + N, G or S",
+        "(SMCD calibrated by its evidence), S(paper), C (the combination of N and the tuned ones), L (Bayesian "
+        "last layer) or SL (SMCD with a Bayesian readout); T (masks trained to identify the arm) + N, G, S, L "
+        "or SL",
         choices=METHODS,
     )
     full: bool = setting(False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials")

@@ -65,7 +65,13 @@ TUNING_STEPS = 20
 #: (each as the method against those after it: T+S first, so its pairs read T+S minus the other).
 ADAPTIVE = (
     "T+S",
-    *(f"{network}+{variant}" for network in ("M", "R") for variant in ("S", "S(evidence)", "S(paper)", "C", "G")),
+    "T+SL",
+    *(
+        f"{network}+{variant}"
+        for network in ("M", "R")
+        for variant in ("S", "SL", "L", "S(evidence)", "S(paper)", "C", "G")
+    ),
+    "T+L",
     "T+G",
     "T+N",
     "R+N",
