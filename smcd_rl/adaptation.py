@@ -614,14 +614,16 @@ def _is_auto(value: Any) -> bool:
     return isinstance(value, str) and value == "auto"
 
 
-def _checked_noise(noise_std: Any) -> Tensor:
-    """``noise_std`` as a float tensor if it is a positive finite scalar or 1-d sequence, else a clear error."""
+def _checked_noise(noise_std: Any, *, auto: bool = True) -> Tensor:
+    """``noise_std`` as a float tensor if it is a positive finite scalar or 1-d sequence, else a clear error
+    (which names ``'auto'`` among the choices where the caller takes it)."""
     try:
         noise = torch.as_tensor(noise_std)
     except (TypeError, ValueError, RuntimeError) as err:
-        raise TypeError(
-            f"noise_std must be a positive number, a sequence of them or 'auto', got {noise_std!r}"
-        ) from err
+        choices = (
+            "a positive number, a sequence of them or 'auto'" if auto else "a positive number or a sequence of them"
+        )
+        raise TypeError(f"noise_std must be {choices}, got {noise_std!r}") from err
     if noise.dtype == torch.bool or noise.is_complex() or not (noise.is_floating_point() or noise.dtype.is_signed):
         raise TypeError(f"noise_std must be a positive number or a sequence of them, got {noise_std!r}")
     noise = noise.to(torch.float32)

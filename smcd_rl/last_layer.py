@@ -83,7 +83,7 @@ class BayesianLastLayer(Adaptation):
     ) -> None:
         super().__init__()
         self.prior_scale = check_real(prior_scale, "prior_scale", low=0.0, high=1e6, open_low=True)
-        self._noise = _checked_noise(noise_std)
+        self._noise = _checked_noise(noise_std, auto=False)
         self.noise_std = noise_std if isinstance(noise_std, (int, float)) else [float(v) for v in noise_std]
         self.drift = check_real(drift, "drift", low=0.0, high=1e6)
         if likelihood not in ("gaussian", "student-t"):

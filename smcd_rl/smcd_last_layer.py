@@ -59,10 +59,14 @@ class SMCDLastLayer(Adaptation):
 
     def __init__(self, smcd: SMCD | Mapping[str, Any], last_layer: BayesianLastLayer | Mapping[str, Any]) -> None:
         super().__init__()
-        self.smcd = smcd if isinstance(smcd, SMCD) else SMCD(**dict(smcd))
+        for part, kind in ((smcd, SMCD), (last_layer, BayesianLastLayer)):
+            if not isinstance(part, (kind, Mapping)):
+                raise TypeError(
+                    f"SMCDLastLayer takes an smcd_rl.SMCD and an smcd_rl.BayesianLastLayer (or their config() dicts), "
+                    f"got a {type(part).__name__} for the {kind.__name__}"
+                )
+        self.smcd = smcd if isinstance(smcd, SMCD) else SMCD(**smcd)
         self.last_layer = last_layer if isinstance(last_layer, BayesianLastLayer) else BayesianLastLayer(**last_layer)
-        if not isinstance(self.smcd, SMCD) or not isinstance(self.last_layer, BayesianLastLayer):
-            raise TypeError("SMCDLastLayer takes an smcd_rl.SMCD and an smcd_rl.BayesianLastLayer")
 
     def config(self) -> dict[str, Any]:
         return {"smcd": self.smcd.config(), "last_layer": self.last_layer.config()}

@@ -188,6 +188,17 @@ def test_bad_settings_are_refused_with_the_setting_named(settings, message) -> N
         smcd_rl.BayesianLastLayer(**settings)
 
 
+def test_parts_of_the_wrong_type_are_named_not_misread() -> None:
+    """A GradientDescent given as the filter once failed with "'GradientDescent' object is not iterable";
+    "auto", which only SMCD takes, was offered as a choice of the last layer's noise."""
+    with pytest.raises(TypeError, match="got a GradientDescent for the SMCD"):
+        smcd_rl.SMCDLastLayer(smcd_rl.GradientDescent(), smcd_rl.BayesianLastLayer())
+    with pytest.raises(TypeError, match="got a str for the BayesianLastLayer"):
+        smcd_rl.SMCDLastLayer(smcd_rl.SMCD(), "last_layer")
+    with pytest.raises(TypeError, match=r"a positive number or a sequence of them, got 'auto'"):
+        smcd_rl.BayesianLastLayer(noise_std="auto")
+
+
 def test_a_noise_per_output_of_the_wrong_length_is_refused_at_bind() -> None:
     with pytest.raises(ValueError, match="noise_std has 3 values but the model predicts 2"):
         _bound(smcd_rl.BayesianLastLayer(noise_std=[0.1, 0.1, 0.1]), _net())
