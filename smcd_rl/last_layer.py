@@ -169,7 +169,7 @@ class BayesianLastLayer(Adaptation):
         return new_mean, new_cov
 
     def predict(self, inputs: Tensor) -> Tensor:
-        mean, _ = self._state()
+        self._state()  # "call model.reset()" before any shape error
         self._extra_dims(inputs)
         return self.readout(self.net.features(inputs))
 

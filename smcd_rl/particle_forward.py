@@ -192,16 +192,15 @@ class ParticleForward:
         pre = torch.baddbmm(following.bias, bits, contributions)  # [B, N, out]
         flat_masks = masks.reshape(elements * n, dim)
         h = pre.reshape(elements * n, -1)
+        self.last_path = "grouped"
         for i in range(layer + 1, len(net.hidden)):
             h = net.act(h)
             later = net.mask_slices[i]
             if later is not None:
                 h = net._masked(h, flat_masks[:, later].to(h.dtype) * (1.0 / net.keep_prob))
             if i == len(net.hidden) - 1 and readout is not None:
-                self.last_path = "grouped"
                 return readout(h.reshape(*batch, n, h.shape[-1]))
             h = _linear(net, i + 1)(h)
-        self.last_path = "grouped"
         return h.reshape(*batch, n, h.shape[-1])
 
     def _pays(self, distinct: int, total: int, flips: int) -> bool:

@@ -23,7 +23,7 @@ from smcd_rl.combination import Combination
 from smcd_rl.last_layer import BayesianLastLayer
 from smcd_rl.smcd_last_layer import SMCDLastLayer
 
-__all__ = ["KINDS", "build_strategy", "describe_settings", "on_device"]
+__all__ = ["KINDS", "build_strategy", "describe_settings", "on_device", "with_generators"]
 
 #: The strategies :func:`smcd_rl.tune` knows, in the order it tunes them (SMCD with a Bayesian
 #: readout starts from the tuned SMCD and last layer; a combination needs the others).
@@ -68,12 +68,25 @@ def _smcd_last_layer(smcd: dict[str, Any], last_layer: dict[str, Any]) -> SMCDLa
 
 def on_device(kind: str, settings: dict[str, Any], device: str) -> dict[str, Any]:
     """``settings`` with every SMCD's generator on ``device`` (a combination's members too)."""
+    return with_generators(kind, settings, device=device)
+
+
+def with_generators(kind: str, settings: dict[str, Any], **generator: Any) -> dict[str, Any]:
+    """``settings`` with every SMCD's generator settings (``seed``, ``device``) replaced by ``generator``:
+    SMCD's own, the filter's of SMCD with a Bayesian readout, and a combination's members'.
+
+    Example:
+        >>> with_generators("smcd_last_layer", {"smcd": {"seed": 0}, "last_layer": {}}, seed=3)["smcd"]
+        {'seed': 3}
+    """
     if kind == "smcd":
-        return {**settings, "device": device}
+        return {**settings, **generator}
     if kind == "smcd_last_layer":
-        return {**settings, "smcd": on_device("smcd", settings["smcd"], device)}
+        return {**settings, "smcd": with_generators("smcd", settings["smcd"], **generator)}
     if kind == "combination":
-        members = [{**m, "settings": on_device(m["name"], m["settings"], device)} for m in settings["members"]]
+        members = [
+            {**m, "settings": with_generators(m["name"], m["settings"], **generator)} for m in settings["members"]
+        ]
         return {**settings, "members": members}
     return settings
 

@@ -360,4 +360,4 @@ def _csv_row(row: Mapping[str, Any]) -> dict[str, Any]:
 
 
 #: The strategies whose times the report's table shows (SMCD on task masks and the readouts: in their own tables).
-TIMED = tuple(c for c in COLUMNS if c not in ("none", TASK_MASKS, "last layer", "SMCD + last layer"))
+TIMED = tuple(c for c in COLUMNS if c not in ("none", TASK_MASKS, *READOUT_COLUMNS))

@@ -20,6 +20,7 @@ import torch
 import smcd_rl
 from smcd_rl.experiments.shared.outputs import format_table, ms_cell
 from smcd_rl.experiments.shared.tuning_plot import plot_traces
+from smcd_rl.strategy_specs import with_generators
 from smcd_rl.tuning import build_strategy, describe_settings
 
 __all__ = ["Tuning", "TUNED", "reseeded"]
@@ -105,14 +106,7 @@ class Tuning:
 
 def reseeded(kind: str, settings: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
     """``settings`` with every SMCD's generator seeded by ``seed`` on ``device`` (a combination's members too)."""
-    if kind == "smcd":
-        return {**settings, "seed": seed, "device": device}
-    if kind == "smcd_last_layer":
-        return {**settings, "smcd": reseeded("smcd", settings["smcd"], seed, device)}
-    if kind == "combination":
-        members = [{**m, "settings": reseeded(m["name"], m["settings"], seed, device)} for m in settings["members"]]
-        return {**settings, "members": members}
-    return settings
+    return with_generators(kind, settings, seed=seed, device=device)
 
 
 def _scores(t: Mapping[str, Any]) -> list[Any]:

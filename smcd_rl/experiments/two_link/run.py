@@ -28,7 +28,7 @@ from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, oriented, verdict_table
 from smcd_rl.experiments.shared.task_family import task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column, strategy_for, tuned_variants
-from smcd_rl.experiments.shared.tuning import TuneJob, Tuning, tune_all
+from smcd_rl.experiments.shared.tuning import TUNED, TuneJob, Tuning, tune_all
 from smcd_rl.experiments.shared.two_link_family import (
     babbling_data,
     fit_settings,
@@ -307,7 +307,7 @@ def _combined(methods: tuple[str, ...], tunings: dict[str, Tuning]) -> dict[str,
             continue
         specs = tunings[network].specs
         members = specs["C"]["settings"]["members"]
-        names = {"none": "N", "gradient_descent": "G", "smcd": "S", "last_layer": "L", "smcd_last_layer": "SL"}
+        names = {kind: variant for variant, kind in TUNED.items()}
         labels = [f"{network}+{names[m['name']]}" for m in members]
         if all(
             label in methods and (m["name"] == "none" or specs[names[m["name"]]]["settings"] == m["settings"])
