@@ -3,7 +3,7 @@
 The likelihood noise ``Σ`` of eq. (1) and the flip probability ``d`` of the mask transition are
 parameters of the state-space model the filter assumes. :func:`calibrate` runs the filter over
 held-out episodes of the *training* tasks for a few candidate settings and keeps the best by one
-of two criteria:
+of these criteria (:mod:`smcd_rl.criteria`):
 
 * ``"one-step"`` (the default): the lowest one-step prediction error, the RMSE of the filter's
   prediction of each step from the steps before it (:attr:`Candidate.one_step_rmse`), which is
@@ -12,6 +12,8 @@ of two criteria:
   ``log p(z_1:T) = Σ_t log p(z_t | z_<t)`` that the filter estimates as it runs
   (:attr:`smcd_rl.SMCDFilter.log_evidence`): too small a noise punishes every residual the
   network cannot explain, too large a one spreads the likelihood over masks that predict nothing.
+* ``"lookahead"`` with ``horizon=H``: the lowest RMSE of the open-loop predictions ``H`` steps
+  ahead (the score of a planner's rollout or a look-ahead table), or a callable score of your own.
 
 The two can disagree. The evidence scores the filter's predictive *density*; where the network's
 residuals are not the independent Gaussian noise the filter assumes (a misspecified network's are
@@ -45,11 +47,14 @@ from tqdm.auto import tqdm
 
 from smcd_rl.adaptation import SMCD, NoAdaptation
 from smcd_rl.checks import check_count, check_real, check_seed
-from smcd_rl.diagnostics import Trace, trace_pairs
+from smcd_rl.criteria import Criterion as _Criterion
+from smcd_rl.criteria import Score, checked_criterion
+from smcd_rl.diagnostics import Trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.filter import SMCDFilter
-from smcd_rl.held_out import checked_model, pairs, stacked
+from smcd_rl.held_out import checked_model, stacked
 from smcd_rl.model import AdaptiveModel
+from smcd_rl.scoring import Scorer
 
 __all__ = ["calibrate", "evidence", "Calibration", "Candidate"]
 
@@ -61,9 +66,9 @@ _LOG2 = math.log(2.0)
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 Stage = Literal["bracket", "flip", "rebracket", "refine"]
-#: What :func:`calibrate` optimises: the one-step prediction error, or the log evidence.
-Criterion = Literal["one-step", "evidence"]
-_CRITERIA: tuple[Criterion, ...] = ("one-step", "evidence")
+#: What :func:`calibrate` optimises by name: the one-step error, the log evidence, or the look-ahead
+#: error (:mod:`smcd_rl.criteria`; a callable score of your own is taken too).
+Criterion = Literal["one-step", "evidence", "lookahead"]
 
 
 @dataclass(frozen=True)
@@ -84,6 +89,9 @@ class Candidate:
     one_step_rmse: float
     #: The run step by step (:func:`smcd_rl.diagnostics.trace` of this setting, which it equals).
     trace: Trace | None = field(default=None, compare=False, repr=False)
+    #: The score of the calibration's criterion (lower is better): the one-step RMSE (also under
+    #: the evidence criterion), the look-ahead RMSE or your own score (``inf`` if the filter refused).
+    score: float = math.nan
 
 
 @dataclass
@@ -94,9 +102,10 @@ class Calibration:
     strategy: SMCD = field(compare=False)
     noise_std: float | list[float]
     flip_prob: float
-    #: What chose the setting: ``"one-step"`` (the lowest one-step RMSE) or ``"evidence"`` (the
-    #: highest log evidence).
-    criterion: Criterion
+    #: What chose the setting: ``"one-step"`` (the lowest one-step RMSE), ``"evidence"`` (the
+    #: highest log evidence), ``"lookahead"`` (the lowest look-ahead RMSE over :attr:`horizon`
+    #: steps) or ``"custom"`` (the lowest score of your own, :attr:`score_label`).
+    criterion: str
     #: Every filter run, in the order run.
     candidates: list[Candidate]
     #: The residual scale per output dimension the search started from.
@@ -112,6 +121,10 @@ class Calibration:
     num_particles: int
     #: Wall time of the search.
     seconds: float = field(compare=False)
+    #: The steps ahead the criterion scores (1 for one-step and evidence).
+    horizon: int = 1
+    #: The name of the criterion's score in tables.
+    score_label: str = "one-step RMSE"
     #: A digest of the model, the episodes, the seed and the base settings: what ``reuse`` checks.
     data: str = field(default="", compare=False)
 
@@ -125,11 +138,12 @@ class Calibration:
         scale = "[" + ", ".join(f"{s:.4g}" for s in self.residual_scale) + "]"
         if not self.per_dimension:
             scale = f"RMS of {scale}"
+        ahead = self.criterion in ("lookahead", "custom")
         lines = [
             f"calibrate: {self.episodes} episodes x {self.steps} steps, {self.num_particles} particles; "
             f"noise = factor x residual scale {scale} (from {self.residual_source})",
             f"{'':1} {'run':>3}  {'stage':<9}  {'factor':>8}  {'noise(rms)':>10}  {'flip_prob':>9}  "
-            f"{'log evidence/ep':>15}  {'1-step RMSE':>11}",
+            f"{'log evidence/ep':>15}  {'1-step RMSE':>11}" + (f"  {self.score_label}" if ahead else ""),
         ]
         best = self.best
         for i, c in enumerate(self.candidates, 1):
@@ -141,19 +155,22 @@ class Calibration:
             lines.append(
                 f"{'*' if c is best else ' '} {i:>3}  {c.stage:<9}  {c.factor:>8.4g}  {noise:>10.4g}  "
                 f"{c.flip_prob:>9.4g}  {c.log_evidence:>15.6g}  {c.one_step_rmse:>11.4g}"
+                + (f"  {c.score:.4g}" if ahead else "")
             )
         noise_text = (
             f"{self.noise_std:.4g}"
             if isinstance(self.noise_std, float)
             else str([float(f"{v:.4g}") for v in self.noise_std])
         )
-        by = "lowest 1-step RMSE" if self.criterion == "one-step" else "highest log evidence"
+        by = {"evidence": "highest log evidence", "one-step": "lowest 1-step RMSE"}.get(
+            self.criterion, f"lowest {self.score_label}"
+        )
         lines.append(
             f"chosen ({by}): noise_std={noise_text}, flip_prob={self.flip_prob:g} "
             f"({len(self.candidates)} filter runs, {self.seconds:.1f} s)"
         )
         if len(self.flip_probs) > 1 and self.flip_prob in (self.flip_probs[0], self.flip_probs[-1]):
-            better = "predict" if self.criterion == "one-step" else "explain the episodes"
+            better = "explain the episodes" if self.criterion == "evidence" else "predict"
             lines.append(
                 f"note: flip_prob {self.flip_prob:g} is at the end of the flip_probs tried {self.flip_probs}; "
                 f"a wider range may {better} better"
@@ -172,13 +189,14 @@ def calibrate(
     flip_probs: Sequence[float] = (0.001, 0.003, 0.01, 0.03),
     per_dimension: bool = True,
     refine: int = 5,
-    criterion: Criterion = "one-step",
+    criterion: Criterion | Score = "one-step",
+    horizon: int | None = None,
     seed: int = 0,
     progress: bool = True,
     reuse: Calibration | None = None,
     store: bool = True,
 ) -> Calibration:
-    """Choose SMCD's ``noise_std`` and ``flip_prob`` on held-out episodes, by one-step error or by evidence.
+    """Choose SMCD's ``noise_std`` and ``flip_prob`` on held-out episodes, by the error you are judged by.
 
     The episodes must come from the *training* tasks (held out from training, never the test
     tasks): calibration is part of fitting the model, and tuning it on the tasks it is then
@@ -191,8 +209,12 @@ def calibrate(
     evidence can predict worse: where the network's residuals are not the independent Gaussian
     noise the filter assumes, the evidence may choose a small noise that makes the filter
     over-confident (it then jumps between masks on every residual), or a large one that pays for
-    rare outliers with a filter that barely adapts. The search is the same for both; only the
-    value it maximises differs.
+    rare outliers with a filter that barely adapts. ``criterion="lookahead", horizon=H`` scores
+    the filter's open-loop predictions ``H`` steps ahead (:mod:`smcd_rl.criteria`), what a
+    planner's rollout or a look-ahead table is scored by: a noise chosen for the next step can be
+    too small (a filter that jumps between masks) or too large for ten. A callable
+    ``criterion(predicted, observed) -> float`` scores them your way. The search is the same for
+    every criterion; only the value it optimises differs.
 
     The noise is searched as ``factor x residual scale``, starting from the model's
     :attr:`~smcd_rl.AdaptiveModel.residual_scale` (recorded by :func:`smcd_rl.fit`; without one,
@@ -229,8 +251,11 @@ def calibrate(
         per_dimension: one noise per output dimension in the residual's proportions (else one scalar).
         refine: golden-section runs at the end (0 for none).
         criterion: what the search optimises and the choice is made by: ``"one-step"``, the
-            one-step RMSE (:attr:`Candidate.one_step_rmse`, lowest wins), or ``"evidence"``, the
-            log evidence (:attr:`Candidate.log_evidence`, highest wins).
+            one-step RMSE (:attr:`Candidate.one_step_rmse`, lowest wins), ``"evidence"``, the
+            log evidence (:attr:`Candidate.log_evidence`, highest wins), ``"lookahead"``, the
+            RMSE ``horizon`` steps ahead open loop, or a callable score of your own
+            (:mod:`smcd_rl.criteria`; :attr:`Candidate.score`, lowest wins).
+        horizon: the steps ahead of ``"lookahead"`` or of your score (episodes must be longer).
         seed: seed of every filter run: two calls with the same arguments give the same result.
         progress: show a progress bar over the filter runs.
         reuse: an earlier result on the same model, episodes, seed and ``base`` (the other
@@ -247,12 +272,12 @@ def calibrate(
         KeyError: a key the model needs is missing from ``episodes``.
         ValueError: shapes that do not fit the model, fewer than 2 episodes or steps, NaN or inf,
             episodes of different lengths, an unfitted model, a flip probability the transition
-            cannot take, a ``criterion`` other than ``"one-step"`` or ``"evidence"``, or a filter
-            that refused the episodes under every candidate (no finite evidence or one-step error).
+            cannot take, an unknown ``criterion`` or a ``horizon`` it does not take, episodes no
+            longer than the horizon, or a filter that refused the episodes under every candidate
+            (no finite evidence or score).
     """
     started = time.perf_counter()
-    if not isinstance(criterion, str) or criterion not in _CRITERIA:
-        raise ValueError(f"criterion must be 'one-step' or 'evidence', got {criterion!r}")
+    chosen_by = checked_criterion(criterion, horizon)
     model, base = checked_model(model), _checked_base(base)
     if not isinstance(store, bool):
         raise TypeError(f"store must be True or False, got {store!r} ({type(store).__name__})")
@@ -263,7 +288,8 @@ def calibrate(
     seed = check_seed(seed)
     td = stacked(episodes)
     num_episodes, steps = td.batch_size
-    x, y = pairs(model, td)  # normalised, [E, T, features]
+    scorer = Scorer(model, td, chosen_by)  # checks keys, shapes and values; normalised pairs [E, T, features]
+    x, y = scorer.x, scorer.y
 
     recorded = model.residual_scale
     source: Literal["fit", "episodes"] = "fit" if recorded is not None else "episodes"
@@ -304,7 +330,7 @@ def calibrate(
             bar.refresh()
         noise = noise_of(log_factor)
         earlier = ran_before.get((noise, flip))
-        if earlier is not None and earlier.trace is not None:
+        if earlier is not None and earlier.trace is not None and _reusable_run(earlier.trace, chosen_by):
             evidence, rmse, run = earlier.log_evidence, earlier.one_step_rmse, earlier.trace
         else:
             strategy = SMCD(
@@ -313,10 +339,10 @@ def calibrate(
                 flip_prob=flip,
                 generator=torch.Generator(device=device).manual_seed(seed),
             )
-            evidence, rmse, run = _run(model, strategy, x, y)
-        candidate = Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse, run)
+            evidence, rmse, run = _run(scorer, strategy)
+        candidate = Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse, run, scorer.score(run))
         candidates.append(candidate)
-        scores[key] = value = _objective(candidate, criterion)
+        scores[key] = value = _objective(candidate, chosen_by.name)
         bar.update(1)
         bar.set_postfix(
             factor=f"{math.exp(log_factor):.3g}", flip=f"{flip:g}", evidence=f"{evidence:.4g}", rmse=f"{rmse:.4g}"
@@ -336,8 +362,8 @@ def calibrate(
     finally:
         bar.close()
 
-    best = _best(candidates, criterion)
-    if not math.isfinite(_objective(best, criterion)):
+    best = _best(candidates, chosen_by.name)
+    if not math.isfinite(_objective(best, chosen_by.name)):
         raise ValueError(
             "the filter refused the episodes under every candidate setting (an observation impossible under "
             "every particle); check that the episodes are in the model's units and free of outliers"
@@ -347,7 +373,7 @@ def calibrate(
         strategy=SMCD(**config, noise_std=chosen, flip_prob=best.flip_prob),
         noise_std=chosen,
         flip_prob=best.flip_prob,
-        criterion=criterion,
+        criterion=chosen_by.name,
         candidates=candidates,
         residual_scale=start.tolist(),
         residual_source=source,
@@ -358,13 +384,15 @@ def calibrate(
         num_particles=base.num_particles,
         seconds=time.perf_counter() - started,
         data=data,
+        horizon=chosen_by.horizon,
+        score_label=chosen_by.label,
     )
     if not store:
         return result
     model.calibration = {
         "noise_std": chosen,
         "flip_prob": best.flip_prob,
-        "criterion": criterion,
+        "criterion": chosen_by.key,
         "log_evidence": best.log_evidence,
         "one_step_rmse": best.one_step_rmse,
         "episodes": num_episodes,
@@ -418,11 +446,11 @@ def evidence(
     """
     model, base, seed = checked_model(model), _checked_base(base), check_seed(seed)
     td = stacked(episodes)
-    x, y = pairs(model, td)
+    scorer = Scorer(model, td, checked_criterion("one-step"))
     config = {k: v for k, v in base.config().items() if k not in ("noise_std", "flip_prob")}
     device = next(model.net.parameters()).device
     generator = torch.Generator(device=device).manual_seed(seed)
-    return _run(model, SMCD(**config, noise_std=noise_std, flip_prob=flip_prob, generator=generator), x, y)[:2]
+    return _run(scorer, SMCD(**config, noise_std=noise_std, flip_prob=flip_prob, generator=generator))[:2]
 
 
 def _checked_base(base: SMCD | None) -> SMCD:
@@ -432,15 +460,20 @@ def _checked_base(base: SMCD | None) -> SMCD:
     return base
 
 
-def _objective(candidate: Candidate, criterion: Criterion) -> float:
-    """What the search maximises: the log evidence, or minus the one-step RMSE (``-inf`` if not finite)."""
+def _objective(candidate: Candidate, criterion: str) -> float:
+    """What the search maximises: the log evidence, or minus the score (``-inf`` if not finite)."""
     if criterion == "evidence":
         return candidate.log_evidence
-    rmse = candidate.one_step_rmse  # NaN where the filter refused the episodes
-    return -rmse if math.isfinite(rmse) else -math.inf
+    score = candidate.one_step_rmse if math.isnan(candidate.score) else candidate.score  # a record of before scores
+    return -score if math.isfinite(score) else -math.inf
 
 
-def _best(candidates: Sequence[Candidate], criterion: Criterion) -> Candidate:
+def _reusable_run(run: Trace, criterion: _Criterion) -> bool:
+    """Whether an earlier run can be scored by ``criterion`` (a look-ahead needs its predictions that far)."""
+    return not criterion.looks_ahead or run.ahead is not None and run.ahead.shape[2] == criterion.horizon
+
+
+def _best(candidates: Sequence[Candidate], criterion: str) -> Candidate:
     """The candidate of highest :func:`_objective` (the first of equals)."""
     return max(candidates, key=lambda c: _objective(c, criterion))
 
@@ -487,14 +520,13 @@ def _golden(low: float, high: float, runs: int, score: Callable[[float], float])
             fd = score(d)
 
 
-def _run(model: AdaptiveModel, strategy: SMCD, x: Tensor, y: Tensor) -> tuple[float, float, Trace]:
+def _run(scorer: Scorer, strategy: SMCD) -> tuple[float, float, Trace]:
     """One filter over every episode at once: mean log evidence per episode, the one-step RMSE and the trace.
 
-    ``x [E, T, in]``, ``y [E, T, out]`` are normalised; the RMSE is in the target's units. A filter
-    that refused an observation has evidence ``-inf`` and RMSE ``inf``: this setting cannot explain
-    the episodes.
+    The RMSE is in the target's units. A filter that refused an observation has evidence ``-inf``
+    and RMSE ``inf``: this setting cannot explain the episodes.
     """
-    run = trace_pairs(model, x, y, strategy)
+    run = scorer.run(strategy)
     if not math.isfinite(run.rmse):
         return -math.inf, math.inf, run
     return run.log_evidence[-1], run.rmse, run

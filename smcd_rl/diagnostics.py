@@ -33,6 +33,7 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from smcd_rl.adaptation import SMCD, Adaptation
+from smcd_rl.criteria import Lookahead
 from smcd_rl.held_out import checked_model, pairs, stacked
 from smcd_rl.model import AdaptiveModel
 
@@ -61,6 +62,9 @@ class Trace:
     #: step ``t`` (t = 2..T; each list ends at a refused step); ``one_step_rmse[t - 2] ** 2`` is the
     #: mean over the episodes of ``one_step_errors[e][t - 2] ** 2``.
     one_step_errors: list[list[float]] = field(default_factory=list)
+    #: With a look-ahead (:class:`smcd_rl.criteria.Lookahead`): every start's open-loop predictions
+    #: ``[E, S, H, out]`` in the target's units, ``None`` if the strategy refused a step.
+    ahead: Tensor | None = field(default=None, repr=False, compare=False)
 
 
 def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBase], strategy: Adaptation) -> Trace:
@@ -89,14 +93,22 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
 
 
 def trace_pairs(
-    model: AdaptiveModel, x: Tensor, y: Tensor, strategy: Adaptation, *, predictions: list[Tensor] | None = None
+    model: AdaptiveModel,
+    x: Tensor,
+    y: Tensor,
+    strategy: Adaptation,
+    *,
+    predictions: list[Tensor] | None = None,
+    lookahead: Lookahead | None = None,
 ) -> Trace:
     """:func:`trace` on episodes already checked and normalised: ``x [E, T, in]``, ``y [E, T, out]``.
 
     For the tuning functions, which check the episodes once and run many strategies on them.
     With ``predictions``, the strategy's normalised prediction of every step ``t = 1..T``, made
     before it observes that step, is appended to it (``[E, out]`` each; the first is made before
-    any observation, which draws no random number, so the run is the same).
+    any observation, which draws no random number, so the run is the same). With ``lookahead``
+    (built on these episodes), every start's open-loop predictions go into :attr:`Trace.ahead`;
+    they only read the strategy's state, so the run is the same.
     """
     num_episodes, steps = x.shape[:2]
     model.with_adaptation(strategy).reset(batch_shape=(num_episodes,))
@@ -104,8 +116,11 @@ def trace_pairs(
     result = Trace([], math.inf, [], [], [], [math.inf] * num_episodes, [[] for _ in range(num_episodes)])
     squared = 0.0
     episode_squared = torch.zeros(num_episodes, dtype=torch.float64)
+    ahead: list[Tensor] = []
     with torch.no_grad():
         for t in range(steps):
+            if lookahead is not None and 0 < t <= lookahead.starts:
+                ahead.append(lookahead.predict(strategy, t, x, y))
             if predictions is not None:
                 predictions.append(strategy.predict(x[:, t]))
             if t > 0:
@@ -130,4 +145,6 @@ def trace_pairs(
                 result.kept.append(float(strategy.mask.to(torch.float64).mean()))
     result.rmse = math.sqrt(squared / (num_episodes * (steps - 1) * y.shape[-1]))
     result.per_episode_rmse = [math.sqrt(value / ((steps - 1) * y.shape[-1])) for value in episode_squared.tolist()]
+    if lookahead is not None:
+        result.ahead = torch.stack(ahead, 1)
     return result

@@ -2,8 +2,10 @@
 
 :func:`tune` takes a fitted model and held-out episodes of its *training* tasks (never the tasks
 it will be scored on; :func:`smcd_rl.episodes` cuts them from collected transitions) and tunes
-each requested strategy on them by the same criterion, the **one-step prediction error** (the
-error of predicting each step from the steps before it, what a planner or controller uses):
+each requested strategy on them by the same criterion (:mod:`smcd_rl.criteria`): by default the
+**one-step prediction error** (the error of predicting each step from the steps before it); with
+``criterion="lookahead", horizon=H`` the error of the open-loop predictions ``H`` steps ahead (what
+a planner's rollout or a look-ahead table scores); or a callable score of your own:
 
 * gradient descent over a grid of learning rate x steps x window x loss (squared error and
   Huber, which bounds the pull of an outlier) that goes on past an edge of the learning rate,
@@ -55,11 +57,13 @@ from smcd_rl.adaptation import SMCD, Adaptation
 from smcd_rl.calibration import Calibration, _checked_flips
 from smcd_rl.checks import check_count, check_real, check_seed
 from smcd_rl.combination import Combination
+from smcd_rl.criteria import Criterion, Score, checked_criterion
 from smcd_rl.diagnostics import Trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.held_out import checked_model, pairs, stacked
 from smcd_rl.model import AdaptiveModel
 from smcd_rl.strategy_specs import KINDS, build_strategy, describe_settings, on_device
+from smcd_rl.tuning_advice import advice
 from smcd_rl.tuning_kinds import (
     COMBINATION_GRID,
     EXTENSIBLE,
@@ -98,7 +102,8 @@ __all__ = [
 class TuneResult:
     """What :func:`tune` chose and every candidate it chose from (``print`` it for a table)."""
 
-    #: ``"one-step"`` or ``"evidence"`` (SMCD's calibration; kinds are always compared by one-step error).
+    #: ``"one-step"``, ``"evidence"`` (SMCD calibrated by its evidence; the kinds compared by one-step
+    #: error), ``"lookahead"`` or ``"custom"`` (a score of your own, :attr:`score_label`).
     criterion: str
     #: The per-observation budget in milliseconds, or ``None``.
     budget_ms: float | None
@@ -121,11 +126,15 @@ class TuneResult:
     #: SMCD's calibrations by noise form, ``"per-dimension"`` and ``"scalar"`` (this call's; not in
     #: :meth:`to_dict`): ``calibrate(..., reuse=...)`` of the other criterion runs fewer filters from them.
     calibrations: dict[str, Calibration] = field(default_factory=dict, repr=False, compare=False)
+    #: The steps ahead the criterion scores (1 for one-step and evidence).
+    horizon: int = 1
+    #: The name of the score the kinds are compared by (``"one-step RMSE"``, ``"10-step look-ahead RMSE"``...).
+    score_label: str = "one-step RMSE"
 
     @property
     def best_kind(self) -> str:
-        """The kind of lowest one-step error (the first of :data:`KINDS` among equals)."""
-        return min(self.best_of, key=lambda kind: (self.best_of[kind].one_step_rmse, KINDS.index(kind)))
+        """The kind of lowest score (the first of :data:`KINDS` among equals)."""
+        return min(self.best_of, key=lambda kind: (self.best_of[kind].score, KINDS.index(kind)))
 
     @property
     def best(self) -> Adaptation:
@@ -181,13 +190,14 @@ class TuneResult:
 
         def candidate(entry: Mapping[str, Any]) -> TuneCandidate:
             # to_dict writes inf as None (JSON has no infinity).
-            rmse, ms = entry["one_step_rmse"], entry["ms_per_step"]
+            rmse, ms, score = entry["one_step_rmse"], entry["ms_per_step"], entry.get("score", math.nan)
             return TuneCandidate(
                 entry["kind"],
                 dict(entry["settings"]),
                 math.inf if rmse is None else float(rmse),
                 math.inf if ms is None else float(ms),
                 entry.get("skipped", ""),
+                math.inf if score is None else float(score),
             )
 
         return cls(
@@ -201,25 +211,32 @@ class TuneResult:
             seconds=float(record.get("seconds", 0.0)),
             data=str(record.get("data", "")),
             timings={k: math.inf if v is None else float(v) for k, v in record.get("timings", {}).items()},
+            horizon=int(record.get("horizon", 1)),
+            score_label=str(record.get("score_label", "one-step RMSE")),
         )
 
     def table(self) -> str:
-        """The best of each kind: settings, one-step RMSE and time per observation."""
+        """The best of each kind: settings, score(s) and time per observation, then what to use."""
+        ahead = self.score_label != "one-step RMSE"
+        by = self.score_label if ahead else self.criterion
         lines = [
-            f"tuned by {self.criterion} on {self.episodes} episodes x {self.steps} steps"
+            f"tuned by {by} on {self.episodes} episodes x {self.steps} steps"
             + (f", budget {self.budget_ms:g} ms per observation" if self.budget_ms is not None else ""),
             "",
-            "| strategy | settings | one-step RMSE | ms / observation |",
-            "|---|---|---|---|",
+            "| strategy | settings | one-step RMSE |"
+            + (f" {self.score_label} |" if ahead else "")
+            + " ms / observation |",
+            "|---|---|---|" + ("---|" if ahead else "") + "---|",
         ]
         for kind in KINDS:
             if kind in self.best_of:
                 c = self.best_of[kind]
                 mark = " (best)" if kind == self.best_kind else ""
+                score = f" {c.score:.4g} |" if ahead else ""
                 lines.append(
-                    f"| {kind}{mark} | {describe_settings(c.settings)} | {c.one_step_rmse:.4g} | {c.ms_per_step:.3g} |"
+                    f"| {kind}{mark} | {describe_settings(c.settings)} | {c.one_step_rmse:.4g} |{score} {c.ms_per_step:.3g} |"
                 )
-        return "\n".join(lines + ["", *self.notes])
+        return "\n".join(lines + ["", *self.notes, *([""] if self.notes else []), *advice(self)])
 
     def __str__(self) -> str:
         return self.table()
@@ -229,6 +246,8 @@ class TuneResult:
         return _json_numbers(
             {
                 "criterion": self.criterion,
+                "horizon": self.horizon,
+                "score_label": self.score_label,
                 "budget_ms": self.budget_ms,
                 "best_kind": self.best_kind,
                 "best_of": {kind: asdict(c) for kind, c in self.best_of.items()},
@@ -248,7 +267,8 @@ def tune(
     episodes: TensorDictBase | Sequence[TensorDictBase],
     *,
     strategies: Sequence[str] = KINDS,
-    criterion: Literal["one-step", "evidence"] = "one-step",
+    criterion: Literal["one-step", "evidence", "lookahead"] | Score = "one-step",
+    horizon: int | None = None,
     budget_ms: float | None = None,
     num_particles: int = 1000,
     gd_grid: dict[str, Sequence[Any]] | None = None,
@@ -267,8 +287,12 @@ def tune(
         strategies: which of :data:`KINDS` to tune; ``"smcd_last_layer"`` starts from the tuned
             SMCD and last layer (tuned too); ``"combination"`` mixes the others tuned with no
             adaptation (tuned too, at no cost), so it needs another strategy that adapts.
-        criterion: how SMCD's noise and flip are chosen: ``"one-step"`` (default) or the
-            filter's ``"evidence"``. The kinds are compared by one-step error either way.
+        criterion: what every setting is scored by (:mod:`smcd_rl.criteria`): ``"one-step"``
+            (default), ``"lookahead"`` (the RMSE ``horizon`` steps ahead, open loop: score what
+            your planner or table scores), or a callable ``score(predicted, observed) -> float``
+            of your own; ``"evidence"`` calibrates SMCD by its evidence and compares the kinds by
+            one-step error.
+        horizon: the steps ahead of ``"lookahead"`` or of your score (episodes must be longer).
         budget_ms: skip settings whose median time per observation exceeds this (``None``: no budget).
         num_particles: SMCD's particles (halved while over budget, down to 8).
         gd_grid: gradient descent's starting grid, ``{"lr": ..., "steps": ..., "window": ...,
@@ -296,7 +320,8 @@ def tune(
         runs only read the network).
 
     Raises:
-        ValueError: an unknown strategy or criterion, a budget that is not positive, no strategy
+        ValueError: an unknown strategy or criterion, a horizon the criterion does not take or
+            episodes no longer than it, a budget that is not positive, no strategy
             within the budget, episodes :func:`smcd_rl.calibrate` refuses, or a ``reuse`` of
             another model, other episodes, another seed or another criterion.
     """
@@ -305,8 +330,7 @@ def tune(
     unknown = [s for s in strategies if s not in KINDS]
     if unknown or not strategies:
         raise ValueError(f"strategies: unknown {unknown}; choose one or more of {list(KINDS)}")
-    if criterion not in ("one-step", "evidence"):
-        raise ValueError(f"criterion must be 'one-step' or 'evidence', got {criterion!r}")
+    chosen_by = checked_criterion(criterion, horizon)
     if "combination" in strategies and not set(_ADAPTING) & set(strategies):
         raise ValueError(
             "strategies: a 'combination' mixes the other strategies tuned (and no adaptation); add one or more "
@@ -322,9 +346,11 @@ def tune(
     x, y = pairs(model, td)  # checks keys, shapes and values before any run
     flips = _checked_flips(flip_probs, model, SMCD(num_particles=num_particles))  # calibrate's own check
     data = content_digest({"model": model_digest(model), "episodes": content_digest(td), "seed": seed, "flips": flips})
-    known = _reusable(reuse, data, criterion)
+    known = _reusable(reuse, data, chosen_by)
     timing = Timing(model, x[0], y[0], budget_ms, known=None if reuse is None else reuse.timings)
-    search = Search(model, td, timing, progress, known, heads=None if reuse is None else reuse.heads)
+    search = Search(
+        model, td, timing, progress, known, heads=None if reuse is None else reuse.heads, criterion=chosen_by
+    )
     # A combination mixes no adaptation too, which costs nothing to tune; SMCD with a Bayesian
     # readout starts from the tuned SMCD and last layer.
     needed = {*strategies, *(("none",) if "combination" in strategies else ())}
@@ -337,7 +363,7 @@ def tune(
         if "gradient_descent" in kinds:
             tune_gd(search, grid, limits)
         if "smcd" in kinds:
-            calibrations = tune_smcd(search, num_particles, criterion, tuple(flips), seed, progress)
+            calibrations = tune_smcd(search, num_particles, chosen_by, tuple(flips), seed, progress)
         if "last_layer" in kinds:
             tune_last_layer(search)
         if "smcd_last_layer" in kinds:
@@ -351,7 +377,7 @@ def tune(
     if not search.best_of:
         raise ValueError(f"no strategy fits a budget of {budget_ms:g} ms per observation; raise budget_ms")
     result = TuneResult(
-        criterion=criterion,
+        criterion=chosen_by.name,
         budget_ms=budget_ms,
         candidates=search.candidates,
         best_of=search.best_of,
@@ -364,6 +390,8 @@ def tune(
         traces=search.traces,
         heads=search.heads,
         calibrations=calibrations,
+        horizon=chosen_by.horizon,
+        score_label=chosen_by.label if chosen_by.name != "evidence" else "one-step RMSE",
     )
     model.tuning = result.to_dict()
     return result
@@ -373,13 +401,14 @@ def tune(
 _ADAPTING = ("gradient_descent", "smcd", "last_layer", "smcd_last_layer")
 
 
-def _reusable(reuse: TuneResult | None, data: str, criterion: str) -> dict[str, TuneCandidate]:
+def _reusable(reuse: TuneResult | None, data: str, criterion: Criterion) -> dict[str, TuneCandidate]:
     """The scored candidates of ``reuse`` by :func:`_key`, after checking it was tuned on the same data."""
     if reuse is None:
         return {}
     if not isinstance(reuse, TuneResult):
         raise TypeError(f"reuse must be a TuneResult of an earlier tune call, got {type(reuse).__name__}")
-    if reuse.data != data or reuse.criterion != criterion:
+    same = (reuse.criterion, reuse.horizon) == (criterion.name, criterion.horizon)
+    if reuse.data != data or not same or (criterion.name == "custom" and reuse.score_label != criterion.label):
         raise ValueError(
             "reuse holds a result for another model, other episodes, another seed or another criterion; "
             "pass the result of a tune call on the same ones, or none"

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from itertools import product
-from typing import Any, Literal
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -23,6 +23,7 @@ from smcd_rl.adaptation import SMCD, GradientDescent
 from smcd_rl.calibration import Calibration, calibrate
 from smcd_rl.checks import check_count, check_real
 from smcd_rl.combination import weight_path
+from smcd_rl.criteria import Criterion
 from smcd_rl.diagnostics import Trace
 from smcd_rl.last_layer import BayesianLastLayer
 from smcd_rl.model import AdaptiveModel
@@ -209,7 +210,7 @@ def _within(bounds: tuple[float, float], value: float) -> bool:
 def tune_smcd(
     search: Search,
     num_particles: int,
-    criterion: Literal["one-step", "evidence"],
+    criterion: Criterion,
     flip_probs: tuple[float, ...],
     seed: int,
     progress: bool,
@@ -252,7 +253,8 @@ def tune_smcd(
                 base=SMCD(num_particles=particles),
                 flip_probs=flips,
                 per_dimension=per_dimension,
-                criterion=criterion,
+                criterion=criterion.fn if criterion.fn is not None else criterion.name,  # type: ignore[arg-type]
+                horizon=criterion.horizon if criterion.looks_ahead else None,
                 seed=seed,
                 progress=progress,
                 store=False,  # tune's record is model.tuning; calibrate's own stays as it was
@@ -358,12 +360,20 @@ def tune_combination(search: Search, kinds: list[str]) -> None:
         for one in settings:  # reused from an earlier call, or over the budget: nothing to run
             search.score("combination", one, ms=ms)
         return
+    if search.scorer.lookahead is not None and search.scorer.lookahead.dynamics:
+        # A rollout feeds the mixed prediction back: the members' own rollouts do not give it.
+        for one in settings:
+            search.score("combination", one, ms=ms)
+        return
     recorded = _member_predictions(search, members)
     for (eta, share), one in zip(grid, settings, strict=True):
         if recorded is None:
             search.score("combination", one, ms=ms, rmse=math.inf)
             continue
-        search.score("combination", one, ms=ms, run=_combination_trace(search.model, recorded, search.y, eta, share))
+        run = _combination_trace(search.model, recorded, search.y, eta, share)
+        if search.scorer.lookahead is not None:
+            run.ahead = _combination_ahead(search, members, recorded, eta, share)
+        search.score("combination", one, ms=ms, run=run)
 
 
 def _member_predictions(search: Search, members: list[dict[str, Any]]) -> Tensor | None:
@@ -381,6 +391,22 @@ def _member_predictions(search: Search, members: list[dict[str, Any]]) -> Tensor
         predictions.append(found)
     stacked = torch.stack(predictions, dim=-1)
     return stacked if bool(torch.isfinite(stacked).all()) else None
+
+
+def _combination_ahead(
+    search: Search, members: list[dict[str, Any]], predictions: Tensor, eta: float, share: float
+) -> Tensor:
+    """A combination's open-loop predictions ``[E, S, H, out]`` from its members' (inputs recorded, not rolled).
+
+    From each start ``t`` the combination predicts with the weights it holds after the steps
+    before ``t``, frozen over the horizon: each member's prediction mixed by them (an affine map
+    of the normalised output, so mixing target units is the same).
+    """
+    weights = weight_path(predictions, search.y, eta=eta, share=share).exp()  # [E, T + 1, K]
+    runs = [search.run(m["name"], m["settings"]).ahead for m in members]
+    ahead = torch.stack([run for run in runs if run is not None], dim=-1)  # [E, S, H, out, K]: all ran to the end
+    mixed = weights[:, 1 : ahead.shape[1] + 1].to(ahead.dtype).reshape(*ahead.shape[:2], 1, 1, ahead.shape[-1])
+    return (ahead * mixed).sum(-1)
 
 
 def _combination_trace(model: AdaptiveModel, predictions: Tensor, targets: Tensor, eta: float, share: float) -> Trace:

@@ -1,6 +1,8 @@
 """The bookkeeping of :func:`smcd_rl.tune`: each setting's score, run and time, and the race that spares work.
 
-Every setting is scored by its one-step RMSE on the tuning episodes (:func:`smcd_rl.diagnostics.trace`).
+Every setting is scored on the tuning episodes by the tuning's criterion (:mod:`smcd_rl.criteria`:
+the one-step RMSE, the look-ahead RMSE or a score of your own) from its run
+(:func:`smcd_rl.diagnostics.trace`, with the open-loop predictions where the criterion looks ahead).
 A :class:`Search` keeps each run (its trace and predictions), so that a setting is never run
 twice and the combination and the experiments' diagnosis take the runs as they are.
 
@@ -36,16 +38,17 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from smcd_rl.adaptation import Adaptation
-from smcd_rl.diagnostics import Trace, trace_pairs
-from smcd_rl.held_out import pairs
+from smcd_rl.criteria import Criterion
+from smcd_rl.diagnostics import Trace
 from smcd_rl.model import AdaptiveModel
+from smcd_rl.scoring import Scorer
 from smcd_rl.strategy_specs import build_strategy
 
 __all__ = ["TuneCandidate", "Timing", "Search", "RACE_SHARE", "RACE_MARGIN", "setting_key"]
 
 #: The share of the episodes a raced setting runs on first (at least 2 episodes).
 RACE_SHARE = 0.25
-#: A raced setting runs on only if its RMSE on the first episodes is at most ``1 + RACE_MARGIN``
+#: A raced setting runs on only if its score on the first episodes is at most ``1 + RACE_MARGIN``
 #: times the best's there: 10 % is well beyond the spread of two settings that tie on all episodes
 #: (paired, on the same episodes), and far below what a learning rate or step count off by a grid
 #: step costs.
@@ -67,6 +70,13 @@ class TuneCandidate:
     ms_per_step: float
     #: Why it was not scored on every episode (``"over budget"``, ``"raced out: ..."``), or empty.
     skipped: str = ""
+    #: The tuning criterion's score (lower is better; the one-step RMSE unless the criterion looks
+    #: ahead or is your own): what the choice is made by.
+    score: float = math.nan
+
+    def __post_init__(self) -> None:
+        if math.isnan(self.score):  # scored by its one-step error (or a record from before scores)
+            object.__setattr__(self, "score", self.one_step_rmse)
 
 
 def setting_key(kind: str, settings: dict[str, Any]) -> str:
@@ -128,9 +138,12 @@ class Search:
         progress: bool,
         known: dict[str, TuneCandidate] | None = None,
         heads: Mapping[str, tuple[Trace, Tensor | None]] | None = None,
+        *,
+        criterion: Criterion,
     ) -> None:
         self.model, self.td, self.timing = model, td, timing
-        self.x, self.y = pairs(model, td)
+        self.scorer = Scorer(model, td, criterion)
+        self.x, self.y = self.scorer.x, self.scorer.y
         self.known = known or {}  # scored by an earlier call on the same data: not run again
         #: Raced settings' runs on the first episodes (an earlier call's too): a race is decided
         #: again against the leader of the day, from the same runs.
@@ -164,8 +177,7 @@ class Search:
     def _record(self, kind: str, settings: dict[str, Any], episodes: slice) -> tuple[Trace, Tensor | None]:
         """Run the setting on ``episodes``; a run on all of them is kept, a part is returned."""
         predictions: list[Tensor] = []
-        x, y = self.x[episodes], self.y[episodes]
-        run = trace_pairs(self.model, x, y, build_strategy(kind, settings), predictions=predictions)
+        run = self.scorer.run(build_strategy(kind, settings), episodes, predictions=predictions)
         recorded = torch.stack(predictions, dim=1) if math.isfinite(run.rmse) else None
         if episodes == slice(None):
             key = setting_key(kind, settings)
@@ -184,7 +196,7 @@ class Search:
         rmse: float | None = None,
         run: Trace | None = None,
     ) -> float:
-        """Score one setting on every episode (unless over budget); its one-step RMSE.
+        """Score one setting on every episode (unless over budget); its score.
 
         ``ms``: its time if measured otherwise (SMCD's particle probe, a combination's members);
         ``run``: its trace if it ran already (a calibration's); ``rmse``: its error where it is
@@ -196,16 +208,18 @@ class Search:
         if self._over_budget(kind, settings):
             return math.inf
         earlier = self.known.get(key)
+        score = rmse
         if earlier is not None:
-            rmse = earlier.one_step_rmse
+            rmse, score = earlier.one_step_rmse, earlier.score
         elif rmse is None:
             if run is not None:
                 self.traces.setdefault(key, run)
-            rmse = self.run(kind, settings).rmse
-        return self._add(kind, settings, rmse)
+            found = self.run(kind, settings)
+            rmse, score = found.rmse, self.scorer.score(found)
+        return self._add(kind, settings, rmse, score)
 
     def race(self, kind: str, batch: Sequence[dict[str, Any]]) -> list[float]:
-        """Score ``batch``'s settings of ``kind`` by racing (module doc); each one's RMSE, ``inf`` if dropped.
+        """Score ``batch``'s settings of ``kind`` by racing (module doc); each one's score, ``inf`` if dropped.
 
         Only for kinds whose runs are independent per episode (no random numbers). The best
         setting scored so far competes on the first episodes too, from its own run. The candidates
@@ -225,8 +239,9 @@ class Search:
         # The best so far and every setting of the batch with a run on the first episodes compete (a
         # reused one too: its run there was kept).
         best = self.best_of.get(kind)
-        leader = self._head_rmse(setting_key(kind, best.settings), first) if best else math.inf
-        raced = [self.heads[key][0].rmse for key, out in zip(keys, over, strict=True) if not out and key in self.heads]
+        head_score = {key: self.scorer.score(self.heads[key][0], slice(0, first)) for key in keys if key in self.heads}
+        leader = self._head_score(setting_key(kind, best.settings), first) if best else math.inf
+        raced = [head_score[key] for key, out in zip(keys, over, strict=True) if not out and key in head_score]
         leader = min([leader, *raced])
         scores = []
         for i, settings in enumerate(batch):
@@ -237,8 +252,8 @@ class Search:
                 scores.append(self.score(kind, settings))
             elif not math.isfinite(heads[i][0].rmse):  # refused on the first episodes: on all of them too
                 scores.append(self._add(kind, settings, math.inf))
-            elif heads[i][0].rmse > (1 + RACE_MARGIN) * leader:
-                why = f"raced out: {heads[i][0].rmse:.4g} on the first {first} episodes, the best {leader:.4g}"
+            elif head_score[keys[i]] > (1 + RACE_MARGIN) * leader:
+                why = f"raced out: {head_score[keys[i]]:.4g} on the first {first} episodes, the best {leader:.4g}"
                 ms = self.timing.times.get(keys[i], math.nan)
                 self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, why))
                 self.bar.update(1)
@@ -251,7 +266,7 @@ class Search:
                 self.traces[keys[i]] = joined = _joined(head, rest)
                 if head_predictions is not None and rest_predictions is not None:
                     self.predictions[keys[i]] = torch.cat([head_predictions, rest_predictions])
-                scores.append(self._add(kind, settings, joined.rmse))
+                scores.append(self._add(kind, settings, joined.rmse, self.scorer.score(joined)))
         return scores
 
     def time_best(self, kind: str) -> None:
@@ -263,15 +278,12 @@ class Search:
         self.candidates = [timed if c is best else c for c in self.candidates]
         self.best_of[kind] = timed
 
-    def _head_rmse(self, key: str, episodes: int) -> float:
-        """A setting's RMSE over the first ``episodes`` episodes: from its run there, or its run on all of them."""
+    def _head_score(self, key: str, episodes: int) -> float:
+        """A setting's score over the first ``episodes`` episodes: from its run there, or its run on all of them."""
         if key in self.heads:
-            return self.heads[key][0].rmse
+            return self.scorer.score(self.heads[key][0], slice(0, episodes))
         run = self.traces.get(key)
-        if run is None or not math.isfinite(run.rmse):
-            return math.inf
-        head = run.per_episode_rmse[:episodes]  # equal lengths: the RMS of the episodes' RMSEs
-        return math.sqrt(sum(v * v for v in head) / len(head))
+        return math.inf if run is None else self.scorer.head_score(run, episodes)
 
     def _over_budget(self, kind: str, settings: dict[str, Any], *, record: bool = True) -> bool:
         """Under a budget, time the setting first: one over it is listed as skipped (with ``record``)."""
@@ -284,22 +296,23 @@ class Search:
             self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, "over budget"))
         return True
 
-    def _add(self, kind: str, settings: dict[str, Any], rmse: float) -> float:
+    def _add(self, kind: str, settings: dict[str, Any], rmse: float, score: float | None = None) -> float:
+        score = rmse if score is None else score
         ms = self.timing.times.get(setting_key(kind, settings), math.nan)
-        candidate = TuneCandidate(kind, settings, rmse, ms)
+        candidate = TuneCandidate(kind, settings, rmse, ms, "", score)
         self.candidates.append(candidate)
-        if math.isfinite(rmse) and (kind not in self.best_of or rmse < self.best_of[kind].one_step_rmse):
+        if math.isfinite(score) and (kind not in self.best_of or score < self.best_of[kind].score):
             self.best_of[kind] = candidate
         self.bar.update(1)
-        self.bar.set_postfix(kind=kind, rmse=f"{rmse:.4g}")
-        return rmse
+        self.bar.set_postfix(kind=kind, score=f"{score:.4g}")
+        return score
 
 
 def _joined(head: Trace, rest: Trace) -> Trace:
     """The trace of one run on the episodes of ``head`` followed by those of ``rest`` (no SMCD entries).
 
-    Each episode's errors are its own; the per-step and overall RMSEs pool the episodes of both,
-    as one run over all of them computes them (equal lengths and dimensions).
+    Each episode's errors and open-loop predictions are its own; the per-step and overall RMSEs
+    pool the episodes of both, as one run over all of them computes them (equal lengths and dimensions).
     """
     if not math.isfinite(rest.rmse):
         return Trace(head.one_step_rmse, math.inf, [], [], [], [], head.one_step_errors + rest.one_step_errors)
@@ -307,4 +320,5 @@ def _joined(head: Trace, rest: Trace) -> Trace:
     steps = [math.sqrt(sum(e[t] ** 2 for e in errors) / len(errors)) for t in range(len(errors[0]))]
     per_episode = head.per_episode_rmse + rest.per_episode_rmse
     rmse = math.sqrt(sum(v * v for v in per_episode) / len(per_episode))
-    return Trace(steps, rmse, [], [], [], per_episode, errors)
+    ahead = None if head.ahead is None or rest.ahead is None else torch.cat([head.ahead, rest.ahead])
+    return Trace(steps, rmse, [], [], [], per_episode, errors, ahead)

@@ -13,6 +13,7 @@ from tensordict import TensorDict
 import smcd_rl
 from smcd_rl import calibration, training
 from smcd_rl.calibration import evidence
+from smcd_rl.diagnostics import Trace
 
 SIGMA = 0.02  # the known measurement noise of the synthetic episodes
 
@@ -71,7 +72,7 @@ def test_chosen_noise_is_the_true_noise_and_the_evidence_peaks_there() -> None:
     assert result.criterion == model.calibration["criterion"] == "evidence"
 
 
-def known_objective(model, strategy, x, y) -> tuple[float, float, None]:  # noqa: ANN001
+def known_objective(scorer, strategy) -> tuple[float, float, Trace]:  # noqa: ANN001
     """In place of a filter run: an evidence peaked at noise 0.03, flip 0.003 and an RMSE lowest at 0.3, 0.01.
 
     Pure float64 arithmetic of the setting, so the search's path is the same on every CPU.
@@ -79,7 +80,7 @@ def known_objective(model, strategy, x, y) -> tuple[float, float, None]:  # noqa
     u, f = math.log(strategy.noise_std), math.log(strategy.flip_prob)
     log_evidence = -((u - math.log(0.03)) ** 2) - (f - math.log(0.003)) ** 2
     rmse = 0.1 + (u - math.log(0.3)) ** 2 + (f - math.log(0.01)) ** 2
-    return log_evidence, rmse, None
+    return log_evidence, rmse, Trace([], rmse, [], [], [])
 
 
 #: (stage, factor, flip) of every run of the evidence search on :func:`known_objective` from a
@@ -188,7 +189,9 @@ def test_an_unknown_criterion_is_refused_and_changes_nothing(criterion: object) 
     model, episodes, _ = known_mask_episodes(episodes=3, steps=5)
     model.calibration = {"noise_std": [0.03, 0.05], "flip_prob": 0.003, "criterion": "evidence"}
     before = model.calibration
-    with pytest.raises(ValueError, match=r"criterion must be 'one-step' or 'evidence', got"):
+    with pytest.raises(
+        ValueError, match=r"criterion must be one of \['one-step', 'evidence', 'lookahead'\] or a callable"
+    ):
         smcd_rl.calibrate(model, episodes, base=smcd_rl.SMCD(num_particles=8), criterion=criterion, progress=False)  # type: ignore[arg-type]
     assert model.calibration == before
 

@@ -128,9 +128,7 @@ def test_bad_options_are_refused_and_change_nothing(model, options, message) -> 
 
 def test_bad_flip_probabilities_are_refused_before_any_run(model, monkeypatch) -> None:
     """calibrate's own check of the flips runs first: no grid is scored only to fail at SMCD."""
-    monkeypatch.setattr(
-        smcd_rl.tuning_search, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal")
-    )
+    monkeypatch.setattr(smcd_rl.scoring, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal"))
     with pytest.raises(TypeError, match="flip_probs must be a sequence of probabilities"):
         smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, "flip_probs": 0.01})
     with pytest.raises(ValueError, match=r"flip_probs\[0\]"):
@@ -206,7 +204,7 @@ def test_reuse_takes_an_earlier_calls_scores_without_running_anything(model, res
     def refuse(*args, **kwargs):
         raise AssertionError("a setting the earlier call scored was run again")
 
-    monkeypatch.setattr(smcd_rl.tuning_search, "trace_pairs", refuse)
+    monkeypatch.setattr(smcd_rl.scoring, "trace_pairs", refuse)
     monkeypatch.setattr(smcd_rl.tuning_kinds, "calibrate", refuse)
     again = smcd_rl.tune(model, shifted_episodes(0.5), **FAST, reuse=result)
     assert {k: c.settings for k, c in again.best_of.items()} == {k: c.settings for k, c in result.best_of.items()}
@@ -257,9 +255,9 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
     # combination takes its members' predictions from their own runs (SMCD's calibration keeps only
     # its trace, so the calibrated SMCD runs once more, to record them).
     traced = []
-    real_trace = smcd_rl.tuning_search.trace_pairs
+    real_trace = smcd_rl.scoring.trace_pairs
     monkeypatch.setattr(
-        smcd_rl.tuning_search,
+        smcd_rl.scoring,
         "trace_pairs",
         lambda m, x, y, s, **kw: traced.append(type(s).__name__) or real_trace(m, x, y, s, **kw),
     )
@@ -268,7 +266,8 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
     settings = [c for c in again.candidates if c.kind == "gradient_descent"]
     ran_on = [c for c in settings if math.isfinite(c.one_step_rmse)]
     assert "Combination" not in traced and traced.count("GradientDescent") == len(settings) + len(ran_on)
-    assert traced.count("NoAdaptation") == 1 and traced.count("SMCD") == 1
+    calibration_runs = sum(len(c.candidates) for c in again.calibrations.values())  # calibrate's own filters
+    assert traced.count("NoAdaptation") == 1 and traced.count("SMCD") == 1 + calibration_runs
     # Each best strategy's run is kept: what the diagnosis of an experiment shows, without running it again.
     # (GD's, raced, joins the runs on the first episodes and on the rest: the same errors per episode,
     # the per-step RMSEs pooled in another order, equal to float rounding.)
@@ -386,9 +385,7 @@ def test_smcd_over_any_budget_says_so_and_is_not_said_to_fit(model, monkeypatch)
 )
 def test_bad_values_are_refused_before_any_run(model, monkeypatch, options, error, message) -> None:
     """Each was found late or not at all: steps=1.5 ran as 1 step, a huge seed failed after the whole GD grid."""
-    monkeypatch.setattr(
-        smcd_rl.tuning_search, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal")
-    )
+    monkeypatch.setattr(smcd_rl.scoring, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal"))
     with pytest.raises(error, match=message):
         smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, **options})
 

@@ -1,0 +1,101 @@
+"""What to use on your data: the closing lines of :meth:`smcd_rl.TuneResult.table`.
+
+The same questions as the decision table of the protocol page, answered from the tuning run
+itself: which strategy scores best; which is best with few observations (the first quarter of
+the steps) and with many (the last quarter), from each best strategy's one-step errors step by
+step; whether a much cheaper strategy is nearly as good (a per-step budget); whether the
+residuals called for a robust form (corrupted readings); and whether adapting helps at all.
+
+Example:
+    >>> from smcd_rl.tuning import TuneResult, TuneCandidate
+    >>> result = TuneResult("one-step", None, [], {
+    ...     "none": TuneCandidate("none", {}, 0.20, 0.02),
+    ...     "gradient_descent": TuneCandidate("gradient_descent", {"loss": "mse"}, 0.100, 9.0),
+    ...     "last_layer": TuneCandidate("last_layer", {"likelihood": "gaussian"}, 0.102, 0.3)})
+    >>> print("\\n".join(advice(result)))
+    what to use on these episodes (one-step RMSE):
+    - best: gradient_descent (0.1 against 0.2 unadapted)
+    - under a per-step budget: last_layer is within 5% of it (0.102) at 30x less time per observation (0.3 ms)
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from smcd_rl.diagnostics import Trace
+    from smcd_rl.tuning import TuneResult
+
+__all__ = ["advice", "NEAR", "CHEAPER"]
+
+#: A strategy within this share of the best's score counts as nearly as good.
+NEAR = 0.05
+#: ... and is worth naming under a per-step budget when it is at least this many times cheaper.
+CHEAPER = 3.0
+
+
+def advice(result: TuneResult) -> list[str]:
+    """The advice lines for ``result`` (empty if fewer than two kinds were scored)."""
+    scored = {kind: c for kind, c in result.best_of.items() if math.isfinite(c.score)}
+    if len(scored) < 2:
+        return []
+    best_kind = result.best_kind
+    best = scored[best_kind]
+    lines = [f"what to use on these episodes ({result.score_label}):"]
+    plain = scored.get("none")
+    against = f" against {plain.score:.4g} unadapted" if plain is not None and best_kind != "none" else ""
+    lines.append(f"- best: {best_kind} ({best.score:.4g}{against})")
+    if plain is not None and best_kind != "none" and plain.score <= (1 + NEAR) * best.score:
+        lines.append(f"- adapting gains less than {NEAR:.0%} here: the episodes may not differ from the training tasks")
+    lines += _few_and_many(result, scored)
+    cheap = [
+        (kind, c)
+        for kind, c in scored.items()
+        if kind not in (best_kind, "none")
+        and c.score <= (1 + NEAR) * best.score
+        and math.isfinite(c.ms_per_step)
+        and c.ms_per_step * CHEAPER <= best.ms_per_step
+    ]
+    if cheap:
+        kind, c = min(cheap, key=lambda item: item[1].ms_per_step)
+        lines.append(
+            f"- under a per-step budget: {kind} is within {NEAR:.0%} of it ({c.score:.4g}) at "
+            f"{best.ms_per_step / c.ms_per_step:.0f}x less time per observation ({c.ms_per_step:.3g} ms)"
+        )
+    robust = [
+        kind
+        for kind, c in scored.items()
+        if c.settings.get("loss") == "huber" or c.settings.get("likelihood") == "student-t"
+    ]
+    if robust:
+        lines.append(
+            f"- heavy-tailed residuals: {', '.join(robust)} chose a robust form (Huber loss or Student-t); "
+            "expect corrupted readings to hurt the Gaussian forms"
+        )
+    return lines
+
+
+def _few_and_many(result: TuneResult, scored: dict) -> list[str]:
+    """The best kind by one-step error over the first and the last quarter of the steps, where they differ."""
+    runs: dict[str, Trace] = {}
+    for kind in scored:
+        run = result.trace(kind)
+        if run is not None and math.isfinite(run.rmse) and len(run.one_step_rmse) >= 4:
+            runs[kind] = run
+    if len(runs) < 2:
+        return []
+    quarter = max(1, len(next(iter(runs.values())).one_step_rmse) // 4)
+
+    def pooled(values: list[float]) -> float:
+        return math.sqrt(sum(v * v for v in values) / len(values))
+
+    early = {kind: pooled(run.one_step_rmse[:quarter]) for kind, run in runs.items()}
+    late = {kind: pooled(run.one_step_rmse[-quarter:]) for kind, run in runs.items()}
+    first, last = min(early, key=early.__getitem__), min(late, key=late.__getitem__)
+    if first == last:
+        return []
+    return [
+        f"- few observations (first {quarter} steps): {first} ({early[first]:.4g} one-step RMSE); "
+        f"many (last {quarter}): {last} ({late[last]:.4g})"
+    ]
