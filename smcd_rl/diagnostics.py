@@ -26,13 +26,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
 from smcd_rl.adaptation import SMCD, Adaptation
+from smcd_rl.checks import check_count
 from smcd_rl.criteria import Lookahead
 from smcd_rl.held_out import checked_model, pairs, stacked
 from smcd_rl.model import AdaptiveModel
@@ -65,15 +67,33 @@ class Trace:
     #: With a look-ahead (:class:`smcd_rl.criteria.Lookahead`): every start's open-loop predictions
     #: ``[E, S, H, out]`` in the target's units, ``None`` if the strategy refused a step.
     ahead: Tensor | None = field(default=None, repr=False, compare=False)
+    #: With a look-ahead: the RMSE (target units, pooled) of :attr:`ahead` against the recorded
+    #: steps (``inf`` if the strategy refused a step; ``nan`` without a look-ahead).
+    lookahead_rmse: float = math.nan
+
+    def to_dict(self) -> dict[str, Any]:
+        """The record as plain lists and floats (no :attr:`ahead` tensor; the look-ahead error only where measured)."""
+        record = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "ahead"}
+        if math.isnan(self.lookahead_rmse):
+            del record["lookahead_rmse"]
+        return record
 
 
-def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBase], strategy: Adaptation) -> Trace:
+def trace(
+    model: AdaptiveModel,
+    episodes: TensorDictBase | Sequence[TensorDictBase],
+    strategy: Adaptation,
+    *,
+    horizon: int | None = None,
+) -> Trace:
     """Run ``strategy`` on ``model`` over ``episodes`` and record it at every step (see the module doc).
 
     Args:
         model: a fitted model; its network is not changed.
         episodes: as :func:`smcd_rl.calibrate` takes them (batch ``[E, T]``, or a list of ``[T]``).
         strategy: a fresh strategy; it is attached to a copy of ``model`` and reset.
+        horizon: also predict ``horizon`` steps ahead open loop from every start
+            (:mod:`smcd_rl.criteria`): :attr:`Trace.ahead` and :attr:`Trace.lookahead_rmse`.
 
     Returns:
         The :class:`Trace`. A strategy that refuses an observation (an impossible one under every
@@ -88,8 +108,10 @@ def trace(model: AdaptiveModel, episodes: TensorDictBase | Sequence[TensorDictBa
             "trace needs a fresh strategy: this one is attached to a model, whose state tracing would reset; "
             "pass a new one, e.g. smcd_rl.SMCD(**strategy.config())"
         )
-    x, y = pairs(model, stacked(episodes))
-    return trace_pairs(model, x, y, strategy)
+    td = stacked(episodes)
+    x, y = pairs(model, td)
+    lookahead = None if horizon is None else Lookahead(model, td, check_count(horizon, "horizon"))
+    return trace_pairs(model, x, y, strategy, lookahead=lookahead)
 
 
 def trace_pairs(
@@ -136,6 +158,7 @@ def trace_pairs(
             try:
                 strategy.observe(x[:, t], y[:, t])
             except ValueError:
+                result.lookahead_rmse = math.inf if lookahead is not None else math.nan
                 return result
             if isinstance(strategy, SMCD):
                 summary = strategy.summary()
@@ -147,4 +170,5 @@ def trace_pairs(
     result.per_episode_rmse = [math.sqrt(value / ((steps - 1) * y.shape[-1])) for value in episode_squared.tolist()]
     if lookahead is not None:
         result.ahead = torch.stack(ahead, 1)
+        result.lookahead_rmse = float((result.ahead - lookahead.observed).to(torch.float64).square().mean().sqrt())
     return result

@@ -187,3 +187,11 @@ def test_the_table_ends_with_what_to_use(sine_model) -> None:
     table = str(result)
     assert "what to use on these episodes (one-step RMSE):" in table
     assert f"- best: {result.best_kind} (" in table
+
+
+def test_trace_with_a_horizon_reports_the_lookahead_error(sine_model) -> None:
+    episodes = shifted_episodes()
+    run = smcd_rl.diagnostics.trace(sine_model, episodes, smcd_rl.NoAdaptation(), horizon=3)
+    scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", 3))
+    assert run.lookahead_rmse == pytest.approx(scorer.score(scorer.run(smcd_rl.NoAdaptation())), rel=1e-9)
+    assert math.isnan(smcd_rl.diagnostics.trace(sine_model, episodes, smcd_rl.NoAdaptation()).lookahead_rmse)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
 import math
@@ -52,7 +51,7 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     # The diagnosis takes tuning's own runs where it has them: each equals a fresh run of the variant
     # (G's, raced, joins two runs: the same errors per episode, its means pooled in another order).
     for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "L", "SL"):
-        fresh = dataclasses.asdict(trace(model, episodes, result.strategy(variant, seed=config.seed + 23)))
+        fresh = trace(model, episodes, result.strategy(variant, seed=config.seed + 23)).to_dict()
         kept = result.traces[variant]
         assert kept["one_step_errors"] == fresh["one_step_errors"], variant
         for field, value in fresh.items():

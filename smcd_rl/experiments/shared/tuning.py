@@ -2,7 +2,8 @@
 
 Before any test task is seen, each experiment draws ``--tuning-episodes`` episodes from its
 *training* distribution (fresh tasks, never the test tasks) and tunes every method on them by
-one criterion, the one-step prediction error:
+one criterion: the error its table reports where that is a look-ahead (``--tuning-horizon``:
+``smcd-rl two-link`` tunes by the 10-step look-ahead error), else the one-step prediction error:
 
 - **gradient descent (``G``)** over the grid ``--gd-lr`` x ``--gd-steps`` x ``--gd-window`` x
   {squared error, Huber}, extended past an edge while the best point lies there;
@@ -34,7 +35,7 @@ from __future__ import annotations
 import functools
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 from tensordict import TensorDictBase
@@ -109,6 +110,8 @@ def tuned_specs(
         "flip_probs": config.calibrate_flips,
         "seed": seed,
         "progress": progress,
+        # An experiment whose table scores a look-ahead tunes by it (tuning_horizon > 1).
+        **_criterion(getattr(config, "tuning_horizon", 1)),
     }
     common["strategies"] = _kinds(variants)
     free = smcd_rl.tune(model, episodes, **common)
@@ -164,6 +167,16 @@ def tuned_specs(
         "seconds": free.seconds + budget.seconds,
         "candidates": len(free.candidates) + len(budget.candidates),
     }
+
+
+def _criterion(horizon: int) -> dict[str, Any]:
+    """:func:`smcd_rl.tune`'s criterion for a tuning horizon: one-step at 1, the look-ahead beyond.
+
+    Example:
+        >>> _criterion(1), _criterion(10)
+        ({'criterion': 'one-step'}, {'criterion': 'lookahead', 'horizon': 10})
+    """
+    return {"criterion": "one-step"} if horizon == 1 else {"criterion": "lookahead", "horizon": horizon}
 
 
 def _kinds(variants: Sequence[str]) -> list[str]:
@@ -359,7 +372,7 @@ def _tune(
             if run is None:
                 strategy = build_strategy(spec["kind"], reseeded(spec["kind"], spec["settings"], seed, device))
                 run = trace(model, episodes, strategy)
-            traces[variant] = asdict(run)
+            traces[variant] = run.to_dict()
     traced: dict[str, dict[str, Any]] = {}
     if options and "S" in specs:
         traced, seconds = trace_options(

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict
 from typing import Any
 
 import torch
@@ -69,7 +68,7 @@ def trace_options(
     for option, changed in OPTIONS.items():
         generator = torch.Generator(device=device).manual_seed(seed)
         other = smcd_rl.SMCD(**{**tuned.config(), **changed(tuned)}, generator=generator)
-        options[option] = {**asdict(trace(model, episodes, other)), "settings": "as S"}
+        options[option] = {**trace(model, episodes, other).to_dict(), "settings": "as S"}
     seconds = {"options": time.perf_counter() - started}
     started = time.perf_counter()
     chosen = model.calibration
@@ -86,7 +85,7 @@ def trace_options(
     generator = torch.Generator(device=device).manual_seed(seed)
     strategy = smcd_rl.SMCD(**student.strategy.config(), generator=generator)
     options[STUDENT] = {
-        **asdict(trace(model, episodes, strategy)),
+        **trace(model, episodes, strategy).to_dict(),
         "settings": describe_settings({"noise_std": student.noise_std, "flip_prob": student.flip_prob}),
     }
     seconds["student-t"] = time.perf_counter() - started

@@ -100,7 +100,8 @@ def run(config: TwoLinkConfig, *, progress: bool = True) -> dict[str, Any]:
             task.save(ex.out / "task_model.pt")
 
         # --- the fair protocol: SMCD and GD tuned on held-out babbling of fresh training arms -------
-        episodes = tuning_episodes(config, ex.device, steps=max(2, *config.burn_in))  # calibration needs 2 steps
+        # Long enough for the look-ahead they are tuned by after every burn-in (calibration needs 2 steps).
+        episodes = tuning_episodes(config, ex.device, steps=max(config.burn_in) + config.tuning_horizon)
         networks = {"M": model, "R": reptile, "T": task}
         jobs = {
             name: TuneJob(trained, episodes, options=config.tuning_options, variants=variants)
