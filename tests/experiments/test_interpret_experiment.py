@@ -69,6 +69,8 @@ TINY = [
     "4",
     "--tuning-steps",
     "5",
+    "--tuning-horizon",
+    "2",
     "--gd-lr",
     "0.01",
     "0.1",
@@ -333,7 +335,7 @@ def test_overwriting_the_dataset_file_retrains_and_recomputes(tmp_path, capsys, 
 def test_lookahead_tunes_on_held_out_flights_and_writes_a_scoreboard_entry(tmp_path, capsys) -> None:
     """The fair protocol: every method tuned on the tuning flights, timed, six strategies on the scoreboard."""
     out = tmp_path / "run"
-    methods = ["--methods", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C"]
+    methods = ["--methods", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL"]
     assert cli.main(["interpret", "--out", str(out), "--parts", "lookahead", *TINY, *methods]) == 0
     printed = capsys.readouterr().out
     assert all(f"| {m} " in printed for m in methods[1:]) and "Tuning of M on 4" in printed
@@ -355,10 +357,10 @@ def test_lookahead_tunes_on_held_out_flights_and_writes_a_scoreboard_entry(tmp_p
     assert all(r["ms_per_observation"] == tuning["ms_per_observation"][r["method"][2:]] for r in rows)
     board = payload["scoreboard"]
     assert board["task"] == "drone look-ahead" and board["cell"] == {"set": "unknown", "burn_in": 0.5, "horizon": 0.25}
-    ran = set(COLUMNS) - {TASK_MASKS, "last layer", "SMCD + last layer"}  # no task masks, no last layers here
+    ran = set(COLUMNS) - {TASK_MASKS}  # no task masks here
     assert set(board["estimates"]) == ran == set(board["ms_per_observation"])
     assert {e["method"] for e in board["estimates"].values()} == set(methods[1:])
-    assert all(v != "not compared" for k, v in board["verdicts"].items() if "last layer" not in k)
+    assert all(v != "not compared" for v in board["verdicts"].values())
     assert all(0 < ms < math.inf for ms in board["ms_per_observation"].values())
     pairs = {(c["method"], c["against"]) for c in payload["comparisons"]}
     assert {("M+S", m) for m in ("M+N", "M+G", "M+S(evidence)", "M+S(paper)", "M+C")} <= pairs

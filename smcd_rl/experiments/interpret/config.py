@@ -18,10 +18,13 @@ __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SI
 #: The parts of the command (``--parts``).
 PARTS: tuple[str, ...] = ("fig9", "confidence", "lookahead")
 #: Fig. 14's methods: M multi-task / R Reptile training; N none / G gradient descent (tuned) / S SMCD
-#: tuned by one-step error / S(evidence) SMCD calibrated by its evidence / S(paper) SMCD at the paper's
-#: settings / C the combination of N, G and S.
+#: tuned by the look-ahead error / S(evidence) SMCD calibrated by its evidence / S(paper) SMCD at the
+#: paper's settings / C the combination of the tuned ones / L the Bayesian last layer / SL SMCD with a
+#: Bayesian readout.
 METHODS: tuple[str, ...] = tuple(
-    f"{network}+{variant}" for network in ("M", "R") for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C")
+    f"{network}+{variant}"
+    for network in ("M", "R")
+    for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 )
 #: What runs by default (R+S(paper) only on request: the R network's comparison is with its tuned methods).
 DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m != "R+S(paper)")
@@ -92,8 +95,9 @@ class InterpretConfig(TuningConfig):
     # --- look-ahead (Fig. 14)
     methods: tuple[str, ...] = setting(
         DEFAULT_METHODS,
-        "look-ahead methods: M (multi-task) or R (Reptile) + N, G (tuned GD), S (SMCD tuned by one-step error), "
-        "S(evidence) (SMCD calibrated by its evidence), S(paper) or C (the combination of N, G and S)",
+        "look-ahead methods: M (multi-task) or R (Reptile) + N, G (tuned GD), S (SMCD tuned by the look-ahead), "
+        "S(evidence) (SMCD calibrated by its evidence), S(paper), C (the combination of the tuned ones), "
+        "L (Bayesian last layer) or SL (SMCD with a Bayesian readout)",
         choices=METHODS,
     )
     burn_in: tuple[float, ...] = setting(
@@ -110,6 +114,11 @@ class InterpretConfig(TuningConfig):
         low=2,
     )
     tuning_steps: int = setting(20, "steps of each tuning flight used (flights shorter are not drawn)", low=2)
+    # The table scores the actions of the next steps after a burn-in: every method is tuned by its
+    # look-ahead over a quarter of a tuning flight (the table's middle horizon ratio).
+    tuning_horizon: int = setting(
+        5, "look-ahead H every method is tuned by (open loop after each step of a tuning flight; 1: one-step)", low=1
+    )
     reptile_epochs: int = setting(20, "Reptile epochs (operators as tasks)", low=1)
     reptile_batch_size: int = setting(64, "Reptile inner mini-batch", low=1)
     reptile_lr: float = setting(0.1, "Reptile outer step size", above=0.0)
@@ -141,6 +150,11 @@ class InterpretConfig(TuningConfig):
         if "confidence" in self.parts and not self.dataset and unknown:
             raise ValueError(
                 f"--labels: the simulated operators have no {unknown}; choose from {list(SIMULATED_LABELS)}"
+            )
+        if "lookahead" in self.parts and self.tuning_horizon >= self.tuning_steps:
+            raise ValueError(
+                f"--tuning-horizon {self.tuning_horizon} needs tuning flights longer than it; raise --tuning-steps "
+                f"(now {self.tuning_steps}) or lower --tuning-horizon"
             )
         if self.dataset and not Path(self.dataset).is_file():
             raise FileNotFoundError(f"--dataset {self.dataset}: no such file")
