@@ -146,7 +146,7 @@ def _write(
             experiment="scoreboard: every task, none / GD / SMCD (paper, calibrated, one-step) / combination",
             # Narrow tables, not one wide one: each fits the width of a docs page.
             tables={
-                "In short: each task's best mean; SMCD tuned by one-step error, SMCD on task-trained masks (T+S) "
+                "In short: each task's best mean; SMCD tuned like GD (by each task's criterion), SMCD on task-trained masks (T+S) "
                 "and the combination against tuned GD (paired verdicts over the same trials; tie: no significant "
                 "difference); median ms per observation": summary_table(rows),
                 "Each task's headline metric and cell (every number of the tables below: results.csv)": format_table(

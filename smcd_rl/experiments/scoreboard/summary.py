@@ -1,7 +1,7 @@
 """The scoreboard in one compact table: per task, the best mean, the SMCD family against tuned GD, the cost.
 
 Each row says which strategy has the best mean on the task's headline metric; how each member of
-the SMCD family (SMCD tuned by one-step error, SMCD on task-trained masks, the combination, SMCD
+the SMCD family (SMCD tuned like GD, SMCD on task-trained masks, the combination, SMCD
 with a Bayesian readout) and the Bayesian last layer fares
 against tuned gradient descent, by the experiment's own paired verdict over the same trials
 (``better``, ``worse`` or ``tie`` where the difference's 95 % interval holds zero; ``-`` where it

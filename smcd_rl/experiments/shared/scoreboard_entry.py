@@ -33,7 +33,7 @@ __all__ = [
 ]
 
 #: The scoreboard's strategies, in order: "SMCD (calibrated)" is SMCD calibrated by its evidence,
-#: "SMCD (one-step)" SMCD tuned by one-step error like GD (:func:`smcd_rl.tune`), "combination"
+#: "SMCD (one-step)" SMCD tuned like GD, by the same criterion (:func:`smcd_rl.tune`), "combination"
 #: the tuned combination of the others, "last layer" the Bayesian last layer, "SMCD + last layer"
 #: SMCD with a Bayesian readout, "SMCD (task masks)" one-step SMCD on a network whose masks were
 #: trained to identify the task; an experiment that did not run one reads "not run".
