@@ -75,6 +75,8 @@ def test_tiny_run_writes_its_files_and_planning_beats_random_actions(tmp_path: P
     for name in ("results.csv", "trials.csv", "comparisons.csv", "results.json", "fetch.png", "report.md"):
         assert (out / name).is_file(), name
     assert (out / "tuning-reach.png").is_file()
+    # Success is the outcome; every method is tuned by its proxy, the model's rollout over the planning horizon.
+    assert "tuned by 5-step look-ahead RMSE" in (out / "report.md").read_text()
     rows = {(r["planner"], r["method"], r["metric"]): r for r in result["results"]}
     assert {m for _, m, _ in rows} == {"M+N", *ADAPTED, "random actions"}
     for metric in ("success", "distance"):

@@ -24,8 +24,8 @@ FAMILIES: dict[str, str] = {
 PLANNERS: dict[str, str] = {"cem": "CEM", "mppi": "MPPI"}
 #: Adaptation names (:data:`~smcd_rl.experiments.shared.adaptation_config.VARIANTS`) and their method labels.
 ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
-#: The adaptations of the default run.
-DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C")
+#: The adaptations of the default run: every one.
+DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 
 
 @dataclass
@@ -58,7 +58,7 @@ class FetchConfig(TuningConfig):
     planners: tuple[str, ...] = setting(("cem", "mppi"), "planners: cem, mppi", choices=tuple(PLANNERS))
     adaptations: tuple[str, ...] = setting(
         DEFAULT_ADAPTATIONS,
-        "adaptations: N (none), G (tuned gradient descent), S (SMCD tuned by one-step error), S(evidence) (SMCD "
+        "adaptations: N (none), G (tuned gradient descent), S (SMCD tuned like it), S(evidence) (SMCD "
         "calibrated by its evidence), S(paper) (SMCD at fixed settings: noise --noise-scale x held-out RMSE, "
         "--flip-prob), C (the combination of N and the tuned ones: it predicts with all of them, so its cells "
         "cost about theirs together), L (Bayesian last layer), SL (SMCD with a Bayesian readout)",
@@ -85,6 +85,13 @@ class FetchConfig(TuningConfig):
         low=2,
     )
     tuning_steps: int = setting(20, "steps per tuning episode", low=2)
+    # Success is a control outcome: its proxy is the learnt model's rollout over the planner's horizon.
+    tuning_horizon: int = setting(
+        5,
+        "look-ahead H every method is tuned by: the model rolled out open loop on the logged actions (the "
+        "planning horizon; 1: one-step)",
+        low=1,
+    )
     gd_lr: tuple[float, ...] = setting(
         (0.001, 0.003, 0.01, 0.03),
         "gradient-descent learning rates tried in tuning (normalised units)",
@@ -109,6 +116,11 @@ class FetchConfig(TuningConfig):
         if max(self.gd_lr) > self.gd_max_lr:
             raise ValueError(
                 f"--gd-lr {max(self.gd_lr)} is above --gd-max-lr {self.gd_max_lr}; lower it or raise --gd-max-lr"
+            )
+        if self.tuning_horizon >= self.tuning_steps:
+            raise ValueError(
+                f"--tuning-horizon {self.tuning_horizon} needs tuning episodes longer than it; raise --tuning-steps "
+                f"(now {self.tuning_steps}) or lower --tuning-horizon"
             )
 
 

@@ -74,7 +74,11 @@ __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SI
 #: The adaptive methods, each compared (paired over the same trajectories) with M+N and with each other
 #: (the earlier one of a pair is its ``method``: M+S is compared against every other M method).
 ADAPTIVE: tuple[str, ...] = (
-    *(f"{network}+{variant}" for network in ("M", "R") for variant in ("S", "C", "S(evidence)", "S(paper)", "G", "L", "SL")),
+    *(
+        f"{network}+{variant}"
+        for network in ("M", "R")
+        for variant in ("S", "C", "S(evidence)", "S(paper)", "G", "L", "SL")
+    ),
     "R+N",
 )
 
