@@ -70,8 +70,8 @@ def advice(result: TuneResult) -> list[str]:
     ]
     if robust:
         lines.append(
-            f"- heavy-tailed residuals: {', '.join(robust)} chose a robust form (Huber loss or Student-t); "
-            "expect corrupted readings to hurt the Gaussian forms"
+            f"- heavy-tailed residuals in these episodes: {', '.join(robust)} chose a robust form (Huber loss "
+            "or Student-t); with corrupted readings prefer these forms, or SMCD"
         )
     return lines
 

@@ -195,3 +195,26 @@ def test_trace_with_a_horizon_reports_the_lookahead_error(sine_model) -> None:
     scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", 3))
     assert run.lookahead_rmse == pytest.approx(scorer.score(scorer.run(smcd_rl.NoAdaptation())), rel=1e-9)
     assert math.isnan(smcd_rl.diagnostics.trace(sine_model, episodes, smcd_rl.NoAdaptation()).lookahead_rmse)
+
+
+def test_the_advice_names_the_best_with_few_and_with_many_observations() -> None:
+    """SMCD's errors start low and stay; GD's start high and end lower: each is named where it leads."""
+    from smcd_rl.diagnostics import Trace
+    from smcd_rl.tuning import TuneCandidate, TuneResult
+    from smcd_rl.tuning_advice import advice
+    from smcd_rl.tuning_search import setting_key
+
+    smcd = TuneCandidate("smcd", {"noise_std": 0.1}, 0.20, 2.0)
+    gd = TuneCandidate("gradient_descent", {"lr": 0.1, "loss": "mse"}, 0.18, 9.0)
+    none = TuneCandidate("none", {}, 0.40, 0.05)
+    result = TuneResult("one-step", None, [smcd, gd, none], {"smcd": smcd, "gradient_descent": gd, "none": none})
+    result.traces[setting_key("smcd", smcd.settings)] = Trace([0.2] * 8, 0.2, [], [], [])
+    result.traces[setting_key("gradient_descent", gd.settings)] = Trace(
+        [0.3, 0.3, 0.2, 0.15, 0.1, 0.1, 0.1, 0.1], 0.18, [], [], []
+    )
+    lines = advice(result)
+    assert lines[1] == "- best: gradient_descent (0.18 against 0.4 unadapted)"
+    assert (
+        "- few observations (first 2 steps): smcd (0.2 one-step RMSE); many (last 2): gradient_descent (0.1)" in lines
+    )
+    assert not any("robust" in line or "budget" in line for line in lines)  # no Huber, no cheaper one within 5 %
