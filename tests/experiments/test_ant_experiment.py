@@ -60,7 +60,16 @@ VARIANTS = ["N", "G", "S", "S(evidence)", "S(paper)", "C"]
 ALL_CELLS = ["--planners", "cem", "mppi", "rs", "--adaptations", *VARIANTS]
 ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C")
 #: The scoreboard's columns, each a strategy of the primary metric (every strategy's prediction error runs).
-COLUMNS = {"none", "GD", "SMCD (paper)", "SMCD (calibrated)", "SMCD (one-step)", "combination"}
+COLUMNS = {
+    "none",
+    "GD",
+    "SMCD (paper)",
+    "SMCD (calibrated)",
+    "SMCD (one-step)",
+    "combination",
+    "last layer",
+    "SMCD + last layer",
+}
 ONE_CELL = ["--planners", "rs", "--adaptations", "N", "--conditions", "crippled"]
 
 
@@ -147,7 +156,8 @@ def test_results_json_has_the_tuning_and_two_scoreboard_entries(tmp_path) -> Non
     assert list(tuning["specs"]) == VARIANTS and tuning["episodes"] == 4
     gd = tuning["specs"]["G"]["settings"]  # the grid's point, or one past its edge
     assert gd["lr"] > 0 and gd["steps"] >= 1 and gd["window"] >= 5 and gd["loss"] in ("mse", "huber")
-    assert [m["name"] for m in tuning["specs"]["C"]["settings"]["members"]] == ["none", "gradient_descent", "smcd"]
+    members = [m["name"] for m in tuning["specs"]["C"]["settings"]["members"]]
+    assert members == ["none", "gradient_descent", "smcd", "last_layer", "smcd_last_layer"]
     assert len(tuning["specs"]["S(paper)"]["settings"]["noise_std"]) == 41  # 3 x the held-out RMSE per dim
     assert all(math.isfinite(v) and v > 0 for v in tuning["ms_per_observation"].values())
     board = payload["scoreboard"]
@@ -159,8 +169,8 @@ def test_results_json_has_the_tuning_and_two_scoreboard_entries(tmp_path) -> Non
         assert all(e["trials"] == 6 for e in entry["estimates"].values())
         assert set(entry["ms_per_observation"]) == COLUMNS
         assert entry["ms_per_observation"]["SMCD (one-step)"] == tuning["ms_per_observation"]["S"]
-        # Every verdict between strategies that ran (the last layers run on request).
-        assert all(v != "not compared" for k, v in entry["verdicts"].items() if "last layer" not in k)
+        # Every verdict between strategies that ran, the last layers' too.
+        assert all(v != "not compared" for v in entry["verdicts"].values())
 
 
 def test_prediction_error_is_paired_over_the_same_episodes(tmp_path) -> None:

@@ -49,7 +49,7 @@ TINY = [
     "C",
 ]
 #: The methods of the tiny run that adapt, each tuned (and timed) by the fair protocol.
-ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+C")
+ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+C", "T+S", "T+SL")
 
 
 def run_tiny(out: Path, *extra: str) -> dict[str, Any]:
@@ -99,14 +99,18 @@ def test_tiny_run_writes_its_files_and_planning_beats_random_actions(tmp_path: P
     assert pairs >= {("M+S", "M+N"), ("M+G", "M+N"), ("M+S", "M+G"), ("M+S", "M+S(evidence)"), ("M+G", "M+C")}
     # The scoreboard entry, with each strategy's time, and the report.
     (entry,) = json.loads((out / "results.json").read_text())["scoreboard"]
-    for column, method in [("SMCD (one-step)", "M+S"), ("SMCD (calibrated)", "M+S(evidence)"), ("combination", "M+C")]:
+    columns = [("SMCD (one-step)", "M+S"), ("SMCD (calibrated)", "M+S(evidence)"), ("combination", "M+C")]
+    for column, method in [*columns, ("SMCD (task masks)", "T+S")]:
         assert entry["estimates"][column]["mean"] == rows[("CEM", method, "success")]["mean"]
         assert entry["ms_per_observation"][column] == rows[("CEM", method, "success")]["ms_per_observation"]
     assert set(entry["ms_per_observation"]) == set(entry["estimates"]) and "SMCD (paper)" not in entry["estimates"]
     assert entry["verdicts"]["combination vs GD"] != "not compared"
     report = (out / "report.md").read_text()
     assert "Success rate" in report and "Settings (fingerprint" in report and "| ms / observation |" in report
-    assert "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C" in report
+    assert "M+S paired with every other method" in report
+    # T, the network whose masks were trained to identify the draw, is paired with M's methods.
+    assert "T+S (masks trained to identify the task) paired with M+G, M+S" in report
+    assert entry["verdicts"]["SMCD (task masks) vs GD"] != "not compared"
     assert "reach: tuned under 10 ms per observation" in report  # smcd_rl.tune's budgeted table
     # A rerun reuses every finished piece and writes the same numbers.
     again = run_tiny(tmp_path / "fetch")
@@ -118,8 +122,9 @@ def test_video_writes_gifs_and_changes_no_number(tmp_path: Path) -> None:
     """``--video 1`` renders each cell's first episode (MuJoCo, headless) without moving any result."""
     from PIL import Image
 
-    plain = run_tiny(tmp_path / "plain", "--adaptations", "N", "--episodes", "2")
-    filmed = run_tiny(tmp_path / "filmed", "--adaptations", "N", "--episodes", "2", "--video", "1")
+    cells = ["--adaptations", "N", "--task-adaptations", "S", "--episodes", "2"]
+    plain = run_tiny(tmp_path / "plain", *cells)
+    filmed = run_tiny(tmp_path / "filmed", *cells, "--video", "1")
 
     def numbers(result: dict[str, Any]) -> list[dict[str, Any]]:  # less the wall times, which vary run to run
         return [
@@ -128,7 +133,8 @@ def test_video_writes_gifs_and_changes_no_number(tmp_path: Path) -> None:
 
     assert numbers(filmed) == numbers(plain)
     gifs = sorted((tmp_path / "filmed" / "videos").glob("*.gif"))
-    assert [g.name for g in gifs] == ["reach-cem-N-0.gif"] and "videos/reach-cem-N-0.gif" in filmed["files"]
+    assert [g.name for g in gifs] == ["reach-cem-N-0.gif", "reach-cem-T+S-0.gif"]
+    assert "videos/reach-cem-N-0.gif" in filmed["files"]
     with Image.open(gifs[0]) as gif:
         assert gif.n_frames > 1 and gif.size[0] > 0
 
@@ -147,11 +153,13 @@ def test_bad_options_are_refused() -> None:
 
 
 def test_stage_plan_counts_every_adaptation_and_the_combinations_members() -> None:
-    """The combination predicts with N, G and S in every rollout step: its cells are planned at three times S's."""
+    """The combination predicts with every member in every rollout step: its cells are planned at that many times S's."""
     from smcd_rl.experiments.fetch.config import FetchConfig
     from smcd_rl.experiments.fetch.run import _costs
 
     costs = _costs(FetchConfig())
     cells = [name for name in costs if name.startswith("evaluate reach/cem/")]
-    assert cells == [f"evaluate reach/cem/{v}" for v in ("N", "G", "S", "S(evidence)", "S(paper)", "C")]
-    assert costs["evaluate reach/cem/C"] == 3 * costs["evaluate reach/cem/S"] > 0
+    variants = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL", "T+S", "T+SL")
+    assert cells == [f"evaluate reach/cem/{v}" for v in variants]
+    # The combination predicts with N, G, S, L and SL in every rollout step.
+    assert costs["evaluate reach/cem/C"] == 5 * costs["evaluate reach/cem/S"] > 0

@@ -58,7 +58,7 @@ ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
 #: Conditions: the Ant the model was trained on, and the Ant with one leg crippled per episode.
 CONDITIONS: tuple[str, ...] = ("healthy", "crippled")
 #: The adaptations whose prediction error is measured, whichever run the return episodes.
-PREDICTED: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C")
+PREDICTED: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 #: The adaptations of the default return episodes: all but S(paper), whose prediction error is still measured.
 DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "C")
 #: Every (planner, adaptation, condition) cell of Fig. 15.
@@ -97,7 +97,8 @@ class AntConfig(TuningConfig):
         DEFAULT_ADAPTATIONS,
         "adaptations of the return episodes: N (none), G (tuned gradient descent), S (SMCD tuned by one-step "
         "error), S(evidence) (SMCD calibrated by its evidence), S(paper) (SMCD at --noise-scale, --flip-prob), "
-        "C (the combination of N, G and S); the prediction error always compares all six",
+        "C (the combination of the tuned ones), L (Bayesian last layer), SL (SMCD with a Bayesian readout); the "
+        "prediction error always compares all eight",
         choices=tuple(ADAPTATIONS),
     )
     conditions: tuple[str, ...] = setting(CONDITIONS, "conditions to run: healthy, crippled", choices=CONDITIONS)

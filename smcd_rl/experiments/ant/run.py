@@ -128,7 +128,7 @@ DATA_SETTINGS = ("seed", "task", "data_policy", "sac_steps", "transitions", "dat
 #: Offsets of the env seeds from ``--seed``: MPC episodes, tuning episodes, prediction episodes.
 EPISODE_SEED, TUNING_SEED, PREDICTION_SEED = 1_000_003, 2_000_003, 3_000_003
 #: The paired comparisons: each adaptive method against M+N and against each other.
-ADAPTIVE = ("M+S", "M+S(evidence)", "M+S(paper)", "M+G", "M+C")
+ADAPTIVE = ("M+S", "M+S(evidence)", "M+S(paper)", "M+G", "M+C", "M+L", "M+SL")
 
 
 def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:

@@ -13,7 +13,7 @@ from typing import ClassVar
 from smcd_rl.experiments.shared.adaptation_config import VARIANTS, TuningConfig, check_learnt_dynamics
 from smcd_rl.experiments.shared.config import setting
 
-__all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "ADAPTATIONS"]
+__all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "ADAPTATIONS", "TASK_ADAPTATIONS"]
 
 #: Family name -> its registered gymnasium id.
 FAMILIES: dict[str, str] = {
@@ -26,6 +26,8 @@ PLANNERS: dict[str, str] = {"cem": "CEM", "mppi": "MPPI"}
 ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
 #: The adaptations of the default run: every one.
 DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
+#: The adaptations of the network whose masks were trained to identify the draw (method ``T+<variant>``).
+TASK_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "L", "SL")
 
 
 @dataclass
@@ -52,6 +54,21 @@ class FetchConfig(TuningConfig):
     epochs: int = setting(20, "training epochs", low=1)
     batch_size: int = setting(128, "training batch size", low=1)
     lr: float = setting(2e-3, "Adam learning rate", above=0.0)
+    task_adaptations: tuple[str, ...] = setting(
+        ("S", "SL"),
+        "adaptations of T, a second network whose masks were trained to identify the draw "
+        "(fit(mask_training='task'), methods T+S, T+SL...)",
+        choices=TASK_ADAPTATIONS,
+    )
+    # Every sample through its draw's masks, 16 bits a layer: the masks sweep's best on the two-link
+    # arms (held-out arms of the tuning seed); no sweep has measured it on this family.
+    task_share: float = setting(
+        1.0,
+        "share of T's samples trained through a mask of their draw's posterior (the rest random)",
+        low=0.0,
+        high=1.0,
+    )
+    mask_groups: int = setting(16, "dropout bits per hidden layer of T (0: one per unit)", low=0)
     validation: float = setting(
         0.1, "fraction (0 < f < 1) of the transitions held out (one-step RMSE: S(paper)'s noise)", above=0.0
     )
@@ -107,7 +124,12 @@ class FetchConfig(TuningConfig):
     )
 
     NON_EMPTY: ClassVar[tuple[str, ...]] = ("families", "planners", "adaptations")  # and TuningConfig's
-    SELECTION = ("families", "planners", "adaptations")  # which cells run: a subset rerun reuses cells
+    SELECTION = (
+        "families",
+        "planners",
+        "adaptations",
+        "task_adaptations",
+    )  # which cells run: a subset rerun reuses cells
 
     def validate(self) -> None:
         """The declared bounds, then what they cannot express: upper bounds and bounds across options."""
@@ -116,6 +138,11 @@ class FetchConfig(TuningConfig):
         if max(self.gd_lr) > self.gd_max_lr:
             raise ValueError(
                 f"--gd-lr {max(self.gd_lr)} is above --gd-max-lr {self.gd_max_lr}; lower it or raise --gd-max-lr"
+            )
+        if self.task_adaptations and self.mask_groups and self.hidden % self.mask_groups:
+            raise ValueError(
+                f"--mask-groups {self.mask_groups} must divide --hidden {self.hidden} (each bit switches an equal "
+                "group of units); choose a divisor, or 0 for one bit per unit"
             )
         if self.tuning_horizon >= self.tuning_steps:
             raise ValueError(

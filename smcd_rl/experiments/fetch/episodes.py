@@ -86,7 +86,8 @@ def _policy(family: str, seed: int) -> Callable[[dict[str, np.ndarray]], np.ndar
 def collect(family: str, config: FetchConfig, *, progress: bool) -> dict[str, Any]:
     """``--transitions`` transitions from draws of the family, one draw per episode of ``--data-episode-steps``.
 
-    Returns ``{"data": TensorDict [transitions], "seconds": ...}``.
+    Returns ``{"data": TensorDict [transitions], "seconds": ...}``; ``data["task"]`` numbers each
+    transition's draw (the task the T network's masks are trained to identify).
     """
     env = make_env(family, config, config.data_episode_steps)
     started = time.perf_counter()
@@ -97,9 +98,11 @@ def collect(family: str, config: FetchConfig, *, progress: bool) -> dict[str, An
     policy = _policy(family, config.seed)
     for i, size in enumerate(tqdm(sizes, desc=f"collect {family}", unit="ep", disable=not progress)):
         # Seeding only the first call makes the whole collection one repeatable stream.
-        chunks.append(collect_transitions(env, policy, size, seed=config.seed if i == 0 else None))
+        chunk = collect_transitions(env, policy, size, seed=config.seed if i == 0 else None)
+        chunk["task"] = torch.full((size,), i, dtype=torch.int64)  # one draw per episode: T's task id
+        chunks.append(chunk)
     env.close()
-    data = cast(TensorDict, torch.cat(chunks)).select("observation", "action", ("next", "observation"))
+    data = cast(TensorDict, torch.cat(chunks)).select("observation", "action", ("next", "observation"), "task")
     return {"data": data, "seconds": time.perf_counter() - started}
 
 

@@ -22,16 +22,21 @@ Families (``--families``; only ``reach`` by default):
 The adaptations (``--adaptations``), labelled as in every experiment:
 
 * ``M+N``: no adaptation;
-* ``M+G``: online gradient descent tuned by one-step error on the tuning episodes
-  (:func:`smcd_rl.tune`: the ``--gd-lr x --gd-steps x --gd-window`` grid, squared error or Huber);
-* ``M+S``: SMCD tuned by one-step error on the tuning episodes (:func:`smcd_rl.tune`);
+* ``M+G``: online gradient descent tuned on the tuning episodes by the learnt model's 5-step
+  rollout error on the logged actions (``--tuning-horizon``, the planning horizon: the proxy of
+  success) (:func:`smcd_rl.tune`: the ``--gd-lr x --gd-steps x --gd-window`` grid, squared error or Huber);
+* ``M+S``: SMCD tuned the same way (:func:`smcd_rl.tune`);
 * ``M+S(evidence)``: SMCD calibrated by its evidence (:func:`smcd_rl.calibrate`) on the tuning episodes;
 * ``M+S(paper)``: SMCD at fixed settings. The paper has no Fetch task, so the fixed setting is
   this: likelihood noise per observation dimension ``--noise-scale`` (1) times the network's
   held-out one-step RMSE, and ``--flip-prob`` (0.01, the paper's Ant setting);
-* ``M+C``: the combination of N, G and S (:class:`smcd_rl.Combination`), tuned on the same
-  episodes. It predicts with every member, inside the planner's rollouts too, so its cells cost
-  about as much as N's, G's and S's together.
+* ``M+C``: the combination of N and the tuned strategies (:class:`smcd_rl.Combination`), tuned on
+  the same episodes. It predicts with every member, inside the planner's rollouts too, so its
+  cells cost about as much as its members' together;
+* ``M+L``, ``M+SL``: the Bayesian last layer, and SMCD with a Bayesian readout, tuned the same way;
+* ``T+S``, ``T+SL`` (``--task-adaptations``): SMCD, and SMCD with a Bayesian readout, on T, a
+  second network whose masks were trained to identify the draw
+  (:mod:`~smcd_rl.experiments.fetch.task_network`).
 
 **Fair protocol.** The tuning episodes are ``--tuning-episodes`` episodes of ``--tuning-steps``
 data-policy actions, each on a fresh draw of the family (the training distribution), from env
@@ -58,8 +63,8 @@ reused by a rerun.
 Example:
     >>> from smcd_rl.experiments.fetch.config import FetchConfig
     >>> config = FetchConfig()
-    >>> config.families, config.planners, config.adaptations
-    (('reach',), ('cem', 'mppi'), ('N', 'G', 'S', 'S(evidence)', 'S(paper)', 'C'))
+    >>> config.families, config.planners, config.adaptations, config.task_adaptations
+    (('reach',), ('cem', 'mppi'), ('N', 'G', 'S', 'S(evidence)', 'S(paper)', 'C', 'L', 'SL'), ('S', 'SL'))
 """
 
 from __future__ import annotations
@@ -74,10 +79,12 @@ import smcd_rl
 from smcd_rl.digests import model_digest
 from smcd_rl.experiments.fetch.config import ADAPTATIONS, FAMILIES, FULL, PLANNERS, FetchConfig
 from smcd_rl.experiments.fetch.episodes import collect, random_cell, run_cell, tuning_episodes, validation_error
+from smcd_rl.experiments.fetch.report import METRICS, plot, rename, table, unrename
+from smcd_rl.experiments.fetch.task_network import task_method, task_network, task_settings
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.shared.task_family import task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import ms_column
 from smcd_rl.experiments.shared.tuning import tune
 from smcd_rl.experiments.shared.video import video_name
@@ -90,18 +97,13 @@ EPISODE_SEED, TUNING_SEED = 1_000_003, 2_000_003
 #: Settings that determine the collected transitions (besides the family).
 DATA_SETTINGS = ("seed", "rotation", "transitions", "data_episode_steps")
 #: The paired comparisons: each adaptive method against M+N and against each other.
-ADAPTIVE = ("M+S", "M+S(evidence)", "M+S(paper)", "M+G", "M+C")
+ADAPTIVE = ("M+S", "M+S(evidence)", "M+S(paper)", "M+G", "M+C", "M+L", "M+SL", "T+S", "T+SL", "T+L", "T+G", "T+N")
 #: The reference row: uniform random actions on the same test draws.
 RANDOM = "random actions"
-#: Metrics: name in the rows -> (label, higher is better).
-METRICS = {"success": ("success rate", True), "distance": ("final distance (m)", False)}
 #: Relative stage costs (seconds of the default run on 2 CPU cores, one torch thread). The tuning
 #: took 7 s before :func:`smcd_rl.tune`, which runs about twice the filter runs
 #: (:func:`~smcd_rl.experiments.shared.stages.tuning_cost` at the defaults: 38 against 19).
 COSTS = {"collect": 20.0, "train": 9.0, "tune": 14.0, "evaluate": 15.0, "random": 1.0}
-#: Network predictions per model step of an adaptation's MPC, where not one: the combination
-#: predicts with each of its members (N, G, S), in every rollout step of the planner.
-PREDICTIONS = {"C": 3.0}
 
 
 def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
@@ -119,7 +121,8 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
         videos: list[str] = []  # --video: the GIFs the cells wrote
         for family in config.families:
             # --- data from many draws of the family ------------------------------------------------
-            data_key = {"family": family, **{k: getattr(config, k) for k in DATA_SETTINGS}}
+            # "layout": the data holds each transition's draw (T's task id); older stored data does not.
+            data_key = {"family": family, "layout": "draw ids", **{k: getattr(config, k) for k in DATA_SETTINGS}}
             with ex.stage(f"collect {family}"):
                 collected = ex.store.get("data", data_key)
                 if collected is None:
@@ -166,18 +169,51 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                 variants=config.adaptations,
             )
             tunings[family] = tuning
-            ms[family] = ms_column(list(ADAPTATIONS.values()), {"M": tuning})  # the family's model is "M"
-            content: dict[str, Any] = {"model": model_digest(model), "specs": tuning.specs}
+            networks = {"M": tuning}  # the family's model is "M"
+            content = {"M": {"model": model_digest(model), "specs": tuning.specs}}
+            strategies = {
+                variant: functools.partial(tuning.strategy, variant, seed=config.seed + 11, device=ex.device)
+                for variant in config.adaptations
+            }
+            models = dict.fromkeys(config.adaptations, model)
+
+            # --- T: a second network whose masks were trained to identify the draw -----------------
+            if config.task_adaptations:
+                task = task_network(config, obs_dim, action_dim, ex.device)
+                training[family]["task_loss"] = ex.train(
+                    f"{family} T", smcd_rl.fit_dynamics, task, train, **fit, **task_settings(config)
+                )
+                task.save(ex.out / f"task_model-{family}.pt")
+                task_tuning = tune(
+                    ex,
+                    task,
+                    tuning_data,
+                    config,
+                    name=f"{family} T",
+                    paper_noise_std=paper_noise.tolist(),
+                    variants=config.task_adaptations,
+                )
+                networks["T"] = task_tuning
+                content["T"] = {"model": model_digest(task), "specs": task_tuning.specs}
+                for variant in config.task_adaptations:
+                    strategies[task_method(variant)] = functools.partial(
+                        task_tuning.strategy, variant, seed=config.seed + 11, device=ex.device
+                    )
+                    models[task_method(variant)] = task
+                tables.update(task_tuning.tables())
+                plots[f"tuning-{family}-T.png"] = task_tuning.plot
+            labels = [*ADAPTATIONS.values(), *(task_method(v) for v in config.task_adaptations)]
+            ms[family] = ms_column(labels, networks)
 
             # --- MPC episodes of every (planner, adaptation) cell on the same test draws ----------
             cells = {
                 f"{family}/{planner}/{variant}": functools.partial(
                     run_cell,
-                    model,
+                    models[variant],
                     family,
                     planner,
                     config,
-                    tuning.strategy(variant, seed=config.seed + 11, device=ex.device),
+                    strategies[variant](),
                     # One planner seed per planner, the same for every adaptation.
                     planner_seed=config.seed + 1000 * (1 + list(PLANNERS).index(planner)),
                     episode_seeds=episode_seeds,
@@ -187,11 +223,12 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                     video_path=functools.partial(_video_path, ex.out, f"{family}-{planner}-{variant}"),
                 )
                 for planner in config.planners
-                for variant in config.adaptations
+                for variant in strategies
             }
             # The videos are written by the cells, so their count keys the cells (only when recorded).
-            content |= {"video": config.video} if config.video else {}
-            done = ex.evaluate(cells, computed, content=content)
+            video = {"video": config.video} if config.video else {}
+            keys = {name: {**content[_network(name)], **video} for name in cells}
+            done = ex.evaluate(cells, computed, content=keys.__getitem__)
             videos += [v for result in done.values() for v in result.get("videos", []) if Path(v).is_file()]
             reference = ex.evaluate(
                 {f"{family}/random": functools.partial(random_cell, family, config, episode_seeds=episode_seeds)},
@@ -201,8 +238,9 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
             )
             for name, result in done.items():
                 _, planner, variant = name.split("/")
-                episodes[(family, PLANNERS[planner], ADAPTATIONS[variant])] = result["episodes"]
-                seconds[(family, PLANNERS[planner], ADAPTATIONS[variant])] = result["seconds"]
+                label = ADAPTATIONS.get(variant, variant)
+                episodes[(family, PLANNERS[planner], label)] = result["episodes"]
+                seconds[(family, PLANNERS[planner], label)] = result["seconds"]
             episodes[(family, "-", RANDOM)] = reference[f"{family}/random"]["episodes"]
             seconds[(family, "-", RANDOM)] = reference[f"{family}/random"]["seconds"]
             tables.update(tuning.tables())
@@ -228,7 +266,7 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
             rows += [
                 {
                     "metric": metric,
-                    **_rename(r, metric),
+                    **rename(r, metric),
                     "seconds": seconds[(r["family"], r["planner"], r["method"])],
                     "ms_per_observation": ms[r["family"]].get(r["method"]),
                 }
@@ -246,13 +284,20 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
             f"over {config.episodes} held-out test draws per family, one MPC episode of {config.episode_steps} steps "
             "each (the same draws and planner seeds in every row); median ms per observation on the tuning "
             "episodes": table(rows),
-            "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C over the same draws (success: positive "
+            "M+S paired with every other method over the same draws (success: positive "
             "is better; distance: negative is better)": verdict_table(
                 [c for c in comparisons if c["method"] == "M+S"], cell=("metric", "family", "planner")
             ),
             "The other adaptive methods paired with M+N over the same draws": verdict_table(
                 [c for c in comparisons if c["method"] != "M+S" and c["against"] == "M+N"],
                 cell=("metric", "family", "planner"),
+            ),
+            **task_verdict_table(
+                [c for c in comparisons if c["metric"] == "success"],
+                cell=("family", "planner"),
+                over="draws",
+                against=("M+S", "M+G", "M+L", "M+SL"),
+                lower_is_better=False,
             ),
         }
         ex.write(
@@ -267,7 +312,7 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                 "scoreboard": [
                     scoreboard_entry(
                         f"Fetch {family} success ({PLANNERS[config.planners[0]]})",
-                        [_unrename(r) for r in rows if r["metric"] == "success"],
+                        [unrename(r) for r in rows if r["metric"] == "success"],
                         [c for c in comparisons if c["metric"] == "success"],
                         cell={"family": family, "planner": PLANNERS[config.planners[0]]},
                         metric="success",
@@ -278,10 +323,25 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                     for family in config.families
                 ],
             },
-            plots={"fetch.png": lambda path: _plot(rows, config, path), **plots},
+            plots={"fetch.png": lambda path: plot(rows, config, path), **plots},
             files=[str(Path(v).relative_to(ex.out)) for v in videos],
         )
     return ex.result
+
+
+def _combined(adaptations: tuple[str, ...]) -> int:
+    """How many networks' predictions the combination makes per model step: N, G, S and the last layers tuned.
+
+    Example:
+        >>> _combined(("N", "G", "S", "C")), _combined(("C", "SL"))
+        (3, 5)
+    """
+    return len({"N", "G", "S"} | ({"L", "SL"} & set(adaptations)) | ({"L"} if "SL" in adaptations else set()))
+
+
+def _network(cell: str) -> str:
+    """The network of a cell ``family/planner/variant``: ``T`` for a ``T+...`` variant, else ``M``."""
+    return "T" if cell.rsplit("/", 1)[-1].startswith("T+") else "M"
 
 
 def _video_path(out: Path, cell: str, k: int) -> Path:
@@ -302,87 +362,12 @@ def _costs(config: FetchConfig) -> dict[str, float]:
         costs[f"collect {family}"] = data
         costs[f"train {family}"] = train
         costs[f"tune {family}"] = COSTS["tune"] * config.tuning_episodes / defaults.tuning_episodes
+        if config.task_adaptations:  # T's training infers every draw's posterior each epoch
+            costs[f"train {family} T"] = 2 * train
+            costs[f"tune {family} T"] = costs[f"tune {family}"]
         for planner in config.planners:
-            for variant in config.adaptations:
-                each = PREDICTIONS.get(variant, 1.0)
+            for variant in (*config.adaptations, *(task_method(v) for v in config.task_adaptations)):
+                each = float(_combined(config.adaptations)) if variant == "C" else 1.0
                 costs[f"evaluate {family}/{planner}/{variant}"] = COSTS["evaluate"] * steps * plan * each
         costs[f"random {family}/random"] = COSTS["random"] * steps
     return costs
-
-
-def _rename(row: dict[str, Any], metric: str) -> dict[str, Any]:
-    """A statistics row with its metric's fields under generic names (``mean``, ``low``, ``high``, ``std``)."""
-    out = {k: v for k, v in row.items() if not k.startswith(f"{metric}_")}
-    return out | {k.removeprefix(f"{metric}_"): v for k, v in row.items() if k.startswith(f"{metric}_")}
-
-
-def _unrename(row: dict[str, Any]) -> dict[str, Any]:
-    """The inverse of :func:`_rename` (what :func:`scoreboard_entry` reads)."""
-    metric = row["metric"]
-    return {(f"{metric}_{k}" if k in ("mean", "low", "high", "std") else k): v for k, v in row.items()}
-
-
-def table(rows: list[dict[str, Any]]) -> str:
-    """``mean [95% CI]`` per family, planner and method (down), per metric (across), then ms per observation.
-
-    The last column is the rows' ``ms_per_observation`` ("-" where a row has none, as random actions).
-
-    Example:
-        >>> row = {"family": "reach", "planner": "CEM", "method": "M+S", "mean": 0.5, "low": 0.25, "high": 0.75}
-        >>> print(table([row | {"metric": "success", "ms_per_observation": 2.345}]))
-        | family | planner | method | success rate      | final distance (m) | ms / observation |
-        |--------|---------|--------|-------------------|--------------------|------------------|
-        | reach  | CEM     | M+S    | 0.50 [0.25, 0.75] | -                  | 2.35             |
-    """
-    lookup = {(r["family"], r["planner"], r["method"], r["metric"]): r for r in rows}
-    keys = list(dict.fromkeys((r["family"], r["planner"], r["method"]) for r in rows))
-    times = {(r["family"], r["planner"], r["method"]): r.get("ms_per_observation") for r in rows}
-    body = []
-    for family, planner, method in keys:
-        cells = []
-        for metric in METRICS:
-            r = lookup.get((family, planner, method, metric))
-            digits = 2 if metric == "success" else 3
-            cells.append(
-                "-" if r is None else f"{r['mean']:.{digits}f} [{r['low']:.{digits}f}, {r['high']:.{digits}f}]"
-            )
-        body.append([family, planner, method, *cells, ms_cell(times[(family, planner, method)])])
-    header = ["family", "planner", "method", *(label for label, _ in METRICS.values()), "ms / observation"]
-    return format_table(body, header)
-
-
-def _plot(rows: list[dict[str, Any]], config: FetchConfig, path: Path) -> None:
-    """``fetch.png``: one row of panels per family (success rate, final distance), bars per method grouped by planner."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    families = list(dict.fromkeys(r["family"] for r in rows))
-    fig, axes = plt.subplots(
-        len(families), len(METRICS), figsize=(5.0 * len(METRICS), 3.4 * len(families)), squeeze=False
-    )
-    for i, family in enumerate(families):
-        for ax, (metric, (label, _)) in zip(axes[i], METRICS.items(), strict=True):
-            sel = [r for r in rows if r["family"] == family and r["metric"] == metric]
-            labels = [
-                r["method"] if r["planner"] == "-" else f"{r['planner']}\n{r['method'].removeprefix('M+')}" for r in sel
-            ]
-            colors = [
-                f"C{list(ADAPTATIONS.values()).index(r['method'])}" if r["method"] in ADAPTATIONS.values() else "grey"
-                for r in sel
-            ]
-            ax.bar(
-                range(len(sel)),
-                [r["mean"] for r in sel],
-                yerr=[[r["mean"] - r["low"] for r in sel], [r["high"] - r["mean"] for r in sel]],
-                capsize=3,
-                color=colors,
-            )
-            ax.set_xticks(range(len(sel)), labels, fontsize=7)
-            ax.set_title(f"{family}: {label}", fontsize=10)
-            ax.grid(axis="y", alpha=0.3)
-    fig.suptitle(f"Fetch MPC, {config.episodes} test draws x {config.episode_steps} steps (95% CI)")
-    fig.tight_layout()
-    save_figure(fig, path, dpi=120)
-    plt.close(fig)
