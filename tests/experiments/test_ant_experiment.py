@@ -58,7 +58,7 @@ TINY = [
 ]
 VARIANTS = ["N", "G", "S", "S(evidence)", "S(paper)", "C"]
 ALL_CELLS = ["--planners", "cem", "mppi", "rs", "--adaptations", *VARIANTS]
-ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C")
+ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL")
 #: The scoreboard's columns, each a strategy of the primary metric (every strategy's prediction error runs).
 COLUMNS = {
     "none",
@@ -80,7 +80,7 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     captured = capsys.readouterr()
     printed = captured.out
     planned = planned_stages(captured.err, "run")
-    assert planned[:3] == ["collect", "train", "tune M"] and len(planned) == 3 + 2 * 6 + 3 * 6 * 2
+    assert planned[:3] == ["collect", "train", "tune M"] and len(planned) == 3 + 2 * 8 + 3 * 6 * 2
     # The primary table (prediction error) comes first, then its verdicts, the returns and the tuning.
     first = [printed.index(t) for t in ("Prediction error", "M+S paired with M+N", "Episode return", "Tuning of M")]
     assert first == sorted(first)
@@ -102,7 +102,7 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     assert cells == [(ant.PLANNERS[p], ant.ADAPTATIONS[a], c) for p, a, c in ant.CELLS if a in VARIANTS]
     assert all(float(r["return_low"]) <= float(r["return_mean"]) <= float(r["return_high"]) for r in returns)
     predictions = [r for r in rows if r["part"] == "prediction"]
-    assert len(predictions) == 2 * 2 * 6  # condition x (one-step, 3-step) x strategy
+    assert len(predictions) == 2 * 2 * 8  # condition x (one-step, 3-step) x strategy
     assert all(float(r["rmse_low"]) <= float(r["rmse_mean"]) <= float(r["rmse_high"]) for r in predictions)
     ms = [float(r["ms_per_observation"]) for r in rows]  # every row's method is one of M's strategies
     assert all(math.isfinite(v) and v > 0 for v in ms)
@@ -123,7 +123,9 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     assert ("M+S", "M+S(evidence)") in pairs and ("M+S", "M+C") in pairs and ("M+G", "M+C") in pairs
     assert {c["verdict"] for c in comparisons} <= {"better", "worse", "no significant difference"}
     payload = json.loads((out / "results.json").read_text())
-    assert payload["config"]["episodes"] == 2 and len(payload["results"]) == 36 + 24
+    assert (
+        payload["config"]["episodes"] == 2 and len(payload["results"]) == 36 + 32
+    )  # returns, then 2 x 2 x 8 predictions
     assert len(payload["training"]["paper_noise_std"]) == 41 and payload["machine"]["torch_threads"] == 1
     report = (out / "report.md").read_text()
     assert "mean [95% CI]" in report and "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C" in report
@@ -153,7 +155,7 @@ def test_results_json_has_the_tuning_and_two_scoreboard_entries(tmp_path) -> Non
     assert cli.main(["ant", "--out", str(out), *TINY, *ONE_CELL, "--conditions", "healthy", "crippled"]) == 0
     payload = json.loads((out / "results.json").read_text())
     tuning = payload["tuning"]["M"]
-    assert list(tuning["specs"]) == VARIANTS and tuning["episodes"] == 4
+    assert list(tuning["specs"]) == [*VARIANTS, "L", "SL"] and tuning["episodes"] == 4
     gd = tuning["specs"]["G"]["settings"]  # the grid's point, or one past its edge
     assert gd["lr"] > 0 and gd["steps"] >= 1 and gd["window"] >= 5 and gd["loss"] in ("mse", "huber")
     members = [m["name"] for m in tuning["specs"]["C"]["settings"]["members"]]

@@ -50,7 +50,7 @@ TINY = [
     "--calibrate-flips",
     "0.03",
 ]
-LABELS = ["FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C"]
+LABELS = ["FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL"]
 
 
 class Interrupted(RuntimeError):
@@ -182,11 +182,11 @@ def test_results_json_has_the_tuning_and_the_scoreboard_entry(tmp_path, capsys) 
     board = payload["scoreboard"]
     assert board["task"] == "Panda reaching" and board["cell"] == {"interval": panda.HEADLINE_INTERVAL}
     assert board["metric"] == "success" and board["lower_is_better"] is False
-    ran = [c for c in HEADLINE if c not in ("last layer", "SMCD + last layer")]  # the last layers run on request
-    assert set(board["estimates"]) == set(ran) == set(COLUMNS) - {TASK_MASKS, "last layer", "SMCD + last layer"}
+    ran = list(HEADLINE)  # every strategy, the last layers too
+    assert set(board["estimates"]) == set(ran) == set(COLUMNS) - {TASK_MASKS}
     assert [board["estimates"][c]["method"] for c in ran] == [f"M+{HEADLINE[c]}" for c in ran]
     assert all(e["trials"] == 2 * 4 and 0.0 <= e["mean"] <= 1.0 for e in board["estimates"].values())
-    assert all(v != "not compared" for k, v in board["verdicts"].items() if "last layer" not in k)
+    assert all(v != "not compared" for k, v in board["verdicts"].items() if "task masks" not in k)
     # Each strategy's time is its method's, measured on the tuning episodes.
     assert board["ms_per_observation"] == {c: entry["ms_per_observation"][HEADLINE[c]] for c in ran}
     assert all(0 < ms < math.inf for ms in board["ms_per_observation"].values())

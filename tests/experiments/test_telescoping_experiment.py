@@ -110,10 +110,10 @@ def test_tiny_run_writes_files_and_a_resumed_run_gives_the_same_table(tmp_path, 
     assert len(curves) == len(telescoping.DEFAULT_METHODS) * 13  # k = 0..12
     payload = json.loads((whole / "results.json").read_text())
     assert payload["config"]["trials"] == 6 and set(payload["train_loss"]) == {"M", "R", "T"}
-    assert set(payload["tuning"]["M"]["specs"]) == {"N", "G", "S", "S(evidence)", "S(paper)", "C"}
+    assert set(payload["tuning"]["M"]["specs"]) == {"N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL"}
     # The scoreboard's entry: every strategy of M, each with its time per observation.
     board = payload["scoreboard"]
-    ran = set(COLUMNS) - {"last layer", "SMCD + last layer"}  # the last layers run on request
+    ran = set(COLUMNS)  # every strategy, the last layers too
     assert set(board["estimates"]) == set(board["ms_per_observation"]) == ran
     assert board["estimates"]["combination"]["method"] == "M+C"
     assert all(0 < ms < math.inf for ms in board["ms_per_observation"].values())

@@ -39,9 +39,9 @@ METHODS = (
     ),
     *(f"T+{variant}" for variant in ("N", "G", "S", "L", "SL")),
 )
-#: What runs by default: Fig. 8's methods and T's N, G and S (R+S(paper) only on request: the R
-#: network's comparison is R+S against R+G; the last layers on request).
-DEFAULT_METHODS = tuple(m for m in METHODS if m != "R+S(paper)" and not m.endswith(("+L", "+SL")))
+#: What runs by default: Fig. 8's methods, T's, and the last layers on every network (R+S(paper)
+#: only on request: the R network's comparison is R+S against R+G).
+DEFAULT_METHODS = tuple(m for m in METHODS if m != "R+S(paper)")
 
 
 @dataclass
