@@ -415,3 +415,19 @@ def test_help_and_full_preset(capsys) -> None:
     assert config.particles == 7 and config.hidden == interpret.FULL["hidden"] and config.epochs == 400
     assert cli.make_config("interpret", {}).hidden == interpret.InterpretConfig().hidden
     assert interpret.InterpretConfig().threads == 1 and interpret.FULL["threads"] == 0
+
+
+@pytest.mark.slow
+def test_the_task_mask_network_is_trained_on_operators_and_reaches_the_scoreboard(tmp_path) -> None:
+    """T+S runs on a network whose masks were trained per operator, tuned like M's methods, paired with M+S."""
+    import smcd_rl
+
+    out = tmp_path / "run"
+    methods = ["--methods", "M+N", "M+S", "T+S", "--mask-groups", "4"]
+    assert cli.main(["interpret", "--out", str(out), "--parts", "lookahead", *TINY, *methods]) == 0
+    payload = json.loads((out / "results.json").read_text())
+    assert set(payload["tuning"]) == {"M", "T"} and len(payload["task_train_loss"]) == 1  # --epochs 1
+    assert smcd_rl.load(out / "task_model.pt").net.mask_dim == 2 * 4  # 4 bits in each of its 2 layers
+    board = payload["scoreboard"]
+    assert board["estimates"][TASK_MASKS]["method"] == "T+S"
+    assert board["verdicts"]["SMCD (task masks) vs SMCD (one-step)"] != "not compared"

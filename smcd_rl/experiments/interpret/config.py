@@ -21,13 +21,17 @@ PARTS: tuple[str, ...] = ("fig9", "confidence", "lookahead")
 #: tuned by the look-ahead error / S(evidence) SMCD calibrated by its evidence / S(paper) SMCD at the
 #: paper's settings / C the combination of the tuned ones / L the Bayesian last layer / SL SMCD with a
 #: Bayesian readout.
-METHODS: tuple[str, ...] = tuple(
-    f"{network}+{variant}"
-    for network in ("M", "R")
-    for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
+METHODS: tuple[str, ...] = (
+    *(
+        f"{network}+{variant}"
+        for network in ("M", "R")
+        for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
+    ),
+    # T: the network whose masks were trained to identify the operator (fit(mask_training="task")).
+    *(f"T+{variant}" for variant in ("N", "G", "S", "L", "SL")),
 )
 #: What runs by default (R+S(paper) only on request: the R network's comparison is with its tuned methods).
-DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m != "R+S(paper)")
+DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m not in ("R+S(paper)", "T+N", "T+G", "T+L"))
 #: The labels of :func:`~smcd_rl.envs.drone_operators.simulate_operators` (a ``--dataset`` may have others).
 SIMULATED_LABELS: tuple[str, ...] = ("skill", "strategy", "phase", "success", "target")
 
@@ -97,7 +101,8 @@ class InterpretConfig(TuningConfig):
         DEFAULT_METHODS,
         "look-ahead methods: M (multi-task) or R (Reptile) + N, G (tuned GD), S (SMCD tuned by the look-ahead), "
         "S(evidence) (SMCD calibrated by its evidence), S(paper), C (the combination of the tuned ones), "
-        "L (Bayesian last layer) or SL (SMCD with a Bayesian readout)",
+        "L (Bayesian last layer) or SL (SMCD with a Bayesian readout); T (masks trained to identify the "
+        "operator) + N, G, S, L or SL",
         choices=METHODS,
     )
     burn_in: tuple[float, ...] = setting(
@@ -114,6 +119,12 @@ class InterpretConfig(TuningConfig):
         low=2,
     )
     tuning_steps: int = setting(20, "steps of each tuning flight used (flights shorter are not drawn)", low=2)
+    # T: every sample through its operator's masks, 16 bits a layer (the masks sweep's best on the
+    # two-link arms; no sweep has measured it on the operators).
+    task_share: float = setting(
+        1.0, "share of T's samples trained through a mask of their operator's posterior", low=0.0, high=1.0
+    )
+    mask_groups: int = setting(16, "dropout bits per hidden layer of T (0: one per unit)", low=0)
     # The table scores the actions of the next steps after a burn-in: every method is tuned by its
     # look-ahead over a quarter of a tuning flight (the table's middle horizon ratio).
     tuning_horizon: int = setting(

@@ -121,15 +121,22 @@ def summary(data: TrajectoryDataset, split: dict[str, np.ndarray]) -> dict[str, 
 
 
 def steps(data: TrajectoryDataset, device: torch.device) -> TensorDict:
-    """Every step of ``data`` as one batch of ``state`` -> ``action`` samples."""
+    """Every step of ``data`` as one batch of ``state`` -> ``action`` samples, with its operator as ``task``
+    (what the T network's masks are trained to identify)."""
     n = data.state.shape[0]
+    operator = torch.from_numpy(data.operator[data.trajectory]).to(torch.int64)
     return TensorDict(
-        {"state": torch.from_numpy(data.state), "action": torch.from_numpy(data.action)}, [n], device=device
+        {"state": torch.from_numpy(data.state), "action": torch.from_numpy(data.action), "task": operator},
+        [n],
+        device=device,
     )
 
 
-def make_model(config: InterpretConfig, data: TrajectoryDataset, device: torch.device) -> smcd_rl.AdaptiveModel:
-    """The untrained behaviour-cloning model ``action = f(state)``; its initial weights come from the seed alone."""
+def make_model(
+    config: InterpretConfig, data: TrajectoryDataset, device: torch.device, *, mask_groups: int | None = None
+) -> smcd_rl.AdaptiveModel:
+    """The untrained behaviour-cloning model ``action = f(state)``; its initial weights come from the seed alone
+    (``mask_groups``: the T network's bits per layer)."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         net = smcd_rl.MaskedMLP(
@@ -137,6 +144,7 @@ def make_model(config: InterpretConfig, data: TrajectoryDataset, device: torch.d
             data.action.shape[1],
             hidden=(config.hidden,) * config.depth,
             dropout=config.dropout,
+            mask_groups=mask_groups,
             device=device,
         )
     return smcd_rl.AdaptiveModel(net, in_keys=["state"], out_key="action")

@@ -74,11 +74,16 @@ __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SI
 #: The adaptive methods, each compared (paired over the same trajectories) with M+N and with each other
 #: (the earlier one of a pair is its ``method``: M+S is compared against every other M method).
 ADAPTIVE: tuple[str, ...] = (
+    "T+S",  # first: its pairs read T+S minus the other
+    "T+SL",
     *(
         f"{network}+{variant}"
         for network in ("M", "R")
         for variant in ("S", "C", "S(evidence)", "S(paper)", "G", "L", "SL")
     ),
+    "T+L",
+    "T+G",
+    "T+N",
     "R+N",
 )
 
@@ -141,8 +146,10 @@ def stage_costs(config: InterpretConfig) -> dict[str, float]:
         if any(name.startswith("R+") for name in config.methods):
             steps = config.reptile_epochs * -(-round(train) // config.reptile_batch_size)
             costs["train reptile"] = estimate(steps=steps, forwards=3 * config.reptile_epochs * train, flops=flops)
+        if any(name.startswith("T+") for name in config.methods):  # bc's, and each epoch's posteriors
+            costs["train task"] = 2 * costs["train bc"]
         for family in sorted(
-            {method_variant(m)[0] for m in config.methods if method_variant(m)[1] != "N"}, key="MR".index
+            {method_variant(m)[0] for m in config.methods if method_variant(m)[1] != "N"}, key="MRT".index
         ):
             costs[f"tune {family}"] = tuning_cost(
                 config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops
@@ -207,7 +214,7 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
             flights, fit_ids = lookahead.tuning_flights(config, data, split)
             fitted = train if fit_ids is None else data.select(fit_ids)
             adapting = sorted(
-                {method_variant(m)[0] for m in config.methods if method_variant(m)[1] != "N"}, key="MR".index
+                {method_variant(m)[0] for m in config.methods if method_variant(m)[1] != "N"}, key="MRT".index
             )
             tuning_episodes = None
             if "lookahead" in config.parts and adapting:  # too few tuning flights: refused before training
@@ -281,6 +288,19 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                 )
                 reptile.save(ex.out / "reptile_model.pt")
                 bases["R"] = reptile
+            if any(name.startswith("T+") for name in config.methods):
+                task = drone.make_model(config, fitted, ex.device, mask_groups=config.mask_groups or None)
+                report.payload["task_train_loss"] = ex.train(
+                    "task",
+                    smcd_rl.fit,
+                    task,
+                    drone.steps(fitted, ex.device),
+                    **fit,
+                    mask_training="task",
+                    task_share=config.task_share,
+                )
+                task.save(ex.out / "task_model.pt")
+                bases["T"] = task
             # The fair protocol: each network's methods tuned on the tuning flights.
             tunings: dict[str, Tuning] = {}
             if tuning_episodes is not None:
