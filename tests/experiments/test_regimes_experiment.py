@@ -58,10 +58,10 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
         assert (out / name).is_file(), name
     rows = list(csv.DictReader((out / "results.csv").open()))
     methods = ["N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL", "G@1000ms", "S@1000ms", "C@1000ms"]
-    other = ["T+N", "T+G", "T+S", "T+SL", "R+G"]  # the pendulum family's task-mask and Reptile networks
+    task = ["T+N", "T+G", "T+S", "T+SL"]  # every family's task-mask network (the arm families share one)
     cells = {(r["family"], r["regime"], r["method"]) for r in rows}
-    expected = {(f, r, m) for f in FAMILIES for r in regime_names((1, 3), f) for m in methods}
-    assert cells == expected | {("pendulum", r, m) for r in regime_names((1, 3), "pendulum") for m in other}
+    expected = {(f, r, m) for f in FAMILIES for r in regime_names((1, 3), f) for m in (*methods, *task)}
+    assert cells == expected | {("pendulum", r, "R+G") for r in regime_names((1, 3), "pendulum")}  # Reptile's
     assert "every n-th" in regime_names((1, 3), "pendulum") and "every n-th" not in regime_names((1, 3), "two-link")
     # every method's time per observation is measured, once per network, and the same in every regime
     for row in rows:
@@ -76,14 +76,13 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
     assert "S vs G" in printed and "Median time per observation" in printed
     assert all(f"| {pair}" in printed or f" {pair} |" in printed for pair in ("L vs G", "L vs S", "SL vs S"))
     assert "pendulum: T+S (masks trained to identify the task) paired with G, R+G, S, T+G, T+N" in printed
+    assert "two-link: T+S (masks trained to identify the task) paired with G, S, T+G, T+N" in printed
     # T and R tune only what their methods need: no SMCD for R, no GD budget view for either.
     tuned = result["tuning"]
-    assert set(tuned["pendulum-reptile"]["specs"]) == {"G"} and set(tuned["pendulum-task"]["specs"]) == {
-        "N",
-        "G",
-        "S",
-        "SL",
-    }
+    assert set(tuned["pendulum-reptile"]["specs"]) == {"G"}
+    assert set(tuned["pendulum-task"]["specs"]) == set(tuned["arm-task"]["specs"]) == {"N", "G", "S", "SL"}
+    two_link_t3 = [e for e in result["scoreboard"] if e["task"] == "two-link T=3"][0]
+    assert two_link_t3["estimates"]["SMCD (task masks)"]["method"] == "T+S"
     pendulum_t3 = [e for e in result["scoreboard"] if e["task"] == "pendulum T=3"][0]
     assert pendulum_t3["estimates"]["SMCD (task masks)"]["method"] == "T+S"
     assert "SMCD (task masks)" in pendulum_t3["ms_per_observation"]
@@ -94,8 +93,8 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
     assert "one-step vs GD" in report and "Median time per observation" in report
 
 
-def test_the_pendulums_other_networks_leave_every_other_row_unchanged(tmp_path, capsys) -> None:
-    """T and R train from seeds of their own on the pendulum network's data, after it: M's rows do not move."""
+def test_the_other_networks_leave_every_other_row_unchanged(tmp_path, capsys) -> None:
+    """T and R train from seeds of their own on their base network's data, after it: M's rows do not move."""
     tiny = {**TINY, "families": ("two-link", "pendulum"), "burn_in": (3,)}
     methods = ("N", "G", "S")
     assert cli.main(["regimes", "--out", str(tmp_path / "m"), *options({**tiny, "methods": methods})]) == 0
@@ -109,7 +108,8 @@ def test_the_pendulums_other_networks_leave_every_other_row_unchanged(tmp_path, 
     alone, together = rows("m"), rows("t")
     assert all(together[key] == value for key, value in alone.items())
     assert {m for _, _, m in together} - {m for _, _, m in alone} == {"T+S", "R+G"}
-    assert not any(f == "two-link" and "+" in m for f, _, m in together)
+    assert not any(f == "two-link" and m == "R+G" for f, _, m in together)  # Reptile's network is the pendulum's
+    assert any(f == "two-link" and m == "T+S" for f, _, m in together)  # the arm families have a T of their own
     # T's masks come in mask_groups bits per layer.
     assert smcd_rl.load(tmp_path / "t" / "model-pendulum-task.pt").net.mask_dim == 2 * 16
 
@@ -122,7 +122,7 @@ def test_a_budget_label_with_a_plus_is_no_network_prefix() -> None:
     assert method_network("pendulum", "G@1e+06ms") == ("pendulum", "G@1e+06ms")
     costs = stage_costs(RegimesConfig(budget_ms=1e6))
     assert {"evaluate two-link G@1e+06ms", "evaluate pendulum G@1e+06ms", "evaluate pendulum T+S"} <= set(costs)
-    assert "evaluate two-link T+S" not in costs
+    assert "evaluate two-link T+S" in costs and "evaluate two-link R+G" not in costs
     with pytest.raises(ValueError, match="--mask-groups 16 must divide --hidden 24"):
         RegimesConfig(hidden=24).validate()
 

@@ -39,11 +39,10 @@ SEQUENTIAL = ("pendulum",)
 #: flips; C the combination of N and the tuned ones; L the Bayesian last layer (Gaussian or
 #: Student-t); SL SMCD with a Bayesian readout.
 METHODS = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
-#: Methods on the pendulum family's two other networks, trained on the same data: T, whose dropout
-#: masks were trained to identify the pendulum (``fit(mask_training="task")``), with no adaptation,
-#: gradient descent, SMCD or SMCD with a Bayesian readout, and R, trained by Reptile, with gradient
-#: descent. The arm families have no such networks (``smcd-rl two-link`` and ``smcd-rl telescoping``
-#: run them).
+#: Methods on the families' other networks, trained on the same data: T, whose dropout masks were
+#: trained to identify the task (``fit(mask_training="task")``; one for the arm families, one for
+#: the pendulum), with no adaptation, gradient descent, SMCD or SMCD with a Bayesian readout, and
+#: R, the pendulum's network trained by Reptile, with gradient descent.
 OTHER_NETWORK_METHODS = ("T+N", "T+G", "T+S", "T+SL", "R+G")
 #: The methods tuned again under ``--budget-ms`` per observation (the budgeted view).
 BUDGETED = ("G", "S", "C")
@@ -73,7 +72,7 @@ class RegimesConfig(TwoLinkFamilyConfig):
     families: tuple[str, ...] = setting(FAMILIES, "task families to run", choices=FAMILIES)
     methods: tuple[str, ...] = setting(
         (*METHODS, *OTHER_NETWORK_METHODS),
-        "methods (see the command's page); T+ and R+ ones run on the pendulum family only",
+        "methods (see the command's page); T+ ones on each family's task-mask network, R+ ones on the pendulum only",
         choices=(*METHODS, *OTHER_NETWORK_METHODS),
     )
     hidden: int = setting(256, "width of each hidden layer of both networks", low=1)
@@ -93,6 +92,11 @@ class RegimesConfig(TwoLinkFamilyConfig):
     outlier_burn_in: int = setting(10, "observations of the outlier regime (the corrupted one is the middle)", low=2)
     every: int = setting(5, "every n-th step measured in the 'every n-th' regime", low=2)
     every_steps: int = setting(30, "steps of the 'every n-th' regime (every n-th of them observed)", low=2)
+    # The masks sweep (held-out arms of the tuning seed, never the test arms) found every sample
+    # through its arm's masks best; no sweep has measured the pendulum's --task-share.
+    arm_task_share: float = setting(
+        1.0, "share of the arm T network's samples trained through a mask of their arm's posterior", low=0.0, high=1.0
+    )
     pendulum_tasks: int = setting(200, "training pendulums (mass and length draws)", low=1)
     pendulum_episodes: int = setting(10, "random-torque episodes per training pendulum", low=1)
     pendulum_steps: int = setting(20, "steps per training episode of the pendulum", low=2)

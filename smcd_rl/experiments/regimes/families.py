@@ -48,6 +48,7 @@ __all__ = [
     "network_of",
     "method_network",
     "split_method",
+    "runs_on",
     "build_model",
     "other_network",
     "training_data",
@@ -60,8 +61,9 @@ NETWORKS = {"two-link": "arm", "telescoping": "arm", "pendulum": "pendulum"}
 TUNING_SEED, TEST_SEED = 2_000_003, 1_000_003
 
 
-#: Method prefix -> the pendulum family's other network: masks trained to identify the task, or Reptile.
-OTHER_NETWORKS = {"T": "pendulum-task", "R": "pendulum-reptile"}
+#: Method prefix -> the kind of a family's other network: masks trained to identify the task (every
+#: family's network), or Reptile (the pendulum's only). The network is named ``<base>-<kind>``.
+OTHER_NETWORKS = {"T": "task", "R": "reptile"}
 
 
 def network_of(family: str) -> str:
@@ -83,18 +85,28 @@ def split_method(method: str) -> tuple[str, str]:
 
 
 def method_network(family: str, method: str) -> tuple[str, str]:
-    """``(network, variant)`` of a method of ``family``: ``"T+S"`` is ``S`` on the task-mask network.
+    """``(network, variant)`` of a method of ``family``: ``"T+S"`` is ``S`` on the family's task-mask network.
 
     Example:
-        >>> method_network("pendulum", "T+S"), method_network("two-link", "G@10ms")
-        (('pendulum-task', 'S'), ('arm', 'G@10ms'))
+        >>> method_network("pendulum", "T+S"), method_network("telescoping", "T+S"), method_network("two-link", "G")
+        (('pendulum-task', 'S'), ('arm-task', 'S'), ('arm', 'G'))
     """
     prefix, variant = split_method(method)
     if not prefix:
         return network_of(family), method
-    if family != "pendulum":
+    if not runs_on(family, method):
         raise ValueError(f"{method} runs on the pendulum family only, not on {family}")
-    return OTHER_NETWORKS[prefix], variant
+    return f"{network_of(family)}-{OTHER_NETWORKS[prefix]}", variant
+
+
+def runs_on(family: str, method: str) -> bool:
+    """Whether ``method`` runs on ``family``: Reptile's network (``R+``) is the pendulum's only.
+
+    Example:
+        >>> runs_on("two-link", "T+S"), runs_on("two-link", "R+G"), runs_on("pendulum", "R+G")
+        (True, False, True)
+    """
+    return split_method(method)[0] != "R" or family == "pendulum"
 
 
 def build_model(
@@ -102,7 +114,7 @@ def build_model(
 ) -> smcd_rl.AdaptiveModel:
     """The untrained network ``network`` as an adaptive model (its strategy is set per method)."""
     if network == "arm":
-        return smcd_rl.AdaptiveModel(arm_network(config, device), in_keys=["q"], out_key="ee")
+        return smcd_rl.AdaptiveModel(arm_network(config, device, mask_groups=mask_groups), in_keys=["q"], out_key="ee")
     hidden = (config.hidden,) * config.depth
     net = smcd_rl.MaskedMLP(3 + 1, 3, hidden=hidden, dropout=config.dropout, mask_groups=mask_groups, device=device)
     return smcd_rl.AdaptiveDynamicsModel(net)
@@ -111,20 +123,26 @@ def build_model(
 def other_network(
     network: str, config: RegimesConfig, data: TensorDictBase, device: torch.device | str
 ) -> tuple[smcd_rl.AdaptiveModel, Any, TensorDictBase, dict[str, Any]]:
-    """One of :data:`OTHER_NETWORKS`, untrained, with its training function, data and settings.
+    """A network ``<base>-<kind>`` (:data:`OTHER_NETWORKS`), untrained, with its training function, data and settings.
 
-    Both train on the pendulum network's own ``data`` (batch ``[tasks, episodes, steps]``); their
-    initial weights come from seeds of their own and the global RNG is left as it was, so adding
-    them changes nothing for the other methods.
+    It trains on its base network's own ``data`` (batch ``[tasks, episodes, steps]``); its
+    initial weights come from a seed of its own and the global RNG is left as it was, so adding
+    it changes nothing for the other methods. The arm's task-mask network trains every sample
+    through its arm's masks (``--arm-task-share``, the masks sweep's choice on held-out arms), the
+    pendulum's ``--task-share`` of them.
     """
-    task = network == "pendulum-task"
+    base, kind = network.split("-", 1)
+    task = kind == "task"
     groups = (config.mask_groups or None) if task else None  # Reptile's network is M's
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed + (29 if task else 17))
-        model = build_model("pendulum", config, device, mask_groups=groups)
+        model = build_model(base, config, device, mask_groups=groups)
     if task:
         tasks = torch.arange(data.batch_size[0], device=data.device).view(-1, 1, 1).expand(data.batch_size)
-        return model, smcd_rl.fit, data.clone(recurse=False).set("task", tasks), task_fit_settings(config)
+        settings = task_fit_settings(config)
+        if base == "arm":
+            settings["task_share"] = config.arm_task_share
+        return model, smcd_rl.fit, data.clone(recurse=False).set("task", tasks), settings
     return model, smcd_rl.fit_reptile, data, reptile_settings(config)
 
 

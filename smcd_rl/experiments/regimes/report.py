@@ -114,9 +114,10 @@ def tables(
 def _ms_of(ms: Mapping[str, Mapping[str, float]], method: str, network: str) -> float | None:
     """``method``'s time on ``network``: ``T+S`` is ``S`` on the task-mask network, nothing on the others."""
     prefix, variant = split_method(method)
+    kind = network.partition("-")[2]  # "" for a base network, "task" or "reptile" for another
     if prefix:
-        return ms[network].get(variant) if OTHER_NETWORKS[prefix] == network else None
-    return None if network in OTHER_NETWORKS.values() else ms[network].get(method)
+        return ms[network].get(variant) if OTHER_NETWORKS[prefix] == kind else None
+    return None if kind else ms[network].get(method)
 
 
 def _mean(row: Mapping[str, Any] | None) -> str:

@@ -22,11 +22,11 @@ from smcd_rl.digests import model_digest
 from smcd_rl.experiments.regimes.config import BUDGETED, FULL, RegimesConfig, regime_names
 from smcd_rl.experiments.regimes.families import (
     FAMILIES,
-    OTHER_NETWORKS,
     build_model,
     method_network,
     network_of,
     other_network,
+    runs_on,
     split_method,
     training_data,
     tuning_episodes,
@@ -51,8 +51,8 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
         data = {net: training_data(net, config, ex.generator) for net in networks}
         jobs = {net: (smcd_rl.fit, models[net], data[net], fit_settings(config)) for net in networks}
         other = _other_variants(config)
-        for net in other:  # T and R train on the pendulum network's data
-            models[net], fit, net_data, net_settings = other_network(net, config, data["pendulum"], ex.device)
+        for net in other:  # T and R train on their base network's data
+            models[net], fit, net_data, net_settings = other_network(net, config, data[_base(net)], ex.device)
             jobs[net] = (fit, models[net], net_data, net_settings)
         losses = ex.train_all(jobs)
         for net, model in models.items():
@@ -64,7 +64,7 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
             net: tune_network(
                 ex,
                 model,
-                tuning_episodes("pendulum" if net in other else net, config),
+                tuning_episodes(_base(net), config),
                 config,
                 name=net,
                 methods=other.get(net, config.methods),
@@ -83,7 +83,7 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
             f"{family} {method}": method_network(family, method)
             for family in config.families
             for method in labels
-            if family == "pendulum" or not split_method(method)[0]
+            if runs_on(family, method)
         }
         runs = {name: (net, variant) for name, (net, variant) in runs.items() if variant in tunings[net]["specs"]}
         methods = {
@@ -157,20 +157,25 @@ def _labels(config: RegimesConfig) -> list[str]:
 
 
 def _other_variants(config: RegimesConfig) -> dict[str, list[str]]:
-    """The pendulum family's other networks that the methods use -> the variants they run (``"T+S"``: ``"S"``).
+    """The other networks the families' methods use -> the variants they run (``"T+S"``: ``"S"``).
 
     Example:
-        >>> _other_variants(RegimesConfig(methods=("G", "T+N", "T+S")))
-        {'pendulum-task': ['N', 'S']}
+        >>> _other_variants(RegimesConfig(methods=("G", "T+N", "T+S", "R+G")))
+        {'arm-task': ['N', 'S'], 'pendulum-task': ['N', 'S'], 'pendulum-reptile': ['G']}
     """
-    if "pendulum" not in config.families:
-        return {}
     found: dict[str, list[str]] = {}
-    for method in config.methods:
-        prefix, variant = split_method(method)
-        if prefix:
-            found.setdefault(OTHER_NETWORKS[prefix], []).append(variant)
+    for family in config.families:
+        for method in config.methods:
+            if split_method(method)[0] and runs_on(family, method):
+                net, variant = method_network(family, method)
+                if variant not in found.setdefault(net, []):
+                    found[net].append(variant)
     return found
+
+
+def _base(network: str) -> str:
+    """The network whose data and tuning episodes ``network`` shares: ``arm`` for ``arm-task``."""
+    return network.split("-", 1)[0]
 
 
 def _target(name: str) -> object:
@@ -193,6 +198,7 @@ _REFERENCE_SECONDS = {
     "train pendulum": 30.0,
     "train pendulum-task": 60.0,  # the pendulum network's training and each pendulum's mask posterior
     "train pendulum-reptile": 30.0,
+    "train arm-task": 70.0,  # the arm network's training and each arm's mask posterior
     "tune": 510.0,  # per network: the GD grid, its extensions, two calibrations, the combination
     "evaluate N": 0.05,  # per family, 50 tasks; the methods' tuned settings set their cost
     "evaluate G": 70.0,
@@ -210,9 +216,9 @@ def stage_costs(config: RegimesConfig) -> dict[str, float]:
     Example:
         >>> costs = stage_costs(RegimesConfig())
         >>> costs["evaluate pendulum S"] > costs["evaluate pendulum N"], "evaluate two-link T+S" in costs
-        (True, False)
+        (True, True)
         >>> [stage for stage in costs if stage.startswith("train")]
-        ['train arm', 'train pendulum', 'train pendulum-task', 'train pendulum-reptile']
+        ['train arm', 'train pendulum', 'train arm-task', 'train pendulum-task', 'train pendulum-reptile']
     """
     scale = config.trials / 50 * config.particles / 1000
     other = _other_variants(config)
@@ -227,8 +233,8 @@ def stage_costs(config: RegimesConfig) -> dict[str, float]:
     costs.update({f"tune {net}": _REFERENCE_SECONDS["tune"] * tuning * share.get(net, 1.0) for net in networks})
     for family in config.families:
         for method in _labels(config):
-            prefix, variant = split_method(method)
-            if prefix and family != "pendulum":
+            variant = split_method(method)[1]
+            if not runs_on(family, method):
                 continue
             kind = variant[0] + ("@" if "@" in variant and variant[0] != "S" else "")
             costs[f"evaluate {family} {method}"] = _REFERENCE_SECONDS[f"evaluate {kind}"] * scale
