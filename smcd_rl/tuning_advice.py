@@ -21,11 +21,9 @@ Example:
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Any
 
-if TYPE_CHECKING:
-    from smcd_rl.diagnostics import Trace
-    from smcd_rl.tuning import TuneResult
+from smcd_rl.diagnostics import Trace
 
 __all__ = ["advice", "NEAR", "CHEAPER"]
 
@@ -35,8 +33,8 @@ NEAR = 0.05
 CHEAPER = 3.0
 
 
-def advice(result: TuneResult) -> list[str]:
-    """The advice lines for ``result`` (empty if fewer than two kinds were scored)."""
+def advice(result: Any) -> list[str]:
+    """The advice lines for ``result``, a :class:`smcd_rl.TuneResult` (empty if fewer than two kinds were scored)."""
     scored = {kind: c for kind, c in result.best_of.items() if math.isfinite(c.score)}
     if len(scored) < 2:
         return []
@@ -76,7 +74,7 @@ def advice(result: TuneResult) -> list[str]:
     return lines
 
 
-def _few_and_many(result: TuneResult, scored: dict) -> list[str]:
+def _few_and_many(result: Any, scored: dict[str, Any]) -> list[str]:
     """The best kind by one-step error over the first and the last quarter of the steps, where they differ."""
     runs: dict[str, Trace] = {}
     for kind in scored:

@@ -56,7 +56,7 @@ Example:
     >>> from smcd_rl.experiments.panda.run import PandaConfig, method_labels
     >>> config = PandaConfig()
     >>> method_labels(config)
-    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(evidence)', 'M+S(paper)', 'M+C']
+    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(evidence)', 'M+S(paper)', 'M+C', 'M+L', 'M+SL']
     >>> config.tasks * config.seeds, config.gd_lr, PandaConfig(gd_lr=(0.01,)).gd_lr
     (300, (0.003, 0.01, 0.03, 0.1), (0.01,))
 """

@@ -110,8 +110,8 @@ def tuned_specs(
         "flip_probs": config.calibrate_flips,
         "seed": seed,
         "progress": progress,
-        # An experiment whose table scores a look-ahead tunes by it (tuning_horizon > 1).
-        **_criterion(getattr(config, "tuning_horizon", 1)),
+        # An experiment whose table scores a look-ahead tunes by it (tuning_horizon > 1), else by one-step error.
+        **({"criterion": "lookahead", "horizon": h} if (h := getattr(config, "tuning_horizon", 1)) > 1 else {}),
     }
     common["strategies"] = _kinds(variants)
     free = smcd_rl.tune(model, episodes, **common)
@@ -167,16 +167,6 @@ def tuned_specs(
         "seconds": free.seconds + budget.seconds,
         "candidates": len(free.candidates) + len(budget.candidates),
     }
-
-
-def _criterion(horizon: int) -> dict[str, Any]:
-    """:func:`smcd_rl.tune`'s criterion for a tuning horizon: one-step at 1, the look-ahead beyond.
-
-    Example:
-        >>> _criterion(1), _criterion(10)
-        ({'criterion': 'one-step'}, {'criterion': 'lookahead', 'horizon': 10})
-    """
-    return {"criterion": "one-step"} if horizon == 1 else {"criterion": "lookahead", "horizon": horizon}
 
 
 def _kinds(variants: Sequence[str]) -> list[str]:
