@@ -11,6 +11,8 @@ import torch
 from smcd_rl import cli
 from smcd_rl.experiments.ant import run as ant
 from smcd_rl.experiments.shared import stages
+from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS as SCOREBOARD_COLUMNS
+from smcd_rl.experiments.shared.scoreboard_entry import TASK_MASKS
 from tests.experiments.test_stages import planned_stages
 
 TINY = [
@@ -60,16 +62,7 @@ VARIANTS = ["N", "G", "S", "S(evidence)", "S(paper)", "C"]
 ALL_CELLS = ["--planners", "cem", "mppi", "rs", "--adaptations", *VARIANTS]
 ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL")
 #: The scoreboard's columns, each a strategy of the primary metric (every strategy's prediction error runs).
-COLUMNS = {
-    "none",
-    "GD",
-    "SMCD (paper)",
-    "SMCD (calibrated)",
-    "SMCD (one-step)",
-    "combination",
-    "last layer",
-    "SMCD + last layer",
-}
+COLUMNS = set(SCOREBOARD_COLUMNS) - {TASK_MASKS}  # no task-mask network here
 ONE_CELL = ["--planners", "rs", "--adaptations", "N", "--conditions", "crippled"]
 
 
