@@ -50,7 +50,7 @@ TINY = [
     "--calibrate-flips",
     "0.03",
 ]
-LABELS = ["FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL"]
+LABELS = ["FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL", "T+S", "T+SL"]
 
 
 class Interrupted(RuntimeError):
@@ -76,7 +76,7 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     assert cli.main(["panda", "--out", str(out), *TINY]) == 0
     captured = capsys.readouterr()
     printed = captured.out
-    assert planned_stages(captured.err, "run")[:3] == ["train", "tune M", "evaluate FK n=1"]
+    assert planned_stages(captured.err, "run")[:5] == ["train", "train T", "tune M", "tune T", "evaluate FK n=1"]
     table = _table(printed)
     assert [cell.strip() for cell in table[0].split("|")[1:-1]] == ["method", "n=2", "n=5", "ms / observation"]
     assert [line.split("|")[1].strip() for line in table[2:]] == LABELS
@@ -89,6 +89,10 @@ def test_panda_command_writes_files_and_a_resumed_run_gives_the_same_table(tmp_p
     assert "Tuning of M on 4 held-out training-task episodes x 5 steps" in printed
     assert "M: tuned on 4 held-out training-task episodes x 5 steps" in printed
     assert "M: tuned under 10 ms per observation" in printed
+    # T, whose masks were trained to identify the tool, is tuned on the same episodes and paired with M's methods.
+    assert "T: tuned on 4 held-out training-task episodes x 5 steps" in printed
+    assert "T+S (masks trained to identify the task) paired with M+G, M+L, M+S, M+SL" in printed
+    assert (out / "task_model.pt").is_file()
     files = ("results.csv", "trials.csv", "comparisons.csv", "results.json", "panda.png", "tuning-M.png", "report.md")
     for name in (*files, "model.pt"):
         assert (out / name).is_file(), name
@@ -182,13 +186,14 @@ def test_results_json_has_the_tuning_and_the_scoreboard_entry(tmp_path, capsys) 
     board = payload["scoreboard"]
     assert board["task"] == "Panda reaching" and board["cell"] == {"interval": panda.HEADLINE_INTERVAL}
     assert board["metric"] == "success" and board["lower_is_better"] is False
-    ran = list(HEADLINE)  # every strategy, the last layers too
-    assert set(board["estimates"]) == set(ran) == set(COLUMNS) - {TASK_MASKS}
+    ran = list(HEADLINE)  # every strategy of M, the last layers too, and T+S
+    assert set(board["estimates"]) == {*ran, TASK_MASKS} == set(COLUMNS)
     assert [board["estimates"][c]["method"] for c in ran] == [f"M+{HEADLINE[c]}" for c in ran]
     assert all(e["trials"] == 2 * 4 and 0.0 <= e["mean"] <= 1.0 for e in board["estimates"].values())
-    assert all(v != "not compared" for k, v in board["verdicts"].items() if "task masks" not in k)
+    assert all(v != "not compared" for v in board["verdicts"].values())
     # Each strategy's time is its method's, measured on the tuning episodes.
-    assert board["ms_per_observation"] == {c: entry["ms_per_observation"][HEADLINE[c]] for c in ran}
+    expected = {c: entry["ms_per_observation"][HEADLINE[c]] for c in ran}
+    assert board["ms_per_observation"] == {**expected, TASK_MASKS: payload["tuning"]["T"]["ms_per_observation"]["S"]}
     assert all(0 < ms < math.inf for ms in board["ms_per_observation"].values())
     # --gd-lr with one value is a one-point grid.
     assert cli.make_config("panda", {"gd_lr": (0.01,)}).gd_lr == (0.01,)

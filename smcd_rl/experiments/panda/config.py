@@ -43,7 +43,7 @@ DEFAULT_INTERVALS = (1, 2, 5, 10, 20)
 #: S(evidence) SMCD calibrated by its evidence, S(paper) SMCD at the paper's settings, C the
 #: combination of N and the tuned ones; L the Bayesian last layer and SL SMCD with a Bayesian
 #: readout.
-METHODS = ("FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL")
+METHODS = ("FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL", "T+S", "T+SL")
 #: What runs by default: every method.
 DEFAULT_METHODS = METHODS
 
@@ -96,9 +96,18 @@ class PandaConfig(AdaptationConfig):
         "methods to run: FK (chain without the tool); M (the network) + N (none), G (GD, tuned), S (SMCD tuned "
         "by one-step error), S(evidence) (SMCD calibrated by its evidence), S(paper) (SMCD at --noise-std and "
         "--flip-prob), C (the combination of N and the tuned ones), L (Bayesian last layer) or SL (SMCD with a "
-        "Bayesian readout)",
+        "Bayesian readout); T (masks trained to identify the tool) + S or SL",
         choices=METHODS,
     )
+    task_tools: int = setting(
+        500, "tools of T's training data, --samples / --task-tools samples each (T's masks learn to identify it)", low=1
+    )
+    # Every sample through its tool's masks, 16 bits a layer: the masks sweep's best on the two-link
+    # arms (held-out arms of the tuning seed); no sweep has measured it on the Panda.
+    task_share: float = setting(
+        1.0, "share of T's samples trained through a mask of their tool's posterior", low=0.0, high=1.0
+    )
+    mask_groups: int = setting(16, "dropout bits per hidden layer of T (0: one per unit)", low=0)
     particles: int = setting(100, "SMCD mask particles (every SMCD method, M+C's too, and the tuning)", low=1)
     flip_prob: float = setting(
         0.05, "bit-flip probability per step of M+S(paper), SMCD at the paper's settings", low=0.0, high=1.0

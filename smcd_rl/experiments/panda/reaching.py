@@ -91,23 +91,24 @@ Observe = Callable[[Tensor, Tensor], None]
 
 def method_kinematics(
     label: str,
-    model: smcd_rl.AdaptiveModel,
+    models: dict[str, smcd_rl.AdaptiveModel],
     tools: Tensor,
-    tuning: Tuning | None,
+    tunings: dict[str, Tuning],
     config: PandaConfig,
     seed: int,
     device: torch.device,
 ) -> tuple[Kinematics, Observe | None]:
     """The controller's kinematics and, for adaptive models, what a measurement updates.
 
-    Every method but ``FK`` and ``M+N`` adapts with the strategy ``tuning`` holds for it: ``M+G``
-    tuned GD, ``M+S`` SMCD tuned by one-step error, ``M+S(evidence)`` SMCD calibrated by its
-    evidence, ``M+C`` the combination of N, G and S, ``M+S(paper)`` SMCD at ``--noise-std`` and
-    ``--flip-prob``; ``M+N`` does not adapt.
+    Every method but ``FK`` and ``M+N`` adapts its network (``models[network]``: ``M``, or ``T``
+    whose masks were trained to identify the tool) with the strategy its network's tuning holds
+    for it: ``G`` tuned GD, ``S`` SMCD tuned by one-step error, ``S(evidence)`` SMCD calibrated by
+    its evidence, ``C`` the combination, ``L``/``SL`` the last layers, ``S(paper)`` SMCD at
+    ``--noise-std`` and ``--flip-prob``; ``M+N`` does not adapt.
     """
     if label == "FK":
         return (lambda q: panda_fk(q, 0.0)), None  # the tool is unknown: assume none
-    tunings = {} if tuning is None else {"M": tuning}
+    model = models[label.partition("+")[0]]
     adapted = model.with_adaptation(strategy_for(label, tunings, seed=config.seed * 1_000_003 + seed, device=device))
     adapted.reset(batch_shape=(tools.shape[0],))
 

@@ -56,7 +56,7 @@ Example:
     >>> from smcd_rl.experiments.panda.run import PandaConfig, method_labels
     >>> config = PandaConfig()
     >>> method_labels(config)
-    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(evidence)', 'M+S(paper)', 'M+C', 'M+L', 'M+SL']
+    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(evidence)', 'M+S(paper)', 'M+C', 'M+L', 'M+SL', 'T+S', 'T+SL']
     >>> config.tasks * config.seeds, config.gd_lr, PandaConfig(gd_lr=(0.01,)).gd_lr
     (300, (0.003, 0.01, 0.03, 0.1), (0.01,))
 """
@@ -78,11 +78,13 @@ from smcd_rl.envs.panda_reach import panda_frame, panda_kinematics_data
 from smcd_rl.experiments.panda.config import DEFAULT_INTERVALS, FULL, METHODS, PandaConfig
 from smcd_rl.experiments.panda.figure import plot
 from smcd_rl.experiments.panda.reaching import method_kinematics, reach, sample_tasks, tuning_episodes
+from smcd_rl.experiments.panda.tables import describe, table, trial_rows
+from smcd_rl.experiments.panda.task_network import task_data, task_network, task_settings
 from smcd_rl.experiments.shared.harness import Experiment
-from smcd_rl.experiments.shared.outputs import format_table
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.shared.task_family import task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import ms_column, tuned_variants
 from smcd_rl.experiments.shared.tuning import Tuning, tune
 from smcd_rl.experiments.shared.video import video_name, write_gif
@@ -122,13 +124,20 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
         losses = ex.train("train", smcd_rl.fit, model, data.to(ex.device), **fit)
         model.save(ex.out / "model.pt")
         held_out_rmse = _held_out_rmse(model, held_out.to(ex.device))
+        models = {"M": model}
+        if any(m.startswith("T+") for m in config.methods):  # T: masks trained to identify the tool
+            models["T"] = task_network(config, ex.device)
+            samples = task_data(config).to(ex.device)
+            losses_t = ex.train("train T", smcd_rl.fit, models["T"], samples, **fit, **task_settings(config))
+            models["T"].save(ex.out / "task_model.pt")
 
-        # --- the fair protocol: SMCD and GD tuned on held-out episodes of fresh training tools ------
-        variants = tuned_variants("M", config.methods)  # every M+ method but M+N, or none
-        tunings = (
-            {"M": tune(ex, model, tuning_episodes(config, ex.device), config, variants=variants)} if variants else {}
-        )
-        tuning = tunings.get("M")
+        # --- the fair protocol: every network's methods tuned on held-out episodes of fresh tools ---
+        episodes = tuning_episodes(config, ex.device) if _adapts(config) else None
+        tunings = {
+            net: tune(ex, models[net], episodes, config, name=net, variants=variants)
+            for net in models
+            if episodes is not None and (variants := tuned_variants(net, config.methods))
+        }
 
         # --- every (method, n) on the same arms: each seed's tasks run as one batch -----------------
         labels = method_labels(config)
@@ -136,12 +145,15 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
         video_n = _video_interval(config)
 
         units = {name: functools.partial(_unit, *unit) for name, unit in runs.items()}
-        digest = model_digest(model)
+        digests = {net: model_digest(m) for net, m in models.items()}
         done = ex.evaluate(
             units,
-            functools.partial(_evaluate, model, tuning, config, video_n, ex.device, progress),
+            functools.partial(_evaluate, models, tunings, config, video_n, ex.device, progress),
             # The recorded videos are part of those results, so their count keys them (only where recorded).
-            content=lambda name: {"model": digest, **({"video": config.video} if runs[name][1] == video_n else {})},
+            content=lambda name: {
+                "model": digests[runs[name][0].partition("+")[0] if "+" in runs[name][0] else "M"],
+                **({"video": config.video} if runs[name][1] == video_n else {}),
+            },
         )
         videos = _write_videos({unit: done[name] for name, unit in runs.items()}, video_n, config, ex.out)
 
@@ -152,7 +164,9 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             (n,): {label: r["reached"].reshape(-1).double() for (label, m), r in results.items() if m == n}
             for n in intervals
         }
-        adaptive = [m for m in ("M+S", "M+SL", "M+L", "M+S(evidence)", "M+S(paper)", "M+C", "M+G", "FK") if m in labels]
+        # T+S first: its pairs read T+S minus the other.
+        order = ("T+S", "T+SL", "M+S", "M+SL", "M+L", "M+S(evidence)", "M+S(paper)", "M+C", "M+G", "FK")
+        adaptive = [m for m in order if m in labels]
         rows, comparisons = cell_statistics(
             scores,
             cell=("interval",),
@@ -163,7 +177,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             seed=config.seed,
         )
         ms = ms_column(labels, tunings)
-        rows = sorted((_describe(row, results, config, ms) for row in rows), key=lambda r: labels.index(r["method"]))
+        rows = sorted((describe(row, results, config, ms) for row in rows), key=lambda r: labels.index(r["method"]))
         headline = [
             c
             for c in comparisons
@@ -177,13 +191,21 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
                 f"{held_out_rmse:.3f} m; median ms per observation": table(rows, config),
                 "M+S paired with M+N, M+G, M+S(evidence) and M+S(paper) over the same arms "
                 "(positive: M+S reaches more goals)": verdict_table(headline, cell=("interval",)),
+                **task_verdict_table(
+                    comparisons,
+                    cell=("interval",),
+                    over="arms",
+                    against=("M+S", "M+G", "M+L", "M+SL"),
+                    lower_is_better=False,
+                ),
                 **{caption: text for t in tunings.values() for caption, text in t.tables().items()},
             },
             rows=rows,
-            trials=_trial_rows(results, config),
+            trials=trial_rows(results, config),
             comparisons=comparisons,
             payload={
                 "train_loss": losses,
+                **({"task_train_loss": losses_t} if "T" in models else {}),
                 "held_out_rmse_m": held_out_rmse,
                 "tuning": {name: t.payload() for name, t in tunings.items()},
                 "scoreboard": scoreboard_entry(
@@ -207,8 +229,8 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
 
 
 def _evaluate(
-    model: smcd_rl.AdaptiveModel,
-    tuning: Tuning | None,
+    models: dict[str, smcd_rl.AdaptiveModel],
+    tunings: dict[str, Tuning],
     config: PandaConfig,
     video_n: int | None,
     device: torch.device,
@@ -222,7 +244,7 @@ def _evaluate(
     videos: list[dict[str, Tensor]] = []
     for s in tqdm(range(config.seeds), desc=name, unit="seed", disable=not progress):
         tools, goals = sample_tasks(config, s, device)
-        kinematics, observe = method_kinematics(label, model, tools, tuning, config, s, device)
+        kinematics, observe = method_kinematics(label, models, tools, tunings, config, s, device)
         # Measurement noise (if any) from the seed alone: every method and n sees the same draws.
         noise = torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + 104_729 * (s + 1))
         # --video: the first arms (seed 0's, then seed 1's, ...) keep their joint angles at every step.
@@ -281,8 +303,8 @@ def stage_costs(config: PandaConfig) -> dict[str, float]:
 
     Example:
         >>> costs = stage_costs(PandaConfig())
-        >>> list(costs)[:3], costs["evaluate M+S n=20"] > costs["evaluate M+N n=20"]
-        (['train', 'tune M', 'evaluate FK n=1'], True)
+        >>> list(costs)[:4], costs["evaluate M+S n=20"] > costs["evaluate M+N n=20"]
+        (['train', 'train T', 'tune M', 'tune T'], True)
     """
     flops = mlp_flops(7, (config.hidden,) * config.depth, 3)
     costs = {
@@ -292,8 +314,13 @@ def stage_costs(config: PandaConfig) -> dict[str, float]:
             flops=flops,
         )
     }
-    if _adapts(config):
-        costs["tune M"] = tuning_cost(config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops)
+    if any(m.startswith("T+") for m in config.methods):  # M's training and each tool's posterior every epoch
+        costs["train T"] = 2 * costs["train"]
+    for net in ("M", "T"):
+        if tuned_variants(net, config.methods):
+            costs[f"tune {net}"] = tuning_cost(
+                config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops
+            )
     for label in method_labels(config):
         for n in _intervals(label, config):
             steps = config.seeds * config.steps
@@ -307,83 +334,13 @@ def stage_costs(config: PandaConfig) -> dict[str, float]:
 
 
 def _adapts(config: PandaConfig) -> bool:
-    """Whether a method adapts the network, so that it needs the tuning (every ``M+`` method but ``M+N``)."""
-    return any(m.startswith("M+") and m != "M+N" for m in config.methods)
+    """Whether a method adapts a network, so that it needs the tuning (every ``M+`` or ``T+`` method but ``M+N``)."""
+    return any(m.startswith(("M+", "T+")) and m != "M+N" for m in config.methods)
 
 
 def _intervals(label: str, config: PandaConfig) -> list[int]:
     # FK with a measurement every step is the reference line of Fig. 3, so it always runs.
     return sorted(set(config.intervals) | ({1} if label == "FK" else set()))
-
-
-def _describe(
-    row: dict[str, Any], results: dict[tuple[str, int], dict[str, Any]], config: PandaConfig, ms: dict[str, float]
-) -> dict:
-    """A table row with what the success rate leaves out: spread over seeds, steps, final distance, and time.
-
-    ``ms`` maps a method to its median ms per observation on the tuning episodes; a method
-    without one (FK, or M+N of a run that tuned nothing) has no ``ms_per_observation``.
-    """
-    r = results[(row["method"], row["interval"])]
-    rates, reached = r["reached"].double().mean(1), r["reached"].reshape(-1)
-    steps = r["steps"].reshape(-1).double()
-    return {
-        **row,
-        "success_seed_std": float(rates.std()) if len(rates) > 1 else 0.0,
-        "steps_mean": float(steps[reached].mean()) if bool(reached.any()) else None,
-        "final_distance_median": float(r["final_distance"].median()),
-        "seeds": config.seeds,
-        "tasks": config.tasks,
-        "seconds": r["seconds"],
-        **({"ms_per_observation": ms[row["method"]]} if row["method"] in ms else {}),
-    }
-
-
-def _trial_rows(results: dict[tuple[str, int], dict[str, Any]], config: PandaConfig) -> list[dict[str, Any]]:
-    return [
-        {
-            "method": label,
-            "interval": n,
-            "seed": s,
-            "task": k,
-            "reached": bool(r["reached"][s, k]),
-            "steps": int(r["steps"][s, k]),
-            "final_distance": float(r["final_distance"][s, k]),
-            "tool_length": float(r["tools"][s, k]),
-        }
-        for (label, n), r in results.items()
-        for s in range(config.seeds)
-        for k in range(config.tasks)
-    ]
-
-
-def table(rows: list[dict[str, Any]], config: PandaConfig) -> str:
-    """Success rate (mean [95% CI] over all arms), method down and measurement interval n across.
-
-    The last column is the method's median milliseconds per observation on the tuning episodes
-    (its rows' ``ms_per_observation``; "-" for a method without one, such as FK).
-
-    Example:
-        >>> row = {"method": "M+S", "interval": 5, "success_mean": 0.5, "success_low": 0.4, "success_high": 0.6}
-        >>> print(table([{**row, "ms_per_observation": 2.345}, {**row, "method": "FK"}], PandaConfig(intervals=(5,))))
-        | method | n=5               | ms / observation |
-        |--------|-------------------|------------------|
-        | M+S    | 0.50 [0.40, 0.60] | 2.35             |
-        | FK     | 0.50 [0.40, 0.60] | -                |
-    """
-    intervals = sorted(set(config.intervals))
-    lookup = {(r["method"], r["interval"]): r for r in rows}
-    ms = {r["method"]: r["ms_per_observation"] for r in rows if r.get("ms_per_observation") is not None}
-    body = []
-    for label in dict.fromkeys(r["method"] for r in rows):
-        cells = []
-        for n in intervals:
-            r = lookup.get((label, n))
-            cells.append(
-                "-" if r is None else f"{r['success_mean']:.2f} [{r['success_low']:.2f}, {r['success_high']:.2f}]"
-            )
-        body.append([label, *cells, f"{ms[label]:.3g}" if label in ms else "-"])
-    return format_table(body, ["method", *[f"n={n}" for n in intervals], "ms / observation"])
 
 
 def _held_out_rmse(model: smcd_rl.AdaptiveModel, data: TensorDict) -> float:
