@@ -63,6 +63,10 @@ def test_panda_video_writes_each_methods_first_arms_until_they_reach(tmp_path, c
         "M+S(evidence)": "M+S-evidence",
         "M+S(paper)": "M+S-paper",
         "M+C": "M+C",
+        "M+L": "M+L",
+        "M+SL": "M+SL",
+        "T+S": "T+S",
+        "T+SL": "T+SL",
     }
     names = [f"videos/{safe}-{k}.gif" for safe in methods.values() for k in range(5)]
     assert [f for f in json.loads((out / "results.json").read_text())["files"] if f.startswith("videos/")] == names
