@@ -93,6 +93,10 @@ class Candidate:
     #: the evidence criterion), the look-ahead RMSE or your own score (``inf`` if the filter refused).
     score: float = math.nan
 
+    def __post_init__(self) -> None:
+        if math.isnan(self.score):  # scored by its one-step error
+            object.__setattr__(self, "score", self.one_step_rmse)
+
 
 @dataclass
 class Calibration:
@@ -464,8 +468,7 @@ def _objective(candidate: Candidate, criterion: str) -> float:
     """What the search maximises: the log evidence, or minus the score (``-inf`` if not finite)."""
     if criterion == "evidence":
         return candidate.log_evidence
-    score = candidate.one_step_rmse if math.isnan(candidate.score) else candidate.score  # a record of before scores
-    return -score if math.isfinite(score) else -math.inf
+    return -candidate.score if math.isfinite(candidate.score) else -math.inf
 
 
 def _reusable_run(run: Trace, criterion: _Criterion) -> bool:

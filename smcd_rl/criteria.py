@@ -36,6 +36,7 @@ Example:
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -92,7 +93,7 @@ class Criterion:
     def score(self, predicted: Tensor, observed: Tensor) -> float:
         """The score of open-loop predictions ``[E, S, H, out]`` against the observations (lower is better)."""
         if self.name != "custom":
-            return float((predicted.to(torch.float64) - observed.to(torch.float64)).square().mean().sqrt())
+            return rmse(predicted, observed)
         assert self.fn is not None
         value = self.fn(predicted, observed)
         if isinstance(value, Tensor) and value.numel() == 1:
@@ -187,10 +188,18 @@ class Lookahead:
 
     def rows(self, rows: slice) -> Lookahead:
         """The same look-ahead on a slice of the episodes (a race's first episodes)."""
-        part = object.__new__(Lookahead)
-        part.__dict__.update(self.__dict__)
+        part = copy.copy(self)
         part.raw_inputs, part.targets, part.observed = self.raw_inputs[rows], self.targets[rows], self.observed[rows]
         return part
+
+    def rmse(self, ahead: Tensor) -> float:
+        """The RMSE (pooled) of a run's open-loop predictions ``[E, S, H, out]`` against these episodes."""
+        return rmse(ahead, self.observed)
+
+
+def rmse(predicted: Tensor, observed: Tensor) -> float:
+    """The root-mean-square difference, pooled over every entry, in float64."""
+    return float((predicted.to(torch.float64) - observed.to(torch.float64)).square().mean().sqrt())
 
 
 def _name(fn: object) -> str:

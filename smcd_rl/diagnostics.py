@@ -170,5 +170,5 @@ def trace_pairs(
     result.per_episode_rmse = [math.sqrt(value / ((steps - 1) * y.shape[-1])) for value in episode_squared.tolist()]
     if lookahead is not None:
         result.ahead = torch.stack(ahead, 1)
-        result.lookahead_rmse = float((result.ahead - lookahead.observed).to(torch.float64).square().mean().sqrt())
+        result.lookahead_rmse = lookahead.rmse(result.ahead)
     return result

@@ -217,7 +217,7 @@ class TuneResult:
 
     def table(self) -> str:
         """The best of each kind: settings, score(s) and time per observation, then what to use."""
-        ahead = self.score_label != "one-step RMSE"
+        ahead = self.criterion in ("lookahead", "custom")
         by = self.score_label if ahead else self.criterion
         lines = [
             f"tuned by {by} on {self.episodes} episodes x {self.steps} steps"
