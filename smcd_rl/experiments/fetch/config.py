@@ -12,6 +12,7 @@ from typing import ClassVar
 
 from smcd_rl.experiments.shared.adaptation_config import VARIANTS, TuningConfig, check_learnt_dynamics
 from smcd_rl.experiments.shared.config import setting
+from smcd_rl.experiments.shared.task_family import check_mask_groups
 
 __all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "ADAPTATIONS", "TASK_ADAPTATIONS"]
 
@@ -139,11 +140,7 @@ class FetchConfig(TuningConfig):
             raise ValueError(
                 f"--gd-lr {max(self.gd_lr)} is above --gd-max-lr {self.gd_max_lr}; lower it or raise --gd-max-lr"
             )
-        if self.task_adaptations and self.mask_groups and self.hidden % self.mask_groups:
-            raise ValueError(
-                f"--mask-groups {self.mask_groups} must divide --hidden {self.hidden} (each bit switches an equal "
-                "group of units); choose a divisor, or 0 for one bit per unit"
-            )
+        check_mask_groups(self, bool(self.task_adaptations))
         if self.tuning_horizon >= self.tuning_steps:
             raise ValueError(
                 f"--tuning-horizon {self.tuning_horizon} needs tuning episodes longer than it; raise --tuning-steps "

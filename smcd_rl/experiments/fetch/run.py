@@ -80,11 +80,11 @@ from smcd_rl.digests import model_digest
 from smcd_rl.experiments.fetch.config import ADAPTATIONS, FAMILIES, FULL, PLANNERS, FetchConfig
 from smcd_rl.experiments.fetch.episodes import collect, random_cell, run_cell, tuning_episodes, validation_error
 from smcd_rl.experiments.fetch.report import METRICS, plot, rename, table, unrename
-from smcd_rl.experiments.fetch.task_network import task_method, task_network, task_settings
+from smcd_rl.experiments.fetch.task_network import task_method, task_network
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.task_family import task_verdict_table
+from smcd_rl.experiments.shared.task_family import task_mask_settings, task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import ms_column
 from smcd_rl.experiments.shared.tuning import tune
 from smcd_rl.experiments.shared.video import video_name
@@ -181,7 +181,7 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
             if config.task_adaptations:
                 task = task_network(config, obs_dim, action_dim, ex.device)
                 training[family]["task_loss"] = ex.train(
-                    f"{family} T", smcd_rl.fit_dynamics, task, train, **fit, **task_settings(config)
+                    f"{family} T", smcd_rl.fit_dynamics, task, train, **fit, **task_mask_settings(config)
                 )
                 task.save(ex.out / f"task_model-{family}.pt")
                 task_tuning = tune(

@@ -10,13 +10,11 @@ Example:
     >>> from smcd_rl.experiments.fetch.config import FetchConfig
     >>> task_network(FetchConfig(hidden=32), 10, 4, "cpu").net.mask_dim  # 16 bits in each of 2 layers
     32
-    >>> task_settings(FetchConfig())
-    {'mask_training': 'task', 'task_share': 1.0}
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -25,7 +23,7 @@ import smcd_rl
 if TYPE_CHECKING:
     from smcd_rl.experiments.fetch.config import FetchConfig
 
-__all__ = ["task_network", "task_settings", "task_method"]
+__all__ = ["task_network", "task_method"]
 
 
 def task_network(
@@ -42,11 +40,6 @@ def task_network(
         device=device,
     )
     return smcd_rl.AdaptiveDynamicsModel(net)
-
-
-def task_settings(config: FetchConfig) -> dict[str, Any]:
-    """What T's training adds to M's (the draws' ids are the data's ``"task"`` entry)."""
-    return {"mask_training": "task", "task_share": config.task_share}
 
 
 def task_method(variant: str) -> str:

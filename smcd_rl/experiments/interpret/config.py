@@ -12,6 +12,7 @@ from pathlib import Path
 
 from smcd_rl.experiments.shared.adaptation_config import TuningConfig
 from smcd_rl.experiments.shared.config import setting
+from smcd_rl.experiments.shared.task_family import check_mask_groups
 
 __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SIMULATED_LABELS"]
 
@@ -151,6 +152,7 @@ class InterpretConfig(TuningConfig):
     def validate(self) -> None:
         """The declared bounds, then the checks across fields and of the dataset file."""
         super().validate()
+        check_mask_groups(self, "lookahead" in self.parts and any(m.startswith("T+") for m in self.methods))
         if self.known_fraction + self.unknown_fraction >= 1:
             raise ValueError(
                 f"--known-fraction + --unknown-fraction must be below 1, got {self.known_fraction + self.unknown_fraction}"

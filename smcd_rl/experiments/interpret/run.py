@@ -66,6 +66,7 @@ from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import verdict_table
+from smcd_rl.experiments.shared.task_family import task_mask_settings
 from smcd_rl.experiments.shared.tuned_methods import method_variant, ms_column, tuned_variants
 from smcd_rl.experiments.shared.tuning import Tuning, tune
 
@@ -296,8 +297,7 @@ def run(config: InterpretConfig, *, progress: bool = True) -> dict[str, Any]:
                     task,
                     drone.steps(fitted, ex.device),
                     **fit,
-                    mask_training="task",
-                    task_share=config.task_share,
+                    **task_mask_settings(config),
                 )
                 task.save(ex.out / "task_model.pt")
                 bases["T"] = task

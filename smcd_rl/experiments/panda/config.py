@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 from smcd_rl.experiments.shared.adaptation_config import AdaptationConfig
 from smcd_rl.experiments.shared.config import setting
+from smcd_rl.experiments.shared.task_family import check_mask_groups
 
 __all__ = [
     "PandaConfig",
@@ -137,8 +138,9 @@ class PandaConfig(AdaptationConfig):
     SELECTION = ("methods", "intervals")
 
     def validate(self) -> None:
-        """The declared bounds, then the one across options: the GD grid within its step limit."""
+        """The declared bounds, then those across options: the GD grid within its step limit, T's mask groups."""
         super().validate()
+        check_mask_groups(self, any(m.startswith("T+") for m in self.methods))
         if max(self.gd_steps) > self.gd_max_steps:
             raise ValueError(
                 f"--gd-steps {max(self.gd_steps)} is above --gd-max-steps {self.gd_max_steps}; lower it or raise "

@@ -79,12 +79,12 @@ from smcd_rl.experiments.panda.config import DEFAULT_INTERVALS, FULL, METHODS, P
 from smcd_rl.experiments.panda.figure import plot
 from smcd_rl.experiments.panda.reaching import method_kinematics, reach, sample_tasks, tuning_episodes
 from smcd_rl.experiments.panda.tables import describe, table, trial_rows
-from smcd_rl.experiments.panda.task_network import task_data, task_network, task_settings
+from smcd_rl.experiments.panda.task_network import task_data, task_network
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
-from smcd_rl.experiments.shared.task_family import task_verdict_table
+from smcd_rl.experiments.shared.task_family import task_mask_settings, task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import ms_column, tuned_variants
 from smcd_rl.experiments.shared.tuning import Tuning, tune
 from smcd_rl.experiments.shared.video import video_name, write_gif
@@ -128,7 +128,7 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
         if any(m.startswith("T+") for m in config.methods):  # T: masks trained to identify the tool
             models["T"] = task_network(config, ex.device)
             samples = task_data(config).to(ex.device)
-            losses_t = ex.train("train T", smcd_rl.fit, models["T"], samples, **fit, **task_settings(config))
+            losses_t = ex.train("train T", smcd_rl.fit, models["T"], samples, **fit, **task_mask_settings(config))
             models["T"].save(ex.out / "task_model.pt")
 
         # --- the fair protocol: every network's methods tuned on held-out episodes of fresh tools ---

@@ -18,7 +18,7 @@ Example:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import torch
 from tensordict import TensorDict
@@ -29,7 +29,7 @@ from smcd_rl.envs.panda_reach import panda_fk, panda_kinematics_data
 if TYPE_CHECKING:
     from smcd_rl.experiments.panda.config import PandaConfig
 
-__all__ = ["TASK_DATA_SEED", "task_data", "task_network", "task_settings"]
+__all__ = ["TASK_DATA_SEED", "task_data", "task_network"]
 
 #: Offset of T's data seed from ``--seed`` (a stream of its own: M's data and the test tasks are untouched).
 TASK_DATA_SEED = 7919
@@ -60,8 +60,3 @@ def task_network(config: PandaConfig, device: torch.device | str) -> smcd_rl.Ada
             device=device,
         )
     return smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
-
-
-def task_settings(config: PandaConfig) -> dict[str, Any]:
-    """What T's training adds to M's."""
-    return {"mask_training": "task", "task_share": config.task_share}

@@ -49,6 +49,7 @@ __all__ = [
     "method_network",
     "split_method",
     "runs_on",
+    "split_network",
     "build_model",
     "other_network",
     "training_data",
@@ -99,6 +100,17 @@ def method_network(family: str, method: str) -> tuple[str, str]:
     return f"{network_of(family)}-{OTHER_NETWORKS[prefix]}", variant
 
 
+def split_network(network: str) -> tuple[str, str]:
+    """``(base, kind)`` of a network's name: ``("arm", "task")`` for ``"arm-task"``, ``("arm", "")`` for ``"arm"``.
+
+    Example:
+        >>> split_network("pendulum-reptile"), split_network("arm")
+        (('pendulum', 'reptile'), ('arm', ''))
+    """
+    base, _, kind = network.partition("-")
+    return base, kind
+
+
 def runs_on(family: str, method: str) -> bool:
     """Whether ``method`` runs on ``family``: Reptile's network (``R+``) is the pendulum's only.
 
@@ -131,7 +143,7 @@ def other_network(
     through its arm's masks (``--arm-task-share``, the masks sweep's choice on held-out arms), the
     pendulum's ``--task-share`` of them.
     """
-    base, kind = network.split("-", 1)
+    base, kind = split_network(network)
     task = kind == "task"
     groups = (config.mask_groups or None) if task else None  # Reptile's network is M's
     with torch.random.fork_rng(devices=[]):

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from smcd_rl.experiments.regimes.config import RegimesConfig, regime_names
-from smcd_rl.experiments.regimes.families import FAMILIES, OTHER_NETWORKS, network_of, split_method
+from smcd_rl.experiments.regimes.families import FAMILIES, OTHER_NETWORKS, network_of, split_method, split_network
 from smcd_rl.experiments.regimes.protocol import budgeted_label
 from smcd_rl.experiments.shared.outputs import format_table, save_figure
 from smcd_rl.experiments.shared.scoreboard_entry import (
@@ -114,7 +114,7 @@ def tables(
 def _ms_of(ms: Mapping[str, Mapping[str, float]], method: str, network: str) -> float | None:
     """``method``'s time on ``network``: ``T+S`` is ``S`` on the task-mask network, nothing on the others."""
     prefix, variant = split_method(method)
-    kind = network.partition("-")[2]  # "" for a base network, "task" or "reptile" for another
+    kind = split_network(network)[1]  # "" for a base network, "task" or "reptile" for another
     if prefix:
         return ms[network].get(variant) if OTHER_NETWORKS[prefix] == kind else None
     return None if kind else ms[network].get(method)

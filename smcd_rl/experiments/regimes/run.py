@@ -28,6 +28,7 @@ from smcd_rl.experiments.regimes.families import (
     other_network,
     runs_on,
     split_method,
+    split_network,
     training_data,
     tuning_episodes,
 )
@@ -52,7 +53,9 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
         jobs = {net: (smcd_rl.fit, models[net], data[net], fit_settings(config)) for net in networks}
         other = _other_variants(config)
         for net in other:  # T and R train on their base network's data
-            models[net], fit, net_data, net_settings = other_network(net, config, data[_base(net)], ex.device)
+            models[net], fit, net_data, net_settings = other_network(
+                net, config, data[split_network(net)[0]], ex.device
+            )
             jobs[net] = (fit, models[net], net_data, net_settings)
         losses = ex.train_all(jobs)
         for net, model in models.items():
@@ -64,7 +67,7 @@ def run(config: RegimesConfig, *, progress: bool = True) -> dict[str, Any]:
             net: tune_network(
                 ex,
                 model,
-                tuning_episodes(_base(net), config),
+                tuning_episodes(split_network(net)[0], config),
                 config,
                 name=net,
                 methods=other.get(net, config.methods),
@@ -171,11 +174,6 @@ def _other_variants(config: RegimesConfig) -> dict[str, list[str]]:
                 if variant not in found.setdefault(net, []):
                     found[net].append(variant)
     return found
-
-
-def _base(network: str) -> str:
-    """The network whose data and tuning episodes ``network`` shares: ``arm`` for ``arm-task``."""
-    return network.split("-", 1)[0]
 
 
 def _target(name: str) -> object:

@@ -23,6 +23,7 @@ import smcd_rl
 from smcd_rl.baselines import OracleModel
 from smcd_rl.envs.two_link_arm import motor_babbling, sample_link_lengths, two_link_fk
 from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.experiments.shared.task_family import task_mask_settings
 from smcd_rl.experiments.shared.two_link_family_config import TwoLinkFamilyConfig
 
 __all__ = [
@@ -106,7 +107,7 @@ def task_model(config: TwoLinkFamilyConfig, device: torch.device | str, *, init_
 
 def task_fit_settings(config: TwoLinkFamilyConfig) -> dict[str, Any]:
     """The :func:`smcd_rl.fit` settings of the T network: M's, with masks tied to the arm (the data's ``"task"``)."""
-    return {**fit_settings(config), "mask_training": "task", "task_share": config.task_share}
+    return {**fit_settings(config), **task_mask_settings(config)}
 
 
 def reptile_settings(config: TwoLinkFamilyConfig) -> dict[str, Any]:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from smcd_rl.experiments.shared.adaptation_config import AdaptationConfig
 from smcd_rl.experiments.shared.config import setting
+from smcd_rl.experiments.shared.task_family import check_mask_groups
 
 __all__ = ["TwoLinkFamilyConfig", "FAMILY_FULL"]
 
@@ -65,10 +66,4 @@ class TwoLinkFamilyConfig(AdaptationConfig):
     def validate(self) -> None:
         """The declared bounds, then that the T network's mask groups split its layers evenly, if a T method runs."""
         super().validate()
-        runs_task = any(m.startswith("T+") for m in getattr(self, "methods", ()))
-        if runs_task and self.mask_groups and self.hidden % self.mask_groups:
-            raise ValueError(
-                f"--mask-groups {self.mask_groups} must divide --hidden {self.hidden}: each of the T network's mask "
-                "bits switches hidden/mask-groups units; pass a divisor of --hidden, 0 for one bit per unit, or "
-                "drop the T methods"
-            )
+        check_mask_groups(self, any(m.startswith("T+") for m in getattr(self, "methods", ())))
