@@ -10,9 +10,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from smcd_rl.experiments.shared.adaptation_config import VARIANTS, TuningConfig, check_learnt_dynamics
+from smcd_rl.experiments.shared.adaptation_config import (
+    VARIANTS,
+    TuningConfig,
+    check_learnt_dynamics,
+    check_mask_groups,
+)
 from smcd_rl.experiments.shared.config import setting
-from smcd_rl.experiments.shared.task_family import check_mask_groups
 
 __all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "ADAPTATIONS", "TASK_ADAPTATIONS"]
 

@@ -10,9 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from smcd_rl.experiments.shared.adaptation_config import TuningConfig
+from smcd_rl.experiments.shared.adaptation_config import TuningConfig, check_mask_groups
 from smcd_rl.experiments.shared.config import setting
-from smcd_rl.experiments.shared.task_family import check_mask_groups
 
 __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SIMULATED_LABELS"]
 

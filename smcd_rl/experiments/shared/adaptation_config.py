@@ -8,11 +8,18 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 from smcd_rl.experiments.shared.config import EvaluationConfig, setting
 
-__all__ = ["TuningConfig", "AdaptationConfig", "VARIANTS", "LearntDynamicsSettings", "check_learnt_dynamics"]
+__all__ = [
+    "TuningConfig",
+    "AdaptationConfig",
+    "VARIANTS",
+    "LearntDynamicsSettings",
+    "check_learnt_dynamics",
+    "check_mask_groups",
+]
 
 #: The strategies a method name may end in: none, tuned GD, SMCD tuned by one-step error, SMCD
 #: calibrated by its evidence, SMCD at the paper's settings, the combination of the tuned ones, the
@@ -91,3 +98,22 @@ def check_learnt_dynamics(config: LearntDynamicsSettings) -> None:
                     f"--{name} {flip} is too large at dropout {config.dropout}: "
                     f"use at most {1 / (2 * max(keep, 1 - keep)):.3g}"
                 )
+
+
+def check_mask_groups(config: Any, runs_task: bool) -> None:
+    """Before any work: T's ``--mask-groups`` must split ``--hidden`` evenly where a T method runs.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> check_mask_groups(SimpleNamespace(mask_groups=16, hidden=24), runs_task=False)  # no T: nothing to check
+        >>> check_mask_groups(SimpleNamespace(mask_groups=16, hidden=24), runs_task=True)
+        Traceback (most recent call last):
+        ...
+        ValueError: --mask-groups 16 must divide --hidden 24: each of the T network's mask bits switches hidden/mask-groups units; pass a divisor of --hidden, 0 for one bit per unit, or drop the T methods
+    """
+    if runs_task and config.mask_groups and config.hidden % config.mask_groups:
+        raise ValueError(
+            f"--mask-groups {config.mask_groups} must divide --hidden {config.hidden}: each of the T network's mask "
+            "bits switches hidden/mask-groups units; pass a divisor of --hidden, 0 for one bit per unit, or "
+            "drop the T methods"
+        )

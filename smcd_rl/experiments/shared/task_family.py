@@ -24,7 +24,7 @@ from typing import Any
 
 from smcd_rl.experiments.shared.stats import verdict_table
 
-__all__ = ["TASK_AGAINST", "task_verdict_table", "task_mask_settings", "check_mask_groups"]
+__all__ = ["TASK_AGAINST", "task_verdict_table", "task_mask_settings"]
 
 #: What T+S is paired with in its table: SMCD and GD on the multi-task network, GD on Reptile's,
 #: and the task-mask network's own GD and no adaptation.
@@ -40,25 +40,6 @@ def task_mask_settings(config: Any) -> dict[str, Any]:
         {'mask_training': 'task', 'task_share': 1.0}
     """
     return {"mask_training": "task", "task_share": config.task_share}
-
-
-def check_mask_groups(config: Any, runs_task: bool) -> None:
-    """Before any work: T's ``--mask-groups`` must split ``--hidden`` evenly where a T method runs.
-
-    Example:
-        >>> from types import SimpleNamespace
-        >>> check_mask_groups(SimpleNamespace(mask_groups=16, hidden=24), runs_task=False)  # no T: nothing to check
-        >>> check_mask_groups(SimpleNamespace(mask_groups=16, hidden=24), runs_task=True)
-        Traceback (most recent call last):
-        ...
-        ValueError: --mask-groups 16 must divide --hidden 24: each of the T network's mask bits switches hidden/mask-groups units; pass a divisor of --hidden, 0 for one bit per unit, or drop the T methods
-    """
-    if runs_task and config.mask_groups and config.hidden % config.mask_groups:
-        raise ValueError(
-            f"--mask-groups {config.mask_groups} must divide --hidden {config.hidden}: each of the T network's mask "
-            "bits switches hidden/mask-groups units; pass a divisor of --hidden, 0 for one bit per unit, or "
-            "drop the T methods"
-        )
 
 
 def task_verdict_table(

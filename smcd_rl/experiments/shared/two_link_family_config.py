@@ -9,9 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from smcd_rl.experiments.shared.adaptation_config import AdaptationConfig
+from smcd_rl.experiments.shared.adaptation_config import AdaptationConfig, check_mask_groups
 from smcd_rl.experiments.shared.config import setting
-from smcd_rl.experiments.shared.task_family import check_mask_groups
 
 __all__ = ["TwoLinkFamilyConfig", "FAMILY_FULL"]
 
