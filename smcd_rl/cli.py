@@ -76,6 +76,12 @@ COMMANDS: dict[str, Command] = {
         "smcd_rl.experiments.sweep.run",
         "hyper-parameter ablations on Ray: training loss (Figs. 5, 12) and SMCD look-ahead error (Fig. 6)",
     ),
+    "task-masks": Command(
+        "smcd_rl.experiments.task_masks.config",
+        "TaskMasksConfig",
+        "smcd_rl.experiments.task_masks.run",
+        "the task-mask network's share and mask groups measured on one family's held-out training tasks",
+    ),
     "ant": Command(
         "smcd_rl.experiments.ant.config",
         "AntConfig",
