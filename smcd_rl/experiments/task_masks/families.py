@@ -28,6 +28,7 @@ from tensordict import TensorDictBase
 
 import smcd_rl
 from smcd_rl.experiments.shared.task_family import task_mask_settings
+from smcd_rl.experiments.task_masks.config import experiment_config
 
 __all__ = ["Family", "load"]
 
@@ -42,6 +43,8 @@ class Family:
     task: str
     #: The experiment's own (share, groups): the grid's reference point.
     current: tuple[float, int]
+    #: Width of T's hidden layers (mask groups must divide it).
+    width: int
     #: SMCD's particles in the experiment.
     particles: int
     #: Flip probabilities the experiment's calibration tries.
@@ -67,14 +70,12 @@ class Family:
 
 def load(name: str, *, seed: int, device: torch.device | str, generator: torch.Generator) -> Family:
     """The family ``name`` of :data:`~smcd_rl.experiments.task_masks.config.FAMILIES` at its experiment's defaults."""
-    return _LOADERS[name](seed, torch.device(device), generator)
+    return _LOADERS[name](experiment_config(name, seed), torch.device(device), generator)
 
 
-def _pendulum(seed: int, device: torch.device, generator: torch.Generator) -> Family:
+def _pendulum(config: Any, device: torch.device, generator: torch.Generator) -> Family:
     from smcd_rl.experiments.regimes import families as regimes
-    from smcd_rl.experiments.regimes.config import RegimesConfig
 
-    config = RegimesConfig(seed=seed)
     data = regimes.training_data("pendulum", config, generator).to(device)
     _, trainer, task_data, settings = regimes.other_network("pendulum-task", config, data, device)
     settings = {k: v for k, v in settings.items() if k not in ("mask_training", "task_share")}
@@ -87,6 +88,7 @@ def _pendulum(seed: int, device: torch.device, generator: torch.Generator) -> Fa
         experiment="regimes",
         task="pendulum (mass and length)",
         current=(config.task_share, config.mask_groups),
+        width=config.hidden,
         particles=config.particles,
         flips=config.calibrate_flips,
         criterion="one-step",
@@ -99,13 +101,11 @@ def _pendulum(seed: int, device: torch.device, generator: torch.Generator) -> Fa
     )
 
 
-def _telescoping(seed: int, device: torch.device, generator: torch.Generator) -> Family:
+def _telescoping(config: Any, device: torch.device, generator: torch.Generator) -> Family:
     from smcd_rl.envs.two_link_arm import motor_babbling
     from smcd_rl.experiments.shared import two_link_family as arms
-    from smcd_rl.experiments.telescoping.config import TelescopingConfig
     from smcd_rl.experiments.telescoping.run import TUNING_STEPS
 
-    config = TelescopingConfig(seed=seed)
     data = motor_babbling(
         config.tasks, config.episodes, config.steps, measurement_noise=config.measurement_noise, generator=generator
     ).to(device)
@@ -118,6 +118,7 @@ def _telescoping(seed: int, device: torch.device, generator: torch.Generator) ->
         experiment="telescoping",
         task="two-link arm (link lengths)",
         current=(config.task_share, config.mask_groups),
+        width=config.hidden,
         particles=config.particles,
         flips=config.calibrate_flips,
         criterion="one-step",
@@ -130,13 +131,11 @@ def _telescoping(seed: int, device: torch.device, generator: torch.Generator) ->
     )
 
 
-def _fetch(seed: int, device: torch.device, generator: torch.Generator) -> Family:
-    from smcd_rl.experiments.fetch.config import FetchConfig
+def _fetch(config: Any, device: torch.device, generator: torch.Generator) -> Family:
     from smcd_rl.experiments.fetch.episodes import collect, tuning_episodes
     from smcd_rl.experiments.fetch.run import TUNING_SEED
     from smcd_rl.experiments.fetch.task_network import task_network
 
-    config = FetchConfig(seed=seed)
     family = config.families[0]
     data = collect(family, config, progress=False)["data"]
     n_val = max(1, int(round(config.validation * data.shape[0])))  # T trains on M's share, as in the experiment
@@ -151,6 +150,7 @@ def _fetch(seed: int, device: torch.device, generator: torch.Generator) -> Famil
         experiment="fetch",
         task=f"{family} draw (rotation and gain)",
         current=(config.task_share, config.mask_groups),
+        width=config.hidden,
         particles=config.particles,
         flips=config.calibrate_flips,
         criterion="lookahead",
@@ -163,12 +163,10 @@ def _fetch(seed: int, device: torch.device, generator: torch.Generator) -> Famil
     )
 
 
-def _panda(seed: int, device: torch.device, generator: torch.Generator) -> Family:
-    from smcd_rl.experiments.panda.config import PandaConfig
+def _panda(config: Any, device: torch.device, generator: torch.Generator) -> Family:
     from smcd_rl.experiments.panda.reaching import tuning_episodes
     from smcd_rl.experiments.panda.task_network import task_data, task_network
 
-    config = PandaConfig(seed=seed)
     doubled = dataclasses.replace(config, tuning_episodes=2 * config.tuning_episodes)
 
     def build(groups: int) -> smcd_rl.AdaptiveModel:
@@ -178,6 +176,7 @@ def _panda(seed: int, device: torch.device, generator: torch.Generator) -> Famil
         experiment="panda",
         task="tool length",
         current=(config.task_share, config.mask_groups),
+        width=config.hidden,
         particles=config.particles,
         flips=config.calibrate_flips,
         criterion="one-step",
@@ -190,11 +189,9 @@ def _panda(seed: int, device: torch.device, generator: torch.Generator) -> Famil
     )
 
 
-def _drone(seed: int, device: torch.device, generator: torch.Generator) -> Family:
+def _drone(config: Any, device: torch.device, generator: torch.Generator) -> Family:
     from smcd_rl.experiments.interpret import drone, lookahead
-    from smcd_rl.experiments.interpret.config import InterpretConfig
 
-    config = InterpretConfig(seed=seed)
     data, split = drone.load(config)
     doubled = dataclasses.replace(config, tuning_episodes=2 * config.tuning_episodes)
     flights, fit_ids = lookahead.tuning_flights(doubled, data, split)
@@ -207,6 +204,7 @@ def _drone(seed: int, device: torch.device, generator: torch.Generator) -> Famil
         experiment="interpret",
         task="drone operator",
         current=(config.task_share, config.mask_groups),
+        width=config.hidden,
         particles=config.particles,
         flips=config.calibrate_flips,
         criterion="lookahead",
@@ -219,7 +217,7 @@ def _drone(seed: int, device: torch.device, generator: torch.Generator) -> Famil
     )
 
 
-_LOADERS: dict[str, Callable[[int, torch.device, torch.Generator], Family]] = {
+_LOADERS: dict[str, Callable[[Any, torch.device, torch.Generator], Family]] = {
     "pendulum": _pendulum,
     "telescoping": _telescoping,
     "fetch": _fetch,

@@ -41,7 +41,7 @@ def tables(
     paired = {c["method"]: c for c in comparisons}
     current = tuple(summary["current"])
     body = []
-    for point in points:
+    for point in sorted(points):
         name = label(point)
         smcd, none = by_method[f"{name} T+S"], by_method[f"{name} T+N"]
         c = paired.get(f"{name} T+S")
@@ -79,6 +79,9 @@ def tables(
         f"({summary['task']}; SMCD calibrated on {summary['calibrated_on']} others): mean [95% CI]; "
         "T+S paired with the experiment's setting over the same episodes (negative: lower error)"
     )
+    if summary["extended"]:  # the lowest mean lay on the grid's edge
+        past = ", ".join(label((share, groups)) for share, groups in summary["extended"])
+        grid_caption += f"; past the grid's edge, where its lowest mean lay: {past}"
     grid_table = format_table(
         body,
         ["share", "groups", "T+S", "T+N", "T+S minus the experiment's setting [95% CI]", "SMCD noise / flip"],

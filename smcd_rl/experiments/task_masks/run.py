@@ -21,6 +21,7 @@ Example:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -36,7 +37,7 @@ from smcd_rl.experiments.task_masks.config import TaskMasksConfig
 from smcd_rl.experiments.task_masks.families import Family, load
 from smcd_rl.experiments.task_masks.report import label, plot, tables
 
-__all__ = ["run", "episode_scores"]
+__all__ = ["run", "episode_scores", "beyond_edge"]
 
 #: Relative stage costs (seconds on 2 CPU cores, one torch thread, of one grid point's training and scoring).
 COSTS = {"load": 10.0, "train": 40.0, "score": 10.0}
@@ -54,16 +55,32 @@ def episode_scores(model: smcd_rl.AdaptiveModel, episodes: TensorDictBase, strat
     return (ahead.double() - observed.double()).square().mean((1, 2, 3)).sqrt().cpu()
 
 
+def beyond_edge(means: Mapping[tuple[float, int], float], width: int) -> tuple[float, int] | None:
+    """The next point past the grid's edge, or ``None``: as tune extends GD's grid while its best lies on an edge.
+
+    Where the lowest mean lies at the most (fewest) groups measured at its share, the next point
+    doubles (halves) them at that share, if that still divides the layer's ``width`` and was not measured.
+
+    Example:
+        >>> beyond_edge({(1.0, 8): 0.3, (1.0, 16): 0.2}, width=256)
+        (1.0, 32)
+        >>> beyond_edge({(1.0, 8): 0.1, (1.0, 16): 0.2}, width=256), beyond_edge({(1.0, 8): 0.3, (1.0, 16): 0.2}, 16)
+        ((1.0, 4), None)
+    """
+    share, groups = min(means, key=means.__getitem__)
+    measured = sorted(g for s, g in means if s == share)
+    if groups == measured[-1] and groups * 2 <= width and width % (groups * 2) == 0:
+        return share, groups * 2
+    if groups == measured[0] and groups % 2 == 0 and len(measured) > 1:
+        return share, groups // 2
+    return None
+
+
 def run(config: TaskMasksConfig, *, progress: bool = True) -> dict[str, Any]:
     """Run the grid on ``config.family`` and write its files; returns the JSON payload."""
     with Experiment(config, progress=progress) as ex:
         points = config.points()
-        ex.plan(
-            {
-                "load": COSTS["load"],
-                **{f"{kind} {label(p)}": COSTS[kind] for p in points for kind in ("train", "score")},
-            }
-        )
+        ex.plan({"load": COSTS["load"], **_stages(points)})
         with ex.stage("load"):
             family = load(config.family, seed=config.seed, device=ex.device, generator=ex.generator)
         half = family.episodes.shape[0] // 2
@@ -71,7 +88,8 @@ def run(config: TaskMasksConfig, *, progress: bool = True) -> dict[str, Any]:
         scores: dict[str, Tensor] = {}
         settings: dict[str, dict[str, Any]] = {}
         losses: dict[str, list[float]] = {}
-        for point in points:
+
+        def measure(point: tuple[float, int]) -> None:
             name = label(point)
             model = family.build(point[1])
             losses[name] = ex.train(name, family.trainer, model, family.data, **family.fit_settings(point[0]))
@@ -93,6 +111,16 @@ def run(config: TaskMasksConfig, *, progress: bool = True) -> dict[str, Any]:
                 scores[f"{name} T+S"] = episode_scores(model, scored_on, smcd, family)
                 scores[f"{name} T+N"] = episode_scores(model, scored_on, smcd_rl.NoAdaptation(), family)
                 settings[name] = {"noise_std": calibration.noise_std, "flip_prob": calibration.flip_prob}
+
+        for point in points:
+            measure(point)
+        extended = []
+        means = lambda: {p: float(scores[f"{label(p)} T+S"].mean()) for p in points}  # noqa: E731
+        while (point := beyond_edge(means(), family.width)) is not None:
+            ex.plan(_stages([point]))
+            measure(point)
+            points.append(point)
+            extended.append(point)
 
         reference = f"{label(family.current)} T+S"
         rows, _ = cell_statistics(
@@ -130,6 +158,7 @@ def run(config: TaskMasksConfig, *, progress: bool = True) -> dict[str, Any]:
             "calibrated_on": half,
             "scored_on": scored_on.shape[0],
             "smcd": settings,
+            "extended": [list(p) for p in extended],
         }
         return ex.write(
             experiment=f"task-mask network settings on the {config.family} family ({family.experiment})",
@@ -140,3 +169,8 @@ def run(config: TaskMasksConfig, *, progress: bool = True) -> dict[str, Any]:
             payload={"summary": summary, "train_loss": losses},
             plots={"task-masks.png": lambda path: plot(scores, points, summary, path)},
         )
+
+
+def _stages(points: list[tuple[float, int]]) -> dict[str, float]:
+    """The planned stages of ``points``: each one's training and scoring."""
+    return {f"{kind} {label(p)}": COSTS[kind] for p in points for kind in ("train", "score")}
