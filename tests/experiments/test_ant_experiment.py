@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from smcd_rl import cli
+from smcd_rl.experiments.ant import prediction
 from smcd_rl.experiments.ant import run as ant
 from smcd_rl.experiments.shared import stages
 from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS as SCOREBOARD_COLUMNS
-from smcd_rl.experiments.shared.scoreboard_entry import TASK_MASKS
 from tests.experiments.test_stages import planned_stages
 
 TINY = [
@@ -61,8 +61,11 @@ TINY = [
 VARIANTS = ["N", "G", "S", "S(evidence)", "S(paper)", "C"]
 ALL_CELLS = ["--planners", "cem", "mppi", "rs", "--adaptations", *VARIANTS]
 ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL")
-#: The scoreboard's columns, each a strategy of the primary metric (every strategy's prediction error runs).
-COLUMNS = set(SCOREBOARD_COLUMNS) - {TASK_MASKS}  # no task-mask network here
+#: The scoreboard's columns, each a strategy of the primary metric (every strategy's prediction error runs,
+#: T+S's on the task-mask network too).
+COLUMNS = set(SCOREBOARD_COLUMNS)
+#: The default methods of T, the network whose masks were trained to identify the leg.
+TASK = ("T+N", "T+G", "T+S", "T+SL")
 ONE_CELL = ["--planners", "rs", "--adaptations", "N", "--conditions", "crippled"]
 
 
@@ -73,7 +76,8 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     captured = capsys.readouterr()
     printed = captured.out
     planned = planned_stages(captured.err, "run")
-    assert planned[:3] == ["collect", "train", "tune M"] and len(planned) == 3 + 2 * 8 + 3 * 6 * 2
+    assert planned[:6] == ["collect", "train", "tune M", "collect T", "train T", "tune T"]
+    assert len(planned) == 6 + 2 * (8 + 4) + 3 * 6 * 2
     # The primary table (prediction error) comes first, then its verdicts, the returns and the tuning.
     first = [printed.index(t) for t in ("Prediction error", "M+S paired with M+N", "Episode return", "Tuning of M")]
     assert first == sorted(first)
@@ -84,10 +88,10 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     # The primary table shows each strategy's time per observation (every strategy of M was tuned).
     assert "ms / observation" in printed and "| healthy   | M+C " in printed
     names = ("results.csv", "trials.csv", "comparisons.csv", "results.json", "report.md", "model.pt")
-    for name in (*names, "ant.png", "prediction.png", "tuning-M.png"):
+    for name in (*names, "task_model.pt", "ant.png", "prediction.png", "tuning-M.png", "tuning-T.png"):
         assert (out / name).is_file(), name
-    assert len(list((out / "partial").glob("data-*.pt"))) == 1
-    assert len(list(out.glob("train-*.ckpt"))) == 1
+    assert len(list((out / "partial").glob("data-*.pt"))) == 2  # M's healthy data and T's of every condition
+    assert len(list(out.glob("train-*.ckpt"))) == len(list(out.glob("T-*.ckpt"))) == 1
 
     rows = list(csv.DictReader(open(out / "results.csv")))
     returns = [r for r in rows if r["part"] == "return"]
@@ -95,9 +99,10 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     assert cells == [(ant.PLANNERS[p], ant.ADAPTATIONS[a], c) for p, a, c in ant.CELLS if a in VARIANTS]
     assert all(float(r["return_low"]) <= float(r["return_mean"]) <= float(r["return_high"]) for r in returns)
     predictions = [r for r in rows if r["part"] == "prediction"]
-    assert len(predictions) == 2 * 2 * 8  # condition x (one-step, 3-step) x strategy
+    assert len(predictions) == 2 * 2 * (8 + 4)  # condition x (one-step, 3-step) x strategy (M's and T's)
+    assert {r["method"] for r in predictions} >= set(TASK)
     assert all(float(r["rmse_low"]) <= float(r["rmse_mean"]) <= float(r["rmse_high"]) for r in predictions)
-    ms = [float(r["ms_per_observation"]) for r in rows]  # every row's method is one of M's strategies
+    ms = [float(r["ms_per_observation"]) for r in rows]  # every row's method was tuned, M's and T's
     assert all(math.isfinite(v) and v > 0 for v in ms)
     trials = list(csv.DictReader(open(out / "trials.csv")))
     episodes = [e for e in trials if e["part"] == "return"]
@@ -117,20 +122,23 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     assert {c["verdict"] for c in comparisons} <= {"better", "worse", "no significant difference"}
     payload = json.loads((out / "results.json").read_text())
     assert (
-        payload["config"]["episodes"] == 2 and len(payload["results"]) == 36 + 32
-    )  # returns, then 2 x 2 x 8 predictions
+        payload["config"]["episodes"] == 2 and len(payload["results"]) == 36 + 48
+    )  # returns, then 2 x 2 x 12 predictions
     assert len(payload["training"]["paper_noise_std"]) == 41 and payload["machine"]["torch_threads"] == 1
     report = (out / "report.md").read_text()
     assert "mean [95% CI]" in report and "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C" in report
     assert "M: tuned under 10 ms per observation" in report  # smcd_rl.tune's budgeted table
     assert "![tuning-M.png](tuning-M.png)" in report and "![prediction.png](prediction.png)" in report
+    # T+S is paired with its own network's methods, which saw the same legs in training, and with M's.
+    assert "T+S (masks trained to identify the task) paired with" in report
+    assert re.search(r"\| T\+S +\| T\+G +\|", report) and re.search(r"\| T\+S +\| M\+G +\|", report)
 
     # A rerun finds the training, the tuning, the errors and every cell finished: evaluating one again would raise.
     def never(*args, **kwargs):
         raise AssertionError("a finished cell was run again")
 
     monkeypatch.setattr(ant, "run_cell", never)
-    monkeypatch.setattr(ant, "prediction_errors", never)
+    monkeypatch.setattr(prediction, "prediction_errors", never)
     assert cli.main(["ant", "--out", str(out), *TINY, *ALL_CELLS]) == 0
     assert capsys.readouterr().out.splitlines()[:40] == printed.splitlines()[:40]
     # A subset of the cells is found in the same cache: which cells run is not part of its key.
@@ -187,7 +195,7 @@ def test_prediction_error_is_paired_over_the_same_episodes(tmp_path) -> None:
         for e in trials:
             if e["condition"] == condition:
                 by_method.setdefault(e["method"], []).append((e["episode"], e["leg"]))
-        assert set(by_method) == {"M+N", *ADAPTED}
+        assert set(by_method) == {"M+N", *ADAPTED, *TASK}
         assert len({tuple(v) for v in by_method.values()}) == 1 and len(by_method["M+N"]) == 30
         legs = {leg for _, leg in by_method["M+N"]}
         assert legs == {"-1"} if condition == "healthy" else legs <= {"0", "1", "2", "3"} and len(legs) > 1
@@ -201,6 +209,21 @@ def test_prediction_error_is_paired_over_the_same_episodes(tmp_path) -> None:
         for metric in ("one-step", "3-step"):
             assert all((condition, metric, m, "M+N") in pairs for m in ADAPTED)
             assert all((condition, metric, "M+S", m) in pairs for m in ADAPTED if m != "M+S")
+
+
+def test_the_task_networks_data_and_tuning_episodes_hold_every_condition() -> None:
+    # T trains on the healthy Ant and each crippled leg in equal shares, the condition as its task, and
+    # is tuned on healthy and crippled episodes of its own seeds: the crippled legs are its training tasks.
+    from smcd_rl.experiments.ant.config import AntConfig
+    from smcd_rl.experiments.ant.prediction import random_episodes
+    from smcd_rl.experiments.ant.task_network import task_data, task_tuning_episodes
+
+    config = AntConfig(transitions=120, data_episode_steps=10, crippled_legs=(1, 3), tuning_episodes=4, tuning_steps=5)
+    data = task_data(config)
+    assert data.shape == (120,) and torch.bincount(data["task"]).tolist() == [40, 40, 40]
+    m_episodes, _ = random_episodes({}, None, count=4, steps=5, seed=0)
+    tuning = task_tuning_episodes(m_episodes, config)
+    assert tuning.shape == (4, 5) and torch.equal(tuning[:2]["observation"], m_episodes[:2]["observation"])
 
 
 def test_subset_of_cells_and_single_condition(tmp_path, capsys) -> None:
@@ -225,8 +248,8 @@ def test_other_data_under_the_same_settings_retrains_and_reruns_the_cells(tmp_pa
     its cells instead of resuming the old training or reusing cells of the old model."""
     out = tmp_path / "run"
     assert cli.main(["ant", "--out", str(out), *TINY, *ONE_CELL]) == 0
-    (path,) = (out / "partial").glob("data-*.pt")
-    saved = torch.load(path, weights_only=False)
+    stored = {p: torch.load(p, weights_only=False) for p in (out / "partial").glob("data-*.pt")}
+    ((path, saved),) = [(p, s) for p, s in stored.items() if "task" not in s["value"]["data"].keys()]  # M's
     data = saved["value"]["data"]
     data.set("observation", data.get("observation") + 0.1)
     torch.save(saved, path)
@@ -235,7 +258,7 @@ def test_other_data_under_the_same_settings_retrains_and_reruns_the_cells(tmp_pa
     monkeypatch.setattr(ant, "run_cell", lambda *args, **kwargs: calls.append(args[1]) or run_cell(*args, **kwargs))
     assert cli.main(["ant", "--out", str(out), *TINY, *ONE_CELL]) == 0
     assert calls == [("rs", "N", "crippled")]
-    assert len(list(out.glob("train-*.ckpt"))) == 2
+    assert len(list(out.glob("train-*.ckpt"))) == 2 and len(list(out.glob("T-*.ckpt"))) == 1  # T's data is its own
 
 
 def test_stage_plan_counts_the_combinations_members() -> None:

@@ -11,7 +11,12 @@ import itertools
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypedDict
 
-from smcd_rl.experiments.shared.adaptation_config import VARIANTS, TuningConfig, check_learnt_dynamics
+from smcd_rl.experiments.shared.adaptation_config import (
+    VARIANTS,
+    TuningConfig,
+    check_learnt_dynamics,
+    check_mask_groups,
+)
 from smcd_rl.experiments.shared.config import setting
 
 __all__ = [
@@ -23,6 +28,7 @@ __all__ = [
     "ADAPTATIONS",
     "DEFAULT_ADAPTATIONS",
     "PREDICTED",
+    "TASK_ADAPTATIONS",
     "CONDITIONS",
     "CELLS",
 ]
@@ -61,6 +67,8 @@ CONDITIONS: tuple[str, ...] = ("healthy", "crippled")
 PREDICTED: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 #: The adaptations of the default return episodes: all but S(paper), whose prediction error is still measured.
 DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "C")
+#: The adaptations of T, the network whose masks were trained to identify the leg (method ``T+<variant>``).
+TASK_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "L", "SL")
 #: Every (planner, adaptation, condition) cell of Fig. 15.
 CELLS: tuple[tuple[str, str, str], ...] = tuple(itertools.product(PLANNERS, ADAPTATIONS, CONDITIONS))
 
@@ -105,6 +113,17 @@ class AntConfig(TuningConfig):
     crippled_legs: tuple[int, ...] = setting(
         (0, 1, 2, 3), "legs the crippled leg is drawn from per episode", choices=(0, 1, 2, 3)
     )
+    task_adaptations: tuple[str, ...] = setting(
+        ("N", "G", "S", "SL"),
+        "adaptations of T (prediction error only): a second network trained on the healthy Ant and on each leg of "
+        "--crippled-legs crippled, as many transitions as M's, its masks trained to identify the leg "
+        "(fit(mask_training='task'), methods T+S, T+SL...; none: no T)",
+        choices=TASK_ADAPTATIONS,
+    )
+    task_share: float = setting(
+        1.0, "share of T's samples trained through a mask of their leg's posterior (the rest random)", low=0.0, high=1.0
+    )
+    mask_groups: int = setting(8, "dropout bits per hidden layer of T, a divisor of --hidden (0: one per unit)", low=0)
     prediction_episodes: int = setting(
         50, "random-action episodes per condition on which the prediction error (primary metric) is paired", low=2
     )
@@ -140,12 +159,18 @@ class AntConfig(TuningConfig):
         "conditions",
         "crippled_legs",
     )  # and TuningConfig's
-    SELECTION = ("planners", "adaptations", "conditions")  # which cells run: a subset rerun reuses cells
+    SELECTION = (
+        "planners",
+        "adaptations",
+        "conditions",
+        "task_adaptations",
+    )  # which cells run: a subset rerun reuses cells
 
     def validate(self) -> None:
         """The declared bounds, then what they cannot express: upper bounds and bounds across options."""
         super().validate()
         check_learnt_dynamics(self)
+        check_mask_groups(self, bool(self.task_adaptations))
         if self.prediction_steps <= self.prediction_horizon:
             raise ValueError(
                 f"--prediction-steps ({self.prediction_steps}) must be > --prediction-horizon "

@@ -39,8 +39,8 @@ def stage_costs(config: AntConfig) -> dict[str, float]:
 
     Example:
         >>> costs = stage_costs(AntConfig())
-        >>> list(costs)[:4], costs["evaluate cem/S/crippled"] > costs["evaluate cem/N/crippled"]
-        (['collect', 'train', 'tune M', 'prediction-healthy N'], True)
+        >>> list(costs)[:7], costs["evaluate cem/S/crippled"] > costs["evaluate cem/N/crippled"]
+        (['collect', 'train', 'tune M', 'collect T', 'train T', 'tune T', 'prediction-healthy N'], True)
         >>> costs["evaluate cem/C/crippled"] > 2 * costs["evaluate cem/S/crippled"]
         True
     """
@@ -56,14 +56,20 @@ def stage_costs(config: AntConfig) -> dict[str, float]:
         ),
         "tune M": tuning_cost(config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops),
     }
+    task = [f"T+{v}" for v in config.task_adaptations]
+    if task:  # T: as many transitions as M, its training with each condition's posterior every epoch
+        costs["collect T"] = estimate(steps=300 + config.transitions / 3)
+        costs["train T"] = 1.5 * costs["train"]
+        costs["tune T"] = costs["tune M"]
     horizon = config.prediction_horizon
     for condition in config.conditions:
-        for variant in PREDICTED:
+        for name in [*PREDICTED, *task]:
+            variant = name.removeprefix("T+")
             overhead, update = update_cost(variant, config)
             rollout = predictions(variant) * horizon
             forwards = config.prediction_episodes * config.prediction_steps * (update + rollout)
             steps = config.prediction_steps * (1 + overhead) + rollout  # the open-loop rollouts run batched
-            costs[f"prediction-{condition} {variant}"] = estimate(steps=steps, forwards=forwards, flops=flops)
+            costs[f"prediction-{condition} {name}"] = estimate(steps=steps, forwards=forwards, flops=flops)
     plan = config.candidates * config.iterations * config.horizon
     for cell in CELLS:
         if cell[0] in config.planners and cell[1] in config.adaptations and cell[2] in config.conditions:

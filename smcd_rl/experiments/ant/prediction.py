@@ -30,16 +30,26 @@ Example:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any
+import functools
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 from tensordict import TensorDict
 
 import smcd_rl
+from smcd_rl.digests import content_digest
+from smcd_rl.experiments.ant.config import TASKS
 
-__all__ = ["random_episodes", "prediction_errors"]
+if TYPE_CHECKING:
+    from smcd_rl.experiments.ant.config import AntConfig
+    from smcd_rl.experiments.shared.harness import Experiment
+
+__all__ = ["PREDICTION_SEED", "random_episodes", "prediction_errors", "evaluate_predictions"]
+
+#: Offset of the prediction episodes' env seeds from ``--seed`` (neither training nor tuning data).
+PREDICTION_SEED = 3_000_003
 
 
 def random_episodes(
@@ -136,3 +146,47 @@ def prediction_errors(
         "open_loop": (open_loop / (starts * horizon)).sqrt(),
         "refused": refused,
     }
+
+
+def evaluate_predictions(
+    ex: Experiment,
+    config: AntConfig,
+    networks: Mapping[str, tuple[Any, Callable[[str], Any], dict[str, Any], Sequence[str]]],
+) -> tuple[dict[str, dict[str, dict[str, Any]]], dict[str, list[int]]]:
+    """Per condition: every method's per-episode errors on that condition's logged episodes, and their legs.
+
+    ``networks`` maps a network's prefix (``"M"``, ``"T"``) to its model, its strategy factory
+    (variant -> a fresh strategy), what keys its results (its digest and tuned settings) and its
+    variants; the results are keyed by method label (``"M+S"``, ``"T+S"``). Every network is
+    scored on the same episodes (env seeds ``--seed + PREDICTION_SEED + k``).
+    """
+    results: dict[str, dict[str, dict[str, Any]]] = {}
+    legs: dict[str, list[int]] = {}
+    for condition in config.conditions:
+        episodes, legs[condition] = random_episodes(
+            TASKS[config.task][0],
+            config.crippled_legs if condition == "crippled" else None,
+            count=config.prediction_episodes,
+            steps=config.prediction_steps,
+            seed=config.seed + PREDICTION_SEED,
+        )
+        episodes = episodes.to(ex.device)
+        results[condition] = {}
+        for prefix, (model, strategy, content, variants) in networks.items():
+            # M's results keep their variant names (a rerun reuses them); another network's are labelled.
+            label = (lambda v: v) if prefix == "M" else (lambda v, p=prefix: f"{p}+{v}")
+            done = ex.evaluate(
+                {label(variant): functools.partial(strategy, variant) for variant in variants},
+                functools.partial(_errors, model, episodes, config.prediction_horizon),
+                content={**content, "episodes": content_digest(episodes)},
+                kind=f"prediction-{condition}",
+            )
+            results[condition].update({f"M+{v}" if prefix == "M" else v: r for v, r in done.items()})
+    return results, legs
+
+
+def _errors(
+    model: smcd_rl.AdaptiveDynamicsModel, episodes: Any, horizon: int, name: str, strategy: smcd_rl.Adaptation
+) -> dict[str, Any]:
+    """One strategy's errors on one condition's episodes (``name``, the method, keys the cache only)."""
+    return prediction_errors(model, strategy, episodes, horizon=horizon)

@@ -90,11 +90,11 @@ from typing import Any
 import torch
 
 import smcd_rl
-from smcd_rl.digests import content_digest, model_digest
+from smcd_rl.digests import model_digest
 from smcd_rl.experiments.ant.config import ADAPTATIONS, CELLS, CONDITIONS, FULL, PLANNERS, PREDICTED, TASKS, AntConfig
 from smcd_rl.experiments.ant.episodes import ACTION_DIM, OBS_DIM, collect, run_cell, validation_error
 from smcd_rl.experiments.ant.plan import stage_costs
-from smcd_rl.experiments.ant.prediction import prediction_errors, random_episodes
+from smcd_rl.experiments.ant.prediction import evaluate_predictions, random_episodes
 from smcd_rl.experiments.ant.report import (
     plot_prediction,
     plot_returns,
@@ -103,9 +103,11 @@ from smcd_rl.experiments.ant.report import (
     table,
     write_videos,
 )
+from smcd_rl.experiments.ant.task_network import task_data, task_network, task_tuning_episodes
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
+from smcd_rl.experiments.shared.task_family import task_mask_settings, task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import ms_column
 from smcd_rl.experiments.shared.tuning import Tuning, tune
 from smcd_rl.experiments.shared.workers import computed
@@ -126,7 +128,7 @@ __all__ = [
 #: Settings that determine the collected transitions.
 DATA_SETTINGS = ("seed", "task", "data_policy", "sac_steps", "transitions", "data_episode_steps")
 #: Offsets of the env seeds from ``--seed``: MPC episodes, tuning episodes, prediction episodes.
-EPISODE_SEED, TUNING_SEED, PREDICTION_SEED = 1_000_003, 2_000_003, 3_000_003
+EPISODE_SEED, TUNING_SEED = 1_000_003, 2_000_003
 #: The paired comparisons: each adaptive method against M+N and against each other.
 ADAPTIVE = ("M+S", "M+S(evidence)", "M+S(paper)", "M+G", "M+C", "M+L", "M+SL")
 
@@ -181,20 +183,47 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
         )
         strategy = functools.partial(_strategy, tuning, config, ex.device)
         content = {"model": model_digest(model), "specs": tuning.specs}
-        ms = ms_column(list(ADAPTATIONS.values()), {"M": tuning})
+
+        # --- T: a second network whose masks were trained to identify the leg (prediction only) ----
+        networks = {"M": (model, strategy, content, PREDICTED)}
+        tunings = {"M": tuning}
+        if config.task_adaptations:
+            task = task_network(config, ex.device)
+            with ex.stage("collect T"):
+                data_t = ex.store.get("data", {**data_key, "network": "T", "legs": config.crippled_legs})
+                if data_t is None:
+                    data_t = {"data": task_data(config)}
+                    ex.store.put("data", {**data_key, "network": "T", "legs": config.crippled_legs}, data_t)
+            task_fit = {**fit, **task_mask_settings(config)}
+            task_losses = ex.train("T", smcd_rl.fit_dynamics, task, data_t["data"].to(ex.device), **task_fit)
+            task.save(ex.out / "task_model.pt")
+            tunings["T"] = tune(
+                ex,
+                task,
+                task_tuning_episodes(tuning_episodes, config).to(ex.device),
+                config,
+                name="T",
+                paper_noise_std=paper_noise.tolist(),
+                variants=config.task_adaptations,
+            )
+            task_strategy = functools.partial(_strategy, tunings["T"], config, ex.device)
+            task_content = {"model": model_digest(task), "specs": tunings["T"].specs}
+            networks["T"] = (task, task_strategy, task_content, config.task_adaptations)
+        task_methods = [f"T+{v}" for v in config.task_adaptations]
+        ms = ms_column([*ADAPTATIONS.values(), *task_methods], tunings)
 
         # --- primary: every strategy's prediction error on the same logged episodes ----------------
-        prediction, legs = _prediction(ex, model, config, strategy, content)
+        prediction, legs = evaluate_predictions(ex, config, networks)
         scores = {
-            (condition, name): {ADAPTATIONS[v]: r[metric] for v, r in by_variant.items()}
-            for condition, by_variant in prediction.items()
+            (condition, name): {method: r[metric] for method, r in by_method.items()}
+            for condition, by_method in prediction.items()
             for name, metric in _metrics(config)
         }
         p_rows, p_comparisons = cell_statistics(
             scores,
             cell=("condition", "prediction"),
             baseline="M+N",
-            adaptive=ADAPTIVE,
+            adaptive=[*ADAPTIVE, *task_methods],
             metric="rmse",
             seed=config.seed,
         )
@@ -202,13 +231,13 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
             {
                 "part": "prediction",
                 "condition": condition,
-                "method": ADAPTATIONS[v],
+                "method": method,
                 "episode": k,
                 "leg": legs[condition][k],
             }
             | {name: float(r[metric][k]) for name, metric in _metrics(config)}
-            for condition, by_variant in prediction.items()
-            for v, r in by_variant.items()
+            for condition, by_method in prediction.items()
+            for method, r in by_method.items()
             for k in range(config.prediction_episodes)
         ]
 
@@ -260,7 +289,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
 
         # --- report: primary table and verdicts first, then returns, then the tuning --------------
         one_step = "one-step"
-        headline = [c for c in p_comparisons if c["method"] == "M+S"]
+        headline = [c for c in p_comparisons if c["method"] == "M+S" and c["against"].startswith("M+")]
         tables = {
             f"Prediction error (RMSE, observation units), mean [95% CI] over {config.prediction_episodes} random-action "
             f"episodes of {config.prediction_steps} steps per condition (one-step: step t from the steps before it; "
@@ -268,6 +297,8 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
             "tuning episodes": prediction_table(p_rows, ms),
             "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C over the same episodes "
             "(negative: M+S's error is lower)": verdict_table(headline, cell=("condition", "prediction")),
+            # T saw the crippled legs in training, M did not: T+S's own network is its fair reference.
+            **task_verdict_table(p_comparisons, cell=("condition", "prediction"), over="episodes"),
         }
         if r_rows:
             tables[
@@ -278,12 +309,13 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
             tables[
                 "M+S paired with the other adaptations over the same MPC episodes (positive: M+S's return is higher)"
             ] = verdict_table(r_headline, cell=("planner", "condition"))
-        tables.update(tuning.tables())
+        for network in tunings.values():
+            tables.update(network.tables())
         results = [("prediction", r) for r in p_rows] + [("return", r) for r in r_rows]
         plots = {"prediction.png": lambda path: plot_prediction(p_rows, config, path)}
         if r_rows:
             plots["ant.png"] = lambda path: plot_returns(r_rows, config, path)
-        plots["tuning-M.png"] = tuning.plot
+        plots.update({f"tuning-{name}.png": network.plot for name, network in tunings.items()})
         ex.write(
             experiment="crippled-leg Ant, model-based control with adaptation (paper appendix C, Fig. 15)",
             tables=tables,
@@ -301,19 +333,20 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
                 },
                 "training": {
                     "loss": losses,
+                    **({"task_loss": task_losses} if config.task_adaptations else {}),
                     "validation_nmse": val_nmse,
                     "validation_rmse": val_rmse.tolist(),
                     "paper_noise_std": paper_noise.tolist(),
                 },
-                "tuning": {"M": tuning.payload()},
+                "tuning": {name: network.payload() for name, network in tunings.items()},
                 "prediction": {
                     "episodes": config.prediction_episodes,
                     "steps": config.prediction_steps,
                     "horizon": config.prediction_horizon,
                     "legs": legs,
                     "refused": {
-                        c: {ADAPTATIONS[v]: r["refused"] for v, r in by_variant.items()}
-                        for c, by_variant in prediction.items()
+                        c: {method: r["refused"] for method, r in by_method.items()}
+                        for c, by_method in prediction.items()
                     },
                 },
                 "scoreboard": [
@@ -343,38 +376,3 @@ def _strategy(tuning: Tuning, config: AntConfig, device: torch.device, variant: 
 def _metrics(config: AntConfig) -> list[tuple[str, str]]:
     """(name in the tables, key of :func:`~smcd_rl.experiments.ant.prediction.prediction_errors`)."""
     return [("one-step", "one_step"), (f"{config.prediction_horizon}-step", "open_loop")]
-
-
-def _prediction(
-    ex: Experiment,
-    model: smcd_rl.AdaptiveDynamicsModel,
-    config: AntConfig,
-    strategy: Any,
-    content: dict[str, Any],
-) -> tuple[dict[str, dict[str, dict[str, Any]]], dict[str, list[int]]]:
-    """Per condition: every strategy's per-episode errors on that condition's logged episodes, and their legs."""
-    results: dict[str, dict[str, dict[str, Any]]] = {}
-    legs: dict[str, list[int]] = {}
-    for condition in config.conditions:
-        episodes, legs[condition] = random_episodes(
-            TASKS[config.task][0],
-            config.crippled_legs if condition == "crippled" else None,
-            count=config.prediction_episodes,
-            steps=config.prediction_steps,
-            seed=config.seed + PREDICTION_SEED,
-        )
-        episodes = episodes.to(ex.device)
-        results[condition] = ex.evaluate(
-            {variant: functools.partial(strategy, variant) for variant in PREDICTED},
-            functools.partial(_errors, model, episodes, config.prediction_horizon),
-            content={**content, "episodes": content_digest(episodes)},
-            kind=f"prediction-{condition}",
-        )
-    return results, legs
-
-
-def _errors(
-    model: smcd_rl.AdaptiveDynamicsModel, episodes: Any, horizon: int, name: str, strategy: smcd_rl.Adaptation
-) -> dict[str, Any]:
-    """One strategy's errors on one condition's episodes (``name``, the variant, keys the cache only)."""
-    return prediction_errors(model, strategy, episodes, horizon=horizon)
