@@ -2,8 +2,10 @@
 
 Example:
     >>> config = TaskMasksConfig(family="fetch")
-    >>> config.shares, config.groups, FAMILIES[:2]
+    >>> config.shares, config.grid_groups(), FAMILIES[:2]
     ((0.5, 1.0), (8, 16, 32), ('pendulum', 'telescoping'))
+    >>> TaskMasksConfig(family="ant").grid_groups()  # divisors of the Ant network's 200 units
+    (10, 20, 40)
 """
 
 from __future__ import annotations
@@ -24,7 +26,10 @@ EXPERIMENTS = {
     "fetch": ("smcd_rl.experiments.fetch.config", "FetchConfig"),
     "panda": ("smcd_rl.experiments.panda.config", "PandaConfig"),
     "drone": ("smcd_rl.experiments.interpret.config", "InterpretConfig"),
+    "ant": ("smcd_rl.experiments.ant.config", "AntConfig"),
 }
+#: The mask groups a family's grid tries without ``--groups``: 8, 16, 32, or divisors of a width they do not divide.
+DEFAULT_GROUPS = {"ant": (10, 20, 40)}
 #: The families ``--family`` takes.
 FAMILIES = tuple(EXPERIMENTS)
 
@@ -49,28 +54,35 @@ class TaskMasksConfig(ExperimentConfig):
     family: str = setting(
         "pendulum",
         "the task family, with its experiment's network, data and criterion: pendulum (regimes), telescoping, "
-        "fetch (reach), panda, drone (interpret)",
+        "fetch (reach), panda, drone (interpret), ant (healthy and crippled legs)",
         choices=FAMILIES,
     )
     shares: tuple[float, ...] = setting(
         (0.5, 1.0), "shares of samples T trains through a mask of its task's posterior", low=0.0, high=1.0
     )
     groups: tuple[int, ...] = setting(
-        (8, 16, 32), "dropout bits per hidden layer of T (each must divide the family's width)", low=1
+        (),
+        "dropout bits per hidden layer of T, each a divisor of the family's width (default: 8 16 32; the Ant's "
+        "200 units: 10 20 40)",
+        low=1,
     )
 
-    NON_EMPTY = ("shares", "groups")
+    NON_EMPTY = ("shares",)
 
     def validate(self) -> None:
         """The declared bounds, then the groups against the family's network width (before any work)."""
         super().validate()
         width = experiment_config(self.family).hidden
-        bad = sorted(g for g in self.groups if width % g)
+        bad = sorted(g for g in self.grid_groups() if width % g)
         if bad:
             raise ValueError(
                 f"--groups {bad} do not divide the {self.family} network's width {width}: each group is "
                 f"width/groups units, so give divisors of {width}"
             )
+
+    def grid_groups(self) -> tuple[int, ...]:
+        """``--groups``, or the family's default grid of mask groups."""
+        return self.groups or DEFAULT_GROUPS.get(self.family, (8, 16, 32))
 
     def points(self) -> list[tuple[float, int]]:
         """Every (share, groups) of the grid, and the experiment's own setting first if the grid lacks it.
@@ -81,5 +93,5 @@ class TaskMasksConfig(ExperimentConfig):
         """
         experiment = experiment_config(self.family)
         current = (experiment.task_share, experiment.mask_groups)
-        points = [(share, groups) for share in self.shares for groups in self.groups]
+        points = [(share, groups) for share in self.shares for groups in self.grid_groups()]
         return points if current in points else [current, *points]

@@ -217,10 +217,50 @@ def _drone(config: Any, device: torch.device, generator: torch.Generator) -> Fam
     )
 
 
+def _ant(config: Any, device: torch.device, generator: torch.Generator) -> Family:
+    from smcd_rl.experiments.ant.config import TASKS
+    from smcd_rl.experiments.ant.prediction import random_episodes
+    from smcd_rl.experiments.ant.run import TUNING_SEED
+    from smcd_rl.experiments.ant.task_network import (
+        TASK_TUNING_SEED,
+        task_data,
+        task_network,
+        task_tuning_episodes,
+    )
+
+    # Each half holds healthy and crippled episodes: the first is T's own tuning episodes in the experiment.
+    n, steps, task_env = config.tuning_episodes, config.tuning_steps, TASKS[config.task][0]
+    healthy, _ = random_episodes(task_env, None, count=n + n // 2, steps=steps, seed=config.seed + TUNING_SEED)
+    crippled, _ = random_episodes(
+        task_env, config.crippled_legs, count=n - n // 2, steps=steps, seed=config.seed + TASK_TUNING_SEED + n
+    )
+    episodes = torch.cat([task_tuning_episodes(healthy[:n], config), healthy[n:], crippled.to(healthy.device)])
+
+    def build(groups: int) -> smcd_rl.AdaptiveModel:
+        return task_network(dataclasses.replace(config, mask_groups=groups), device)
+
+    return Family(
+        experiment="ant",
+        task="Ant leg (healthy or one crippled)",
+        current=(config.task_share, config.mask_groups),
+        width=config.hidden,
+        particles=config.particles,
+        flips=config.calibrate_flips,
+        criterion="one-step",
+        horizon=None,
+        data=task_data(config).to(device),
+        episodes=episodes.to(device),
+        build=build,
+        trainer=smcd_rl.fit_dynamics,
+        settings={"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed},
+    )
+
+
 _LOADERS: dict[str, Callable[[Any, torch.device, torch.Generator], Family]] = {
     "pendulum": _pendulum,
     "telescoping": _telescoping,
     "fetch": _fetch,
     "panda": _panda,
     "drone": _drone,
+    "ant": _ant,
 }
