@@ -92,8 +92,14 @@ class RegimesConfig(TwoLinkFamilyConfig):
     outlier_burn_in: int = setting(10, "observations of the outlier regime (the corrupted one is the middle)", low=2)
     every: int = setting(5, "every n-th step measured in the 'every n-th' regime", low=2)
     every_steps: int = setting(30, "steps of the 'every n-th' regime (every n-th of them observed)", low=2)
-    # The masks sweep (held-out arms of the tuning seed, never the test arms) found every sample
-    # through its arm's masks best; no sweep has measured the pendulum's --task-share.
+    # Both T networks train every sample through their task's masks: the masks sweep's choice on
+    # held-out two-link arms, and `smcd-rl task-masks --family pendulum`'s on held-out pendulums.
+    task_share: float = setting(
+        1.0,
+        "share of the pendulum T network's samples trained through a mask of their pendulum's posterior",
+        low=0.0,
+        high=1.0,
+    )
     arm_task_share: float = setting(
         1.0, "share of the arm T network's samples trained through a mask of their arm's posterior", low=0.0, high=1.0
     )
