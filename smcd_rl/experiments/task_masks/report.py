@@ -108,7 +108,8 @@ def plot(
 
     from smcd_rl.experiments.shared.stats import mean_ci
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    current = tuple(summary["current"])
     for ax, method in zip(axes, ("T+S", "T+N"), strict=True):
         for share in sorted({p[0] for p in points}):
             groups = sorted(g for s, g in points if s == share)
@@ -116,12 +117,16 @@ def plot(
             means = [e.mean for e in found]
             errors = [[e.mean - e.low for e in found], [e.high - e.mean for e in found]]
             ax.errorbar(groups, means, yerr=errors, marker="o", capsize=3, label=f"share {share:g}")
-        current = tuple(summary["current"])
-        ax.axvline(current[1], color="0.8", lw=1, zorder=0)
+        ax.plot(
+            [current[1]], [mean_ci(scores[f"{label(current)} {method}"]).mean], "k*", ms=11, label="the experiment's"
+        )
         ax.set_xscale("log", base=2)
+        ticks = sorted({g for _, g in points})
+        ax.set_xticks(ticks, [str(g) for g in ticks])
+        ax.minorticks_off()
         ax.set_xlabel("mask groups per layer")
+        ax.set_ylabel(f"{summary['criterion']} error")
         ax.set_title(f"{method} ({summary['family']})")
-    axes[0].set_ylabel(f"{summary['criterion']} error")
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)
