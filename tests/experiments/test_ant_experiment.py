@@ -22,6 +22,8 @@ TINY = [
     "100",
     "--hidden",
     "16",
+    "--mask-groups",
+    "4",
     "--epochs",
     "2",
     "--episodes",

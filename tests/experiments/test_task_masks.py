@@ -34,10 +34,10 @@ def _small(family: str, seed: int = 0):
 
 
 def test_the_grid_always_holds_the_experiments_own_setting_first() -> None:
-    config = cli.make_config("task-masks", {"family": "telescoping", "shares": (1.0,), "groups": (8, 32)})
-    assert config.points() == [(0.5, 16), (1.0, 8), (1.0, 32)]  # telescoping trains T with share 0.5, 16 groups
-    inside = cli.make_config("task-masks", {"family": "telescoping", "shares": (0.5, 1.0), "groups": (16,)})
-    assert inside.points() == [(0.5, 16), (1.0, 16)]
+    config = cli.make_config("task-masks", {"family": "telescoping", "shares": (0.5,), "groups": (8, 32)})
+    assert config.points() == [(1.0, 32), (0.5, 8), (0.5, 32)]  # telescoping trains T with share 1, 32 groups
+    inside = cli.make_config("task-masks", {"family": "telescoping", "shares": (0.5, 1.0), "groups": (32,)})
+    assert inside.points() == [(0.5, 32), (1.0, 32)]
 
 
 def test_groups_that_do_not_divide_the_width_are_refused_before_any_work(tmp_path) -> None:
@@ -80,12 +80,12 @@ def test_a_run_pairs_every_point_with_the_experiments_setting_and_names_the_lowe
     monkeypatch.setattr(families, "experiment_config", _small)
     monkeypatch.setattr(task_masks_config, "experiment_config", _small)
     out = tmp_path / "run"
-    assert cli.main(["task-masks", "--family", "pendulum", "--shares", "1", "--groups", "8", "--out", str(out)]) == 0
+    assert cli.main(["task-masks", "--family", "pendulum", "--shares", "0.5", "--groups", "8", "--out", str(out)]) == 0
     for name in ("results.csv", "trials.csv", "comparisons.csv", "results.json", "task-masks.png", "report.md"):
         assert (out / name).is_file(), name
     summary = json.loads((out / "results.json").read_text())["summary"]
     # The grid, and past its edge while its lowest mean lay there (each extension doubles or halves the groups).
-    points = [(0.5, 16), (1.0, 8), *(tuple(p) for p in summary["extended"])]
+    points = [(1.0, 16), (0.5, 8), *(tuple(p) for p in summary["extended"])]  # the regimes pendulum's own first
     for k, (share, groups) in enumerate(points[2:], start=2):
         assert {(share, groups * 2), (share, groups / 2)} & set(points[:k])
     names = [f"share {p[0]:g}, {p[1]} groups" for p in points]
@@ -97,12 +97,12 @@ def test_a_run_pairs_every_point_with_the_experiments_setting_and_names_the_lowe
     # Every other point is paired with the experiment's own setting, over the same episodes.
     comparisons = {c["method"]: c for c in _rows(out / "comparisons.csv")}
     assert set(comparisons) == {f"{name} T+S" for name in names[1:]}
-    assert {c["against"] for c in comparisons.values()} == {"share 0.5, 16 groups T+S"}
+    assert {c["against"] for c in comparisons.values()} == {"share 1, 16 groups T+S"}
     for name in names[1:]:
-        expected = float((error[f"{name} T+S"] - error["share 0.5, 16 groups T+S"]).mean())
+        expected = float((error[f"{name} T+S"] - error["share 1, 16 groups T+S"]).mean())
         assert float(comparisons[f"{name} T+S"]["difference"]) == pytest.approx(expected, abs=1e-7)  # CSV digits
     lowest = min(points, key=lambda p: float(error[f"share {p[0]:g}, {p[1]} groups T+S"].mean()))
-    assert tuple(summary["best"]) == lowest and tuple(summary["current"]) == (0.5, 16)
+    assert tuple(summary["best"]) == lowest and tuple(summary["current"]) == (1.0, 16)
     assert summary["calibrated_on"] == summary["scored_on"] == 6
     report = (out / "report.md").read_text()
     assert "The choice (lowest mean T+S error)" in report and "(the experiment's)" in report
