@@ -36,6 +36,10 @@ REPORTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "sweep/smcd/report.md": ("sweep", ("study",)),
     "sweep/drone/report.md": ("sweep", ("study",)),
     "sweep/masks/report.md": ("sweep", ("study",)),
+    **{
+        f"task-masks/{f}/report.md": ("task-masks", ("family",))
+        for f in ("pendulum", "telescoping", "ant", "panda", "fetch", "drone")
+    },
     "scoreboard/report.md": ("scoreboard", ("runs",)),
 }
 

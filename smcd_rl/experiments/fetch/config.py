@@ -65,8 +65,8 @@ class FetchConfig(TuningConfig):
         "(fit(mask_training='task'), methods T+S, T+SL...)",
         choices=TASK_ADAPTATIONS,
     )
-    # Every sample through its draw's masks, 16 bits a layer: the masks sweep's best on the two-link
-    # arms (held-out arms of the tuning seed); no sweep has measured it on this family.
+    # Every sample through its draw's masks, 16 bits a layer: `smcd-rl task-masks --family fetch`'s
+    # best on held-out draws (never the test draws).
     task_share: float = setting(
         1.0,
         "share of T's samples trained through a mask of their draw's posterior (the rest random)",

@@ -119,8 +119,8 @@ class InterpretConfig(TuningConfig):
         low=2,
     )
     tuning_steps: int = setting(20, "steps of each tuning flight used (flights shorter are not drawn)", low=2)
-    # T: every sample through its operator's masks, 16 bits a layer (the masks sweep's best on the
-    # two-link arms; no sweep has measured it on the operators).
+    # T: every sample through its operator's masks, 16 bits a layer (`smcd-rl task-masks --family
+    # drone`'s best on held-out operators, never the test flights).
     task_share: float = setting(
         1.0, "share of T's samples trained through a mask of their operator's posterior", low=0.0, high=1.0
     )
