@@ -202,8 +202,9 @@ def test_smcd_on_task_masks_has_a_column_and_verdicts_only_where_it_ran(tmp_path
     scores = {(10,): {"M+N": base, "M+G": base - 0.2, "M+S": base - 0.1, "T+S": base - 0.3}}
     adaptive = ("T+S", "M+S", "M+G")
     rows, comparisons = cell_statistics(scores, cell=("T",), baseline="M+N", adaptive=adaptive, metric="rmse")
-    entry = scoreboard_entry("with T", rows, comparisons, cell={"T": 10}, metric="rmse", unit="m")
-    assert entry["estimates"]["SMCD (task masks)"]["method"] == "T+S"
+    note = "T saw the test condition in training"
+    entry = scoreboard_entry("with T", rows, comparisons, cell={"T": 10}, metric="rmse", unit="m", note=note)
+    assert entry["estimates"]["SMCD (task masks)"]["method"] == "T+S" and entry["note"] == note
     # T+S is 0.1 below GD and 0.2 below one-step SMCD on every trial.
     assert entry["verdicts"]["SMCD (task masks) vs GD"] == "better -0.100 [-0.100, -0.100]"
     assert entry["verdicts"]["SMCD (task masks) vs SMCD (one-step)"] == "better -0.200 [-0.200, -0.200]"
@@ -217,6 +218,9 @@ def test_smcd_on_task_masks_has_a_column_and_verdicts_only_where_it_ran(tmp_path
     report = (out / "report.md").read_text()
     table = report.split("(T+S), where it ran")[1]
     assert "| task masks vs GD " in table and "| with T " in table and "| no T " not in table.split("**")[1]
+    # A task's note is listed under the tables, beside its task only.
+    notes = report.split("Notes: what to know before comparing")[1].split("**")[1]
+    assert f"| with T | {note} |" in notes and "| no T " not in notes
 
 
 def test_two_runs_of_one_experiment_are_labelled_by_their_run_directories(tmp_path, capsys) -> None:

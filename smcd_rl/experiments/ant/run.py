@@ -129,6 +129,8 @@ __all__ = [
 DATA_SETTINGS = ("seed", "task", "data_policy", "sac_steps", "transitions", "data_episode_steps")
 #: Offsets of the env seeds from ``--seed``: MPC episodes, tuning episodes, prediction episodes.
 EPISODE_SEED, TUNING_SEED = 1_000_003, 2_000_003
+#: The scoreboard's note on the Ant rows: T+S's network trained on what M's never saw.
+TASK_NOTE = "T+S's network T trained on the crippled legs as well (the leg as its task); M's on the healthy Ant only"
 #: The paired comparisons: each adaptive method against M+N and against each other.
 ADAPTIVE = ("M+S", "M+S(evidence)", "M+S(paper)", "M+G", "M+C", "M+L", "M+SL")
 
@@ -358,6 +360,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
                         metric="rmse",
                         unit="observation units",
                         ms=ms,
+                        note=TASK_NOTE if config.task_adaptations else None,
                     )
                     for condition in config.conditions
                 ],

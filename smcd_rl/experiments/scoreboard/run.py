@@ -190,6 +190,11 @@ def _write(
                 )
                 if task_rows
                 else "",
+                "Notes: what to know before comparing a task's strategies": format_table(
+                    [[row["task"], row["note"]] for row in rows if row["note"]], ["task", "note"]
+                )
+                if any(row["note"] for row in rows)
+                else "",
                 # Not "none": a forward pass, a fraction of a millisecond everywhere (results.csv has it).
                 "Median time per observation (ms; one stream, one thread), where the experiment measured it": format_table(
                     [[row["task"], *(_ms(row["ms"].get(c)) for c in timed_columns)] for row in timed],
@@ -350,6 +355,7 @@ def _row(entry: Mapping[str, Any]) -> dict[str, Any]:
     for method, against in VERDICTS:
         row[f"{method} vs {against}"] = entry["verdicts"].get(f"{method} vs {against}", "not compared")
     row["ms"] = dict(entry.get("ms_per_observation", {}))
+    row["note"] = str(entry.get("note", ""))
     return row
 
 

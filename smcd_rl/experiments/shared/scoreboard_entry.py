@@ -99,6 +99,7 @@ def scoreboard_entry(
     prefix: str = "M+",
     lower_is_better: bool = True,
     ms: Mapping[str, float] | None = None,
+    note: str | None = None,
 ) -> dict[str, Any]:
     """The ``results.json`` entry that stands for ``task`` in the scoreboard: its estimates and verdicts.
 
@@ -115,6 +116,8 @@ def scoreboard_entry(
         lower_is_better: ``False`` for success rates and returns.
         ms: method label -> its median milliseconds per observation (``ms_per_observation`` of
             the entry, by strategy; only the strategies found in the cell).
+        note: what a reader must know to compare the row's strategies (e.g. a network that saw
+            the test condition in training); the scoreboard lists it under its tables.
     """
     chosen = dict(cell)
     if rows and not any(_in_cell(r, chosen) for r in rows):
@@ -152,6 +155,8 @@ def scoreboard_entry(
     if ms:
         timed = {column: ms[e["method"]] for column, e in estimates.items() if e["method"] in ms}
         entry["ms_per_observation"] = timed
+    if note:
+        entry["note"] = note
     return entry
 
 
