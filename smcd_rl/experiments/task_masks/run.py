@@ -9,6 +9,7 @@ of twice the experiment's tuning episodes, and scores SMCD (``T+S``) and the net
 adaptation (``T+N``) on the second half: fresh tasks of the training distribution, never the
 experiment's test tasks, so that the choice may set the experiment's default as its own tuning
 does. Every grid point's T+S is paired with the experiment's own setting over the same episodes.
+Where the lowest mean lies on the grid's edge, the grid extends past it (:func:`beyond_edge`).
 
 Writes ``results.csv`` (per point and method: mean [95 % CI]), ``trials.csv`` (every episode's
 score), ``comparisons.csv``, ``results.json``, ``task-masks.png`` and ``report.md``.
