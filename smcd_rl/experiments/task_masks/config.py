@@ -40,7 +40,7 @@ def experiment_config(family: str, seed: int = 0) -> Any:
     Example:
         >>> config = experiment_config("pendulum")
         >>> type(config).__name__, config.task_share, config.mask_groups
-        ('RegimesConfig', 0.5, 16)
+        ('RegimesConfig', 1.0, 16)
     """
     module, name = EXPERIMENTS[family]
     return getattr(importlib.import_module(module), name)(seed=seed)
@@ -88,8 +88,8 @@ class TaskMasksConfig(ExperimentConfig):
         """Every (share, groups) of the grid, and the experiment's own setting first if the grid lacks it.
 
         Example:
-            >>> TaskMasksConfig(family="pendulum", shares=(1.0,), groups=(8,)).points()
-            [(0.5, 16), (1.0, 8)]
+            >>> TaskMasksConfig(family="pendulum", shares=(0.5,), groups=(8,)).points()
+            [(1.0, 16), (0.5, 8)]
         """
         experiment = experiment_config(self.family)
         current = (experiment.task_share, experiment.mask_groups)

@@ -68,6 +68,21 @@ class Family:
         return {**self.settings, **task_mask_settings(SimpleNamespace(task_share=share))}
 
 
+def _family(config: Any, **fields: Any) -> Family:
+    """A :class:`Family` with what every experiment's config holds (its T setting, width, particles, flips
+    and fit settings) and the one-step criterion; ``fields`` give the rest and may replace any of these."""
+    common = {
+        "criterion": "one-step",
+        "horizon": None,
+        "current": (config.task_share, config.mask_groups),
+        "width": config.hidden,
+        "particles": config.particles,
+        "flips": config.calibrate_flips,
+        "settings": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed},
+    }
+    return Family(**{**common, **fields})
+
+
 def load(name: str, *, seed: int, device: torch.device | str, generator: torch.Generator) -> Family:
     """The family ``name`` of :data:`~smcd_rl.experiments.task_masks.config.FAMILIES` at its experiment's defaults."""
     return _LOADERS[name](experiment_config(name, seed), torch.device(device), generator)
@@ -84,15 +99,10 @@ def _pendulum(config: Any, device: torch.device, generator: torch.Generator) -> 
     def build(groups: int) -> smcd_rl.AdaptiveModel:
         return regimes.other_network("pendulum-task", dataclasses.replace(config, mask_groups=groups), data, device)[0]
 
-    return Family(
+    return _family(
+        config,
         experiment="regimes",
         task="pendulum (mass and length)",
-        current=(config.task_share, config.mask_groups),
-        width=config.hidden,
-        particles=config.particles,
-        flips=config.calibrate_flips,
-        criterion="one-step",
-        horizon=None,
         data=task_data,
         episodes=regimes.tuning_episodes("pendulum", doubled).to(device),
         build=build,
@@ -114,15 +124,10 @@ def _telescoping(config: Any, device: torch.device, generator: torch.Generator) 
     def build(groups: int) -> smcd_rl.AdaptiveModel:
         return arms.task_model(dataclasses.replace(config, mask_groups=groups), device, init_seed=config.seed + 29)
 
-    return Family(
+    return _family(
+        config,
         experiment="telescoping",
         task="two-link arm (link lengths)",
-        current=(config.task_share, config.mask_groups),
-        width=config.hidden,
-        particles=config.particles,
-        flips=config.calibrate_flips,
-        criterion="one-step",
-        horizon=None,
         data=data,
         episodes=arms.tuning_episodes(doubled, device, steps=TUNING_STEPS),
         build=build,
@@ -146,20 +151,16 @@ def _fetch(config: Any, device: torch.device, generator: torch.Generator) -> Fam
     def build(groups: int) -> smcd_rl.AdaptiveModel:
         return task_network(dataclasses.replace(config, mask_groups=groups), obs_dim, action_dim, device)
 
-    return Family(
+    return _family(
+        config,
         experiment="fetch",
         task=f"{family} draw (rotation and gain)",
-        current=(config.task_share, config.mask_groups),
-        width=config.hidden,
-        particles=config.particles,
-        flips=config.calibrate_flips,
         criterion="lookahead",
         horizon=config.tuning_horizon,
         data=train,
         episodes=tuning_episodes(family, doubled, seed=config.seed + TUNING_SEED).to(device),
         build=build,
         trainer=smcd_rl.fit_dynamics,
-        settings={"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed},
     )
 
 
@@ -172,20 +173,14 @@ def _panda(config: Any, device: torch.device, generator: torch.Generator) -> Fam
     def build(groups: int) -> smcd_rl.AdaptiveModel:
         return task_network(dataclasses.replace(config, mask_groups=groups), device)
 
-    return Family(
+    return _family(
+        config,
         experiment="panda",
         task="tool length",
-        current=(config.task_share, config.mask_groups),
-        width=config.hidden,
-        particles=config.particles,
-        flips=config.calibrate_flips,
-        criterion="one-step",
-        horizon=None,
         data=task_data(config).to(device),
         episodes=tuning_episodes(doubled, device),
         build=build,
         trainer=smcd_rl.fit,
-        settings={"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed},
     )
 
 
@@ -200,20 +195,16 @@ def _drone(config: Any, device: torch.device, generator: torch.Generator) -> Fam
     def build(groups: int) -> smcd_rl.AdaptiveModel:
         return drone.make_model(config, fitted, device, mask_groups=groups)
 
-    return Family(
+    return _family(
+        config,
         experiment="interpret",
         task="drone operator",
-        current=(config.task_share, config.mask_groups),
-        width=config.hidden,
-        particles=config.particles,
-        flips=config.calibrate_flips,
         criterion="lookahead",
         horizon=config.tuning_horizon,
         data=drone.steps(fitted, device),
         episodes=lookahead.tuning_episodes(flights, doubled, device),
         build=build,
         trainer=smcd_rl.fit,
-        settings={"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed},
     )
 
 
@@ -239,20 +230,14 @@ def _ant(config: Any, device: torch.device, generator: torch.Generator) -> Famil
     def build(groups: int) -> smcd_rl.AdaptiveModel:
         return task_network(dataclasses.replace(config, mask_groups=groups), device)
 
-    return Family(
+    return _family(
+        config,
         experiment="ant",
         task="Ant leg (healthy or one crippled)",
-        current=(config.task_share, config.mask_groups),
-        width=config.hidden,
-        particles=config.particles,
-        flips=config.calibrate_flips,
-        criterion="one-step",
-        horizon=None,
         data=task_data(config).to(device),
         episodes=episodes.to(device),
         build=build,
         trainer=smcd_rl.fit_dynamics,
-        settings={"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr, "seed": config.seed},
     )
 
 
