@@ -115,13 +115,13 @@ def run(config: TaskMasksConfig, *, progress: bool = True) -> dict[str, Any]:
 
         for point in points:
             measure(point)
-        extended = []
+        extended: list[tuple[float, int]] = []
         means = lambda: {p: float(scores[f"{label(p)} T+S"].mean()) for p in points}  # noqa: E731
-        while (point := beyond_edge(means(), family.width)) is not None:
-            ex.plan(_stages([point]))
-            measure(point)
-            points.append(point)
-            extended.append(point)
+        while (beyond := beyond_edge(means(), family.width)) is not None:
+            ex.plan(_stages([beyond]))
+            measure(beyond)
+            points.append(beyond)
+            extended.append(beyond)
 
         reference = f"{label(family.current)} T+S"
         rows, _ = cell_statistics(
