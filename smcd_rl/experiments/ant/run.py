@@ -5,7 +5,9 @@ small stable-baselines3 SAC policy), fit one dropout dynamics model, tune the ad
 fair protocol (:mod:`smcd_rl.experiments.shared.tuning`), then score every adaptation by the primary
 metric, prediction error, and by the secondary one, the return of planner x adaptation episodes,
 on the healthy Ant and on the Ant with a crippled leg. All strategies share the trained network
-(``model.with_adaptation``).
+(``model.with_adaptation``). A second network, T, trained on the healthy Ant and on each leg
+crippled with masks tied to the leg (:mod:`.task_network`), adds its methods' prediction error
+(``--task-adaptations``), paired with M's and with its own T+G and T+N.
 
 The adaptations (``--adaptations``), labelled as in every experiment:
 
