@@ -27,7 +27,7 @@ TELESCOPING = (
 ).split()
 # ... and of tests/experiments/test_ant_experiment.py.
 ANT = (
-    "--transitions 400 --data-episode-steps 100 --hidden 16 --epochs 2 --episodes 2 --episode-steps 4 --horizon 3 "
+    "--transitions 400 --data-episode-steps 100 --hidden 16 --mask-groups 4 --epochs 2 --episodes 2 --episode-steps 4 --horizon 3 "
     "--candidates 12 --elites 3 --iterations 2 --particles 8 --threads 1 --tuning-episodes 4 --tuning-steps 6 "
     "--prediction-episodes 6 --prediction-steps 8 --prediction-horizon 3 --gd-lr 0.01 0.1 --gd-steps 1 --gd-window 5"
 ).split()

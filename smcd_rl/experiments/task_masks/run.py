@@ -38,7 +38,7 @@ from smcd_rl.experiments.task_masks.config import TaskMasksConfig
 from smcd_rl.experiments.task_masks.families import Family, load
 from smcd_rl.experiments.task_masks.report import label, plot, tables
 
-__all__ = ["run", "episode_scores", "beyond_edge"]
+__all__ = ["TaskMasksConfig", "run", "episode_scores", "beyond_edge"]
 
 #: Relative stage costs (seconds on 2 CPU cores, one torch thread, of one grid point's training and scoring).
 COSTS = {"load": 10.0, "train": 40.0, "score": 10.0}
