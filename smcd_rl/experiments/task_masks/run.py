@@ -124,24 +124,20 @@ def run(config: TaskMasksConfig, *, progress: bool = True) -> dict[str, Any]:
             extended.append(beyond)
 
         reference = f"{label(family.current)} T+S"
+        # Rows only: each point is paired with the experiment's setting below, not with every other point.
         rows, _ = cell_statistics(
-            {(config.family,): scores},
-            cell=("family",),
-            baseline=None,
-            adaptive=list(scores),
-            metric="error",
-            seed=config.seed,
+            {(config.family,): scores}, cell=("family",), baseline=None, adaptive=(), metric="error", seed=config.seed
         )
-        others = [f"{label(p)} T+S" for p in points if p != family.current]
         comparisons = [
             {"family": config.family, **vars(c)}
+            for p in points
+            if p != family.current
             for c in paired_comparisons(
-                {k: v for k, v in scores.items() if k.endswith("T+S")},
+                {reference: scores[reference], f"{label(p)} T+S": scores[f"{label(p)} T+S"]},
                 baseline=reference,
-                adaptive=others,
+                adaptive=[f"{label(p)} T+S"],
                 seed=config.seed,
             )
-            if c.against == reference
         ]
         best = min(points, key=lambda p: float(scores[f"{label(p)} T+S"].mean()))
         trials = [
