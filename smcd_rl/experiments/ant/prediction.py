@@ -173,15 +173,15 @@ def evaluate_predictions(
         episodes = episodes.to(ex.device)
         results[condition] = {}
         for prefix, (model, strategy, content, variants) in networks.items():
-            # M's results keep their variant names (a rerun reuses them); another network's are labelled.
-            label = (lambda v: v) if prefix == "M" else (lambda v, p=prefix: f"{p}+{v}")
+            # M's results are stored under their variant names (a rerun reuses them), another network's as labelled.
+            stored = {variant: variant if prefix == "M" else f"{prefix}+{variant}" for variant in variants}
             done = ex.evaluate(
-                {label(variant): functools.partial(strategy, variant) for variant in variants},
+                {stored[variant]: functools.partial(strategy, variant) for variant in variants},
                 functools.partial(_errors, model, episodes, config.prediction_horizon),
                 content={**content, "episodes": content_digest(episodes)},
                 kind=f"prediction-{condition}",
             )
-            results[condition].update({f"M+{v}" if prefix == "M" else v: r for v, r in done.items()})
+            results[condition].update({f"{prefix}+{variant}": done[stored[variant]] for variant in variants})
     return results, legs
 
 

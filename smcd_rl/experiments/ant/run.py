@@ -193,11 +193,12 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
         tunings = {"M": tuning}
         if config.task_adaptations:
             task = task_network(config, ex.device)
+            task_key = {**data_key, "network": "T", "legs": config.crippled_legs}
             with ex.stage("collect T"):
-                data_t = ex.store.get("data", {**data_key, "network": "T", "legs": config.crippled_legs})
+                data_t = ex.store.get("data", task_key)
                 if data_t is None:
                     data_t = {"data": task_data(config)}
-                    ex.store.put("data", {**data_key, "network": "T", "legs": config.crippled_legs}, data_t)
+                    ex.store.put("data", task_key, data_t)
             task_fit = {**fit, **task_mask_settings(config)}
             task_losses = ex.train("T", smcd_rl.fit_dynamics, task, data_t["data"].to(ex.device), **task_fit)
             task.save(ex.out / "task_model.pt")
