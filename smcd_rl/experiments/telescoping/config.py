@@ -63,14 +63,8 @@ class TelescopingConfig(TwoLinkFamilyConfig):
         256, "width of each hidden layer (the paper's latent dimension; 256 keeps the default run short)", low=1
     )
     reptile_tasks_per_batch: int = setting(5, "tasks per Reptile meta step", low=1)
-    # `smcd-rl task-masks --family telescoping` (held-out training arms, never the test episodes): every
-    # sample through its arm's masks, 32 bits a layer, predicted best one step ahead.
-    task_share: float = setting(
-        1.0,
-        "share of samples the T network trains through a mask of its task's posterior (the rest random)",
-        low=0.0,
-        high=1.0,
-    )
+    # `smcd-rl task-masks --family telescoping` (held-out training arms, never the test episodes): 32
+    # bits a layer, with every sample through its arm's masks, predicted best one step ahead.
     mask_groups: int = setting(
         32, "dropout bits per hidden layer of the T network, each for hidden/mask_groups units (0: one per unit)", low=0
     )

@@ -85,14 +85,6 @@ class TwoLinkConfig(TwoLinkFamilyConfig):
     tuning_episodes: int = setting(
         16, "held-out babbling episodes of fresh training-distribution arms every method is tuned on", low=2
     )
-    # The masks sweep (held-out arms of the tuning seed, never the test arms) found every sample
-    # through its arm's masks best: 0.0051 m2 after 10 observations against 0.029 m2 at 0.5.
-    task_share: float = setting(
-        1.0,
-        "share of samples the T network trains through a mask of its task's posterior (the rest random)",
-        low=0.0,
-        high=1.0,
-    )
     tuning_options: bool = setting(
         False,
         "also trace the calibrated SMCD with 5x particles, the predictive mean and a Student-t likelihood on "
