@@ -5,7 +5,7 @@ A planar three-link arm whose link lengths change from arm to arm (each ~ U(0.5,
 then ``smcd_rl.tune`` (its defaults) chooses every strategy on 20 held-out episodes of 30
 observations of fresh arms from the same distribution. Printed, side by side in one run: tune's
 wall time, the wall time of one pass of the gradient-descent setting it chose over the same
-episodes (``smcd_rl.diagnostics.trace``), their ratio, and each chosen strategy's one-step RMSE on
+episodes (``smcd_rl.tuning.diagnostics.trace``), their ratio, and each chosen strategy's one-step RMSE on
 50 test arms. The machine and thread count come first.
 
     python scripts/bench_tune.py
@@ -22,8 +22,8 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl.diagnostics import trace
 from smcd_rl.experiments.shared.runtime import machine_info
+from smcd_rl.tuning.diagnostics import trace
 
 
 def arms(count: int, steps: int, generator: torch.Generator) -> TensorDict:

@@ -39,8 +39,8 @@ from torchrl.record.loggers.csv import CSVLogger
 
 import smcd_rl
 from smcd_rl.files import load_file, save_file
+from smcd_rl.integrations.script_options import parse_config, save_options
 from smcd_rl.integrations.torchrl import AdaptationTransform, AdaptiveWorldModelEnv, fit_from_replay_buffer
-from smcd_rl.script_options import parse_config, save_options
 
 
 @dataclass

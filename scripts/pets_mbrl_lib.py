@@ -33,7 +33,7 @@ from torch import Tensor
 
 import smcd_rl
 from smcd_rl.integrations.mbrl_lib import pets_loop
-from smcd_rl.script_options import parse_config, save_options
+from smcd_rl.integrations.script_options import parse_config, save_options
 
 
 @dataclass

@@ -41,7 +41,7 @@ from stable_baselines3.common.logger import configure
 import smcd_rl
 from smcd_rl.files import load_file, save_file
 from smcd_rl.integrations.gymnasium import AdaptationWrapper, collect_transitions
-from smcd_rl.script_options import parse_config, save_options
+from smcd_rl.integrations.script_options import parse_config, save_options
 
 
 @dataclass

@@ -18,20 +18,19 @@ Example:
 from __future__ import annotations
 
 import importlib
+import importlib.abc
+import importlib.machinery
 import importlib.util
+import sys
+import warnings
 from typing import TYPE_CHECKING, Any
 
 from smcd_rl.envs import register_all as _register_envs
 
 if TYPE_CHECKING:
-    from smcd_rl.adaptation import SMCD, Adaptation, GradientDescent, NoAdaptation, make_adaptation
     from smcd_rl.allocator import keep_freed_memory
-    from smcd_rl.calibration import Calibration, calibrate
-    from smcd_rl.combination import Combination
-    from smcd_rl.episode_windows import episodes
     from smcd_rl.files import FileWriteError, UnreadableFileError
     from smcd_rl.filter import ParticleFilter, SMCDFilter
-    from smcd_rl.last_layer import BayesianLastLayer
     from smcd_rl.masked_mlp import MaskedMLP
     from smcd_rl.model import (
         AdaptiveDynamicsModel,
@@ -41,9 +40,18 @@ if TYPE_CHECKING:
         load,
         save,
     )
-    from smcd_rl.smcd_last_layer import SMCDLastLayer
+    from smcd_rl.strategies import (
+        SMCD,
+        Adaptation,
+        BayesianLastLayer,
+        Combination,
+        GradientDescent,
+        NoAdaptation,
+        SMCDLastLayer,
+        make_adaptation,
+    )
     from smcd_rl.training import fit, fit_dynamics, fit_reptile
-    from smcd_rl.tuning import TuneResult, tune
+    from smcd_rl.tuning import Calibration, TuneResult, calibrate, episodes, tune
 
 _register_envs()
 
@@ -82,13 +90,20 @@ __all__ = [
 
 #: Where each public name is defined: its module is imported on the name's first use.
 _SOURCES: dict[str, str] = {
-    **dict.fromkeys(["SMCD", "Adaptation", "GradientDescent", "NoAdaptation", "make_adaptation"], "adaptation"),
-    **dict.fromkeys(["Calibration", "calibrate"], "calibration"),
-    "Combination": "combination",
-    "BayesianLastLayer": "last_layer",
-    "SMCDLastLayer": "smcd_last_layer",
-    "episodes": "episode_windows",
-    **dict.fromkeys(["tune", "TuneResult"], "tuning"),
+    **dict.fromkeys(
+        [
+            "SMCD",
+            "Adaptation",
+            "GradientDescent",
+            "NoAdaptation",
+            "Combination",
+            "BayesianLastLayer",
+            "SMCDLastLayer",
+            "make_adaptation",
+        ],
+        "strategies",
+    ),
+    **dict.fromkeys(["Calibration", "calibrate", "episodes", "tune", "TuneResult"], "tuning"),
     "keep_freed_memory": "allocator",
     **dict.fromkeys(["FileWriteError", "UnreadableFileError"], "files"),
     **dict.fromkeys(["ParticleFilter", "SMCDFilter"], "filter"),
@@ -99,6 +114,50 @@ _SOURCES: dict[str, str] = {
     ),
     **dict.fromkeys(["fit", "fit_dynamics", "fit_reptile"], "training"),
 }
+
+#: Modules that moved into the ``strategies``, ``tuning`` and ``training`` packages: the old path
+#: still imports, as the new module, with a DeprecationWarning (until the next release).
+_MOVED: dict[str, str] = {
+    "adaptation": "strategies",
+    "combination": "strategies.combination",
+    "last_layer": "strategies.last_layer",
+    "smcd_last_layer": "strategies.smcd_last_layer",
+    "stream_weights": "strategies.stream_weights",
+    "particle_forward": "strategies.particle_forward",
+    "strategy_specs": "strategies.registry",
+    "calibration": "tuning.calibration",
+    "criteria": "tuning.criteria",
+    "diagnostics": "tuning.diagnostics",
+    "held_out": "tuning.held_out",
+    "scoring": "tuning.scoring",
+    "tuning_advice": "tuning.advice",
+    "tuning_kinds": "tuning.kinds",
+    "tuning_search": "tuning.search",
+    "episode_windows": "tuning.episode_windows",
+    "task_masks": "training.task_masks",
+    "script_options": "integrations.script_options",
+}
+
+
+class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Finds ``smcd_rl.<old>`` for a module of :data:`_MOVED` and gives the module at its new path."""
+
+    def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> importlib.machinery.ModuleSpec | None:
+        package, _, old = fullname.rpartition(".")
+        if package != __name__ or old not in _MOVED:
+            return None
+        return importlib.machinery.ModuleSpec(fullname, self)
+
+    def create_module(self, spec: importlib.machinery.ModuleSpec) -> Any:
+        new = f"{__name__}.{_MOVED[spec.name.rpartition('.')[2]]}"
+        warnings.warn(f"{spec.name} moved to {new}; import it from there", DeprecationWarning, stacklevel=2)
+        return importlib.import_module(new)
+
+    def exec_module(self, module: Any) -> None:
+        pass  # the new module ran when it was imported
+
+
+sys.meta_path.append(_MovedModules())
 
 
 def _load(name: str) -> Any:

@@ -45,7 +45,7 @@ class MaskedMLP(nn.Module):
     hundred masks cover it, at the price of coarser sub-networks. A kept unit is still scaled
     by ``1 / keep_prob``. (:class:`smcd_rl.SMCD` runs a grouped network's particles from each
     group's contribution to the next layer, ``mask_groups`` multiply-adds per output and particle
-    instead of the layer's width: :mod:`smcd_rl.particle_forward`.)
+    instead of the layer's width: :mod:`smcd_rl.strategies.particle_forward`.)
 
     Args:
         in_features: input size.

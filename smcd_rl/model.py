@@ -17,11 +17,13 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from smcd_rl.adaptation import SMCD, Adaptation, NoAdaptation, _checked_noise, adaptation_class
 from smcd_rl.checks import check_key, check_real, check_real_tensor, check_shape, check_tensordict, read_tensor
 from smcd_rl.files import CheckpointMismatchError, UnreadableFileError, load_file, save_file
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.normalization import Normalizer
+from smcd_rl.strategies import SMCD, Adaptation, NoAdaptation
+from smcd_rl.strategies.base import checked_noise
+from smcd_rl.strategies.registry import from_spec, on_device, settings_of, spec
 
 if TYPE_CHECKING:
     from typing_extensions import Self  # typing.Self needs Python 3.11
@@ -479,7 +481,7 @@ class AdaptiveModel(TensorDictModuleBase):
             "net": self.net.config,
             "keys": self._key_config(),
             "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-            "adaptation": {"name": self.adaptation.name, "config": self.adaptation.config()},
+            "adaptation": spec(self.adaptation),
             "declared_fitted": self._declared.fitted,
             "residual_scale": None if self._declared.residual_scale is None else self._declared.residual_scale.tolist(),
             "calibration": self.calibration,
@@ -898,7 +900,7 @@ def _checked_calibration(value: Any, size: int) -> dict[str, Any]:
         raise TypeError(f"calibration must be a dict with 'noise_std' and 'flip_prob', got {value!r}")
     noise: Any = value["noise_std"]
     noise = noise.tolist() if isinstance(noise, Tensor) else noise
-    checked = _checked_noise(noise)  # float32: the stored values are the caller's, as float64 Python floats
+    checked = checked_noise(noise)  # float32: the stored values are the caller's, as float64 Python floats
     if checked.dim() == 1 and checked.shape[0] not in (1, size):
         raise ValueError(f"calibration noise_std has {checked.shape[0]} values but the model predicts {size} outputs")
     flip = check_real(value["flip_prob"], "calibration flip_prob", low=0.0, high=1.0)
@@ -1005,7 +1007,10 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
         net = MaskedMLP(**checkpoint["net"], dtype=_saved_dtype(checkpoint))
         if adaptation is None:
             saved = checkpoint["adaptation"]
-            adaptation = adaptation_class(saved["name"])(**saved["config"])
+            # The network is rebuilt on the CPU: so are the random generators of its SMCDs.
+            adaptation = from_spec(
+                {"name": saved["name"], "settings": on_device(saved["name"], settings_of(saved), "cpu")}
+            )
         cls = _CLASSES[checkpoint["class"]]
     except (TypeError, ValueError, KeyError) as err:  # a configuration this version cannot rebuild
         raise UnreadableFileError(

@@ -48,7 +48,7 @@ print(json.dumps({{"before": before, "registered": registered, "torch after": "t
                    "type": type(smcd).__module__ + "." + type(smcd).__name__}}))
 """
     )
-    assert result == {"before": [], "registered": True, "torch after": True, "type": "smcd_rl.adaptation.SMCD"}
+    assert result == {"before": [], "registered": True, "torch after": True, "type": "smcd_rl.strategies.smcd.SMCD"}
 
 
 def test_every_public_name_resolves_and_is_listed() -> None:

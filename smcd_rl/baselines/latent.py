@@ -24,7 +24,7 @@ from torch.nn import functional as F
 from smcd_rl.checks import check_key, check_shape, check_tensordict, read_tensor
 from smcd_rl.files import CheckpointMismatchError, load_file
 from smcd_rl.normalization import Normalizer
-from smcd_rl.training import _normalised_pairs, _require_samples, _shuffled_epoch, _train
+from smcd_rl.training.fitting import _normalised_pairs, _require_samples, _shuffled_epoch, _train
 
 __all__ = ["LatentVariableModel", "fit_latent"]
 

@@ -70,9 +70,9 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor
 
-from smcd_rl.adaptation import SMCD
 from smcd_rl.files import CheckpointMismatchError, load_file, save_file
 from smcd_rl.model import AdaptiveDynamicsModel
+from smcd_rl.strategies import SMCD
 from smcd_rl.training import fit_dynamics
 
 __all__ = [

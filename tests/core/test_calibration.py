@@ -11,9 +11,10 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl import calibration, training
-from smcd_rl.calibration import evidence
-from smcd_rl.diagnostics import Trace
+from smcd_rl.training import fitting
+from smcd_rl.tuning import calibration
+from smcd_rl.tuning.calibration import evidence
+from smcd_rl.tuning.diagnostics import Trace
 
 SIGMA = 0.02  # the known measurement noise of the synthetic episodes
 
@@ -287,7 +288,7 @@ def tiny_fitted(validation: bool = False) -> tuple[smcd_rl.AdaptiveModel, list[f
 def test_fit_records_the_residual_scale_without_changing_training(monkeypatch: pytest.MonkeyPatch) -> None:
     model, losses, data = tiny_fitted()
     with_validation, validation_losses, _ = tiny_fitted(validation=True)
-    monkeypatch.setattr(training, "_record_residual_scale", lambda *args: None)
+    monkeypatch.setattr(fitting, "_record_residual_scale", lambda *args: None)
     without, plain_losses, _ = tiny_fitted()
     assert without.residual_scale is None
     assert losses == validation_losses == plain_losses  # bit for bit

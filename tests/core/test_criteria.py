@@ -9,8 +9,8 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl.criteria import checked_criterion
-from smcd_rl.scoring import Scorer
+from smcd_rl.tuning.criteria import checked_criterion
+from smcd_rl.tuning.scoring import Scorer
 
 FAST = {"num_particles": 16, "gd_grid": {"lr": (1e-2, 1e-1), "steps": (1,), "window": (1, 5)}, "progress": False}
 
@@ -191,18 +191,18 @@ def test_the_table_ends_with_what_to_use(sine_model) -> None:
 
 def test_trace_with_a_horizon_reports_the_lookahead_error(sine_model) -> None:
     episodes = shifted_episodes()
-    run = smcd_rl.diagnostics.trace(sine_model, episodes, smcd_rl.NoAdaptation(), horizon=3)
+    run = smcd_rl.tuning.diagnostics.trace(sine_model, episodes, smcd_rl.NoAdaptation(), horizon=3)
     scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", 3))
     assert run.lookahead_rmse == pytest.approx(scorer.score(scorer.run(smcd_rl.NoAdaptation())), rel=1e-9)
-    assert math.isnan(smcd_rl.diagnostics.trace(sine_model, episodes, smcd_rl.NoAdaptation()).lookahead_rmse)
+    assert math.isnan(smcd_rl.tuning.diagnostics.trace(sine_model, episodes, smcd_rl.NoAdaptation()).lookahead_rmse)
 
 
 def test_the_advice_names_the_best_with_few_and_with_many_observations() -> None:
     """SMCD's errors start low and stay; GD's start high and end lower: each is named where it leads."""
-    from smcd_rl.diagnostics import Trace
     from smcd_rl.tuning import TuneCandidate, TuneResult
-    from smcd_rl.tuning_advice import advice
-    from smcd_rl.tuning_search import setting_key
+    from smcd_rl.tuning.advice import advice
+    from smcd_rl.tuning.diagnostics import Trace
+    from smcd_rl.tuning.search import setting_key
 
     smcd = TuneCandidate("smcd", {"noise_std": 0.1}, 0.20, 2.0)
     gd = TuneCandidate("gradient_descent", {"lr": 0.1, "loss": "mse"}, 0.18, 9.0)

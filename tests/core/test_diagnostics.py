@@ -1,4 +1,4 @@
-"""smcd_rl.diagnostics.trace: a strategy's one-step error, ESS, evidence and kept share, step by step."""
+"""smcd_rl.tuning.diagnostics.trace: a strategy's one-step error, ESS, evidence and kept share, step by step."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl.calibration import evidence
-from smcd_rl.diagnostics import trace
+from smcd_rl.tuning.calibration import evidence
+from smcd_rl.tuning.diagnostics import trace
 from tests.core.test_calibration import SIGMA, known_mask_episodes
 
 

@@ -11,7 +11,7 @@ from tensordict import TensorDict
 from torch.func import functional_call
 
 import smcd_rl
-from smcd_rl import stream_weights
+import smcd_rl.strategies.stream_weights as stream_weights
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl.particle_forward import ParticleForward
+from smcd_rl.strategies.particle_forward import ParticleForward
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import smcd_rl
-from smcd_rl.particle_forward import Lineage, ParticleForward
+from smcd_rl.strategies.particle_forward import Lineage, ParticleForward
 
 #: (hidden widths, masked layers): both layers masked (the paper's), deeper, first / later only.
 LAYOUTS = [((48, 40), None), ((32, 32, 24), None), ((32, 40), (0,)), ((32, 40, 24), (1, 2)), ((40,), None)]
@@ -185,7 +185,7 @@ def test_a_later_call_does_not_overwrite_an_earlier_result(hidden, masked) -> No
 def test_float_floor_division_is_exact_at_multiples() -> None:
     """The shortcuts for ``index // divisor`` (float, or a shift for powers of two) must not round
     k * divisor - 1 up or k * divisor down."""
-    from smcd_rl.particle_forward import _floor_div
+    from smcd_rl.strategies.particle_forward import _floor_div
 
     for divisor in (1, 2, 3, 2048, 1000, 12_345):
         k = torch.tensor([0, 1, 7, 1000, 2**20, 2**27 // divisor + 1])

@@ -10,8 +10,8 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-import smcd_rl.tuning_kinds
-import smcd_rl.tuning_search
+import smcd_rl.tuning.kinds
+import smcd_rl.tuning.search
 
 # Small and fast: a few particles and a small GD grid; each test runs in seconds.
 FAST = {"num_particles": 16, "gd_grid": {"lr": (1e-3, 1e-2), "steps": (1,), "window": (1, 5)}, "progress": False}
@@ -128,7 +128,9 @@ def test_bad_options_are_refused_and_change_nothing(model, options, message) -> 
 
 def test_bad_flip_probabilities_are_refused_before_any_run(model, monkeypatch) -> None:
     """calibrate's own check of the flips runs first: no grid is scored only to fail at SMCD."""
-    monkeypatch.setattr(smcd_rl.scoring, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal"))
+    monkeypatch.setattr(
+        smcd_rl.tuning.scoring, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal")
+    )
     with pytest.raises(TypeError, match="flip_probs must be a sequence of probabilities"):
         smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, "flip_probs": 0.01})
     with pytest.raises(ValueError, match=r"flip_probs\[0\]"):
@@ -204,8 +206,8 @@ def test_reuse_takes_an_earlier_calls_scores_without_running_anything(model, res
     def refuse(*args, **kwargs):
         raise AssertionError("a setting the earlier call scored was run again")
 
-    monkeypatch.setattr(smcd_rl.scoring, "trace_pairs", refuse)
-    monkeypatch.setattr(smcd_rl.tuning_kinds, "calibrate", refuse)
+    monkeypatch.setattr(smcd_rl.tuning.scoring, "trace_pairs", refuse)
+    monkeypatch.setattr(smcd_rl.tuning.kinds, "search_noise", refuse)
     again = smcd_rl.tune(model, shifted_episodes(0.5), **FAST, reuse=result)
     assert {k: c.settings for k, c in again.best_of.items()} == {k: c.settings for k, c in result.best_of.items()}
     assert {k: c.one_step_rmse for k, c in again.best_of.items()} == {
@@ -214,7 +216,7 @@ def test_reuse_takes_an_earlier_calls_scores_without_running_anything(model, res
     # Under a budget that the largest learning rates' settings exceed (a clock of the learning rate,
     # so that no timing noise decides), those are skipped and the rest reused: the leader is within
     # the budget, so the race goes as before and nothing runs.
-    monkeypatch.setattr(smcd_rl.tuning_search.Timing, "ms_per_step", lambda timing, s: 1.0 + getattr(s, "lr", 0.0))
+    monkeypatch.setattr(smcd_rl.tuning.search.Timing, "ms_per_step", lambda timing, s: 1.0 + getattr(s, "lr", 0.0))
     largest = max(c.settings["lr"] for c in result.candidates if c.kind == "gradient_descent")
     assert result.best_of["gradient_descent"].settings["lr"] < largest
     budgeted = smcd_rl.tune(
@@ -248,16 +250,16 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
     scored = [c for c in result.candidates if c.kind == "combination"]
     assert len(scored) == len(smcd_rl.tuning.COMBINATION_GRID["eta"]) * len(smcd_rl.tuning.COMBINATION_GRID["share"])
     for candidate in scored:
-        strategy = smcd_rl.tuning.build_strategy("combination", candidate.settings)
-        expected = smcd_rl.diagnostics.trace(model, shifted_episodes(0.5), strategy).rmse
+        strategy = smcd_rl.strategies.registry.build("combination", candidate.settings)
+        expected = smcd_rl.tuning.diagnostics.trace(model, shifted_episodes(0.5), strategy).rmse
         assert candidate.one_step_rmse == pytest.approx(expected, rel=1e-6)
     # Scoring the grid runs no combination, and no member again: each setting runs once, and the
     # combination takes its members' predictions from their own runs (SMCD's calibration keeps only
     # its trace, so the calibrated SMCD runs once more, to record them).
     traced = []
-    real_trace = smcd_rl.scoring.trace_pairs
+    real_trace = smcd_rl.tuning.scoring.trace_pairs
     monkeypatch.setattr(
-        smcd_rl.scoring,
+        smcd_rl.tuning.scoring,
         "trace_pairs",
         lambda m, x, y, s, **kw: traced.append(type(s).__name__) or real_trace(m, x, y, s, **kw),
     )
@@ -272,7 +274,9 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
     # (GD's, raced, joins the runs on the first episodes and on the rest: the same errors per episode,
     # the per-step RMSEs pooled in another order, equal to float rounding.)
     for kind in ("none", "gradient_descent", "smcd"):
-        expected = dataclasses.asdict(smcd_rl.diagnostics.trace(model, shifted_episodes(0.5), again.strategy(kind)))
+        expected = dataclasses.asdict(
+            smcd_rl.tuning.diagnostics.trace(model, shifted_episodes(0.5), again.strategy(kind))
+        )
         kept = dataclasses.asdict(again.trace(kind))
         assert kept["per_episode_rmse"] == expected["per_episode_rmse"], kind
         assert kept["one_step_errors"] == expected["one_step_errors"], kind
@@ -300,7 +304,7 @@ def test_a_budgeted_call_with_reuse_repeats_the_times_and_the_choice(model, monk
     """With a budget the measured times decide what fits; they drift between calls, so the same call could
     choose differently. An earlier result passed as ``reuse`` gives every time, SMCD's particle probes too."""
     clock = _DriftingClock()
-    monkeypatch.setattr(smcd_rl.tuning_search.Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
+    monkeypatch.setattr(smcd_rl.tuning.search.Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
     options = {**FAST, "num_particles": 64, "gd_grid": {"lr": (1e-2,), "steps": (1, 2, 3), "window": (5,)}}
     first = smcd_rl.tune(model, shifted_episodes(0.3), budget_ms=8.0, **options)
     again = smcd_rl.tune(model, shifted_episodes(0.3), budget_ms=8.0, reuse=first, **options)
@@ -338,7 +342,7 @@ def test_a_tuning_recorded_on_a_gpu_rebuilds_on_the_cpu(model, result) -> None:
             member["settings"]["smcd"]["device"] = "cuda"
     gpu = smcd_rl.TuneResult.from_dict(record)
     for kind in ("smcd", "smcd_last_layer", "combination"):
-        with pytest.raises(ValueError, match=r"tuned on cuda, which this machine does not have.*device='cpu'"):
+        with pytest.raises(ValueError, match=r"on cuda, which this machine does not have.*device='cpu'"):
             gpu.strategy(kind)
     for kind in ("smcd", "smcd_last_layer", "combination"):
         adaptive = model.with_adaptation(gpu.strategy(kind, device="cpu"))
@@ -346,13 +350,13 @@ def test_a_tuning_recorded_on_a_gpu_rebuilds_on_the_cpu(model, result) -> None:
     assert gpu.strategy("smcd", device="cpu").config() == result.strategy("smcd").config()
 
 
-def test_a_combination_mixes_the_other_strategies_tuned(model) -> None:
-    """strategies=["combination", "smcd"] once tuned no combination, and ["combination"] failed with a TypeError."""
-    result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["combination", "smcd"], **FAST)
+def test_a_combination_tunes_and_mixes_what_it_needs(model) -> None:
+    """strategies=["combination", "smcd"] once tuned no combination, and ["combination"] failed with a TypeError;
+    then ["combination"] alone was refused. A combination now tunes what it needs (the defaults' NEEDS: no
+    adaptation, gradient descent and SMCD) and mixes every kind tuned that adapts."""
+    result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["combination"], **FAST)
     members = [m["name"] for m in result.best_of["combination"].settings["members"]]
-    assert members == ["none", "smcd"] and "gradient_descent" not in result.best_of
-    with pytest.raises(ValueError, match="a 'combination' mixes the other strategies tuned"):
-        smcd_rl.tune(model, shifted_episodes(0.5), strategies=["combination"], **FAST)
+    assert members == ["none", "gradient_descent", "smcd"] and "last_layer" not in result.best_of
 
 
 def test_gradient_descent_that_always_diverges_is_dropped_with_a_note(model) -> None:
@@ -366,7 +370,7 @@ def test_gradient_descent_that_always_diverges_is_dropped_with_a_note(model) -> 
 
 def test_smcd_over_any_budget_says_so_and_is_not_said_to_fit(model, monkeypatch) -> None:
     clock = _DriftingClock()
-    monkeypatch.setattr(smcd_rl.tuning_search.Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
+    monkeypatch.setattr(smcd_rl.tuning.search.Timing, "ms_per_step", lambda timing, strategy: clock(strategy))
     result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["none", "smcd"], budget_ms=1.0, **FAST)
     assert "smcd" not in result.best_of
     assert any("over the budget even with 8 particles" in note for note in result.notes), result.notes
@@ -385,7 +389,9 @@ def test_smcd_over_any_budget_says_so_and_is_not_said_to_fit(model, monkeypatch)
 )
 def test_bad_values_are_refused_before_any_run(model, monkeypatch, options, error, message) -> None:
     """Each was found late or not at all: steps=1.5 ran as 1 step, a huge seed failed after the whole GD grid."""
-    monkeypatch.setattr(smcd_rl.scoring, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal"))
+    monkeypatch.setattr(
+        smcd_rl.tuning.scoring, "trace_pairs", lambda *a: pytest.fail("a setting ran before the refusal")
+    )
     with pytest.raises(error, match=message):
         smcd_rl.tune(model, shifted_episodes(0.5), **{**FAST, **options})
 
@@ -405,7 +411,7 @@ def test_racing_drops_settings_by_their_error_alone_and_keeps_the_runs_exact(mod
     """Every raced-out setting was worse than the leader by more than RACE_MARGIN on the first episodes,
     every setting that ran on has the errors a run on all episodes gives, and the choice is the one
     a search without racing makes (here, where the best is far ahead of the runners-up)."""
-    from smcd_rl.tuning_search import RACE_MARGIN
+    from smcd_rl.tuning.search import RACE_MARGIN
 
     episodes = shifted_episodes(0.5, count=12)
     grid = {"lr": (1e-4, 1e-3, 1e-2, 1e-1), "steps": (1, 3), "window": (2, 6)}
@@ -421,12 +427,13 @@ def test_racing_drops_settings_by_their_error_alone_and_keeps_the_runs_exact(mod
         assert head > (1 + RACE_MARGIN) * leader * (1 - 1e-3)  # printed at 4 digits
     for candidate in gd:
         if math.isfinite(candidate.one_step_rmse):
-            full = smcd_rl.diagnostics.trace(model, episodes, smcd_rl.GradientDescent(**candidate.settings))
+            full = smcd_rl.tuning.diagnostics.trace(model, episodes, smcd_rl.GradientDescent(**candidate.settings))
             assert candidate.one_step_rmse == pytest.approx(full.rmse, rel=1e-12)
     # The same search with every setting run on all episodes chooses the same.
     unraced = {tuple(sorted(c.settings.items())): c for c in gd}
     scores = {
-        key: smcd_rl.diagnostics.trace(model, episodes, smcd_rl.GradientDescent(**dict(key))).rmse for key in unraced
+        key: smcd_rl.tuning.diagnostics.trace(model, episodes, smcd_rl.GradientDescent(**dict(key))).rmse
+        for key in unraced
     }
     best = min(scores, key=scores.get)
     assert dict(best) == result.best_of["gradient_descent"].settings
@@ -435,7 +442,7 @@ def test_racing_drops_settings_by_their_error_alone_and_keeps_the_runs_exact(mod
 def test_tune_leaves_the_models_calibration_to_calibrate_even_when_both_run_at_once(model, monkeypatch) -> None:
     """tune once saved the calibration and restored it after its own: a calibrate call on the same model in
     between (another thread) was lost. tune no longer writes it: the other call's result stays."""
-    real = smcd_rl.tuning_kinds.calibrate
+    real = smcd_rl.tuning.kinds.search_noise
     stored = {}
 
     def beside(*args, **kwargs):  # a calibrate call on the same model while tune calibrates
@@ -445,7 +452,7 @@ def test_tune_leaves_the_models_calibration_to_calibrate_even_when_both_run_at_o
             )
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(smcd_rl.tuning_kinds, "calibrate", beside)
+    monkeypatch.setattr(smcd_rl.tuning.kinds, "search_noise", beside)
     smcd_rl.tune(model, shifted_episodes(0.5), strategies=["smcd"], **FAST)
     assert model.calibration is not None and model.calibration["noise_std"] == stored["result"].noise_std
 
@@ -457,14 +464,14 @@ def test_calibrate_reuses_an_earlier_searchs_runs_and_chooses_the_same(model) ->
     one_step = smcd_rl.calibrate(model, episodes, base=base, progress=False, store=False)
     alone = smcd_rl.calibrate(model, episodes, base=base, criterion="evidence", progress=False, store=False)
     ran = []
-    real = smcd_rl.calibration._run
+    real = smcd_rl.tuning.calibration._run
     try:
-        smcd_rl.calibration._run = lambda *a: ran.append(1) or real(*a)
+        smcd_rl.tuning.calibration._run = lambda *a: ran.append(1) or real(*a)
         reused = smcd_rl.calibrate(
             model, episodes, base=base, criterion="evidence", progress=False, store=False, reuse=one_step
         )
     finally:
-        smcd_rl.calibration._run = real
+        smcd_rl.tuning.calibration._run = real
     assert (reused.noise_std, reused.flip_prob) == (alone.noise_std, alone.flip_prob)
     assert [c.log_evidence for c in reused.candidates] == [c.log_evidence for c in alone.candidates]
     assert 0 < len(ran) <= len(alone.candidates) - 7  # at least the seven runs of the bracket
@@ -504,5 +511,5 @@ def test_smcd_with_a_bayesian_readout_starts_from_the_tuned_smcd_and_last_layer(
     strategy = result.strategy("smcd_last_layer")
     assert isinstance(strategy, smcd_rl.SMCDLastLayer)
     # The tuned strategy repeats the scored run: its one-step error on the episodes is the candidate's.
-    rerun = smcd_rl.diagnostics.trace(model, shifted_episodes(0.5), strategy)
+    rerun = smcd_rl.tuning.diagnostics.trace(model, shifted_episodes(0.5), strategy)
     assert rerun.rmse == pytest.approx(result.best_of["smcd_last_layer"].one_step_rmse, rel=1e-6)

@@ -98,7 +98,7 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     rows = list(csv.DictReader(open(out / "results.csv")))
     returns = [r for r in rows if r["part"] == "return"]
     cells = [(r["planner"], r["method"], r["condition"]) for r in returns]
-    assert cells == [(ant.PLANNERS[p], ant.ADAPTATIONS[a], c) for p, a, c in ant.CELLS if a in VARIANTS]
+    assert cells == [(ant.PLANNERS[p], ant.METHOD_LABELS[a], c) for p, a, c in ant.CELLS if a in VARIANTS]
     assert all(float(r["return_low"]) <= float(r["return_mean"]) <= float(r["return_high"]) for r in returns)
     predictions = [r for r in rows if r["part"] == "prediction"]
     assert len(predictions) == 2 * 2 * (8 + 4)  # condition x (one-step, 3-step) x strategy (M's and T's)
@@ -268,8 +268,8 @@ def test_stage_plan_counts_the_combinations_members() -> None:
     """C predicts with N, G and S in the planner's rollouts: its cell is planned at about their sum."""
     from smcd_rl.experiments.ant.plan import stage_costs
 
-    costs = stage_costs(ant.AntConfig(adaptations=tuple(ant.ADAPTATIONS)))
-    cell = {v: costs[f"evaluate cem/{v}/crippled"] for v in ant.ADAPTATIONS}
+    costs = stage_costs(ant.AntConfig(adaptations=tuple(ant.METHOD_LABELS)))
+    cell = {v: costs[f"evaluate cem/{v}/crippled"] for v in ant.METHOD_LABELS}
     assert cell["C"] > 0.9 * (cell["N"] + cell["G"] + cell["S"]) and cell["S(evidence)"] == cell["S"]
     assert all(f"prediction-healthy {v}" in costs for v in VARIANTS)
 
@@ -286,7 +286,7 @@ def test_full_preset_and_bad_options(capsys) -> None:
     config = cli.make_config("ant", {"full": True, "episodes": 7})
     assert config.episodes == 7 and config.hidden == 1024 and config.depth == 3
     assert config.transitions == 1_000_000 and config.episode_steps == 1000
-    assert config.planners == tuple(ant.PLANNERS) and config.adaptations == tuple(ant.ADAPTATIONS)
+    assert config.planners == tuple(ant.PLANNERS) and config.adaptations == tuple(ant.METHOD_LABELS)
     assert cli.make_config("ant", {}).hidden == ant.AntConfig().hidden
     assert ant.AntConfig().threads == 1
     for empty in ("planners", "adaptations", "conditions", "crippled_legs", "gd_lr", "calibrate_flips"):

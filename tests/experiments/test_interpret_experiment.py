@@ -346,8 +346,8 @@ def test_lookahead_tunes_on_held_out_flights_and_writes_a_scoreboard_entry(tmp_p
     assert tuning["episodes"] == 4 and tuning["steps"] == 5
     specs = tuning["specs"]
     assert set(specs) == {m[2:] for m in methods[1:]}  # the variants that run, each tuned
-    assert specs["G"]["kind"] == "gradient_descent" and specs["C"]["kind"] == "combination"
-    assert specs["S"]["kind"] == specs["S(evidence)"]["kind"] == "smcd"
+    assert specs["G"]["name"] == "gradient_descent" and specs["C"]["name"] == "combination"
+    assert specs["S"]["name"] == specs["S(evidence)"]["name"] == "smcd"
     paper = specs["S(paper)"]["settings"]
     assert paper["flip_prob"] == interpret.InterpretConfig().flip_prob
     assert len(paper["noise_std"]) == 3  # noise-scale x M's training RMSE per action dim

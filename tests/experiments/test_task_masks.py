@@ -11,10 +11,10 @@ from tensordict import TensorDict
 
 import smcd_rl
 from smcd_rl import cli
-from smcd_rl.diagnostics import trace
 from smcd_rl.experiments.task_masks import config as task_masks_config
 from smcd_rl.experiments.task_masks import families
 from smcd_rl.experiments.task_masks.run import beyond_edge, episode_scores
+from smcd_rl.tuning.diagnostics import trace
 
 
 def _rows(path) -> list[dict[str, str]]:

@@ -12,14 +12,14 @@ import torch
 
 import smcd_rl
 from smcd_rl import cli
-from smcd_rl.calibration import calibrate
-from smcd_rl.diagnostics import trace
 from smcd_rl.experiments.scoreboard import run as scoreboard
 from smcd_rl.experiments.shared import tuned_methods, tuning
 from smcd_rl.experiments.shared.adaptations import AdaptationConfig
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
 from smcd_rl.experiments.shared.stats import cell_statistics
+from smcd_rl.tuning.calibration import calibrate
+from smcd_rl.tuning.diagnostics import trace
 from tests.core.test_calibration import SIGMA, known_mask_episodes
 
 
@@ -117,8 +117,8 @@ def test_a_network_that_runs_only_gd_is_tuned_for_gd_only(tmp_path, monkeypatch)
 
 def test_unknown_variant_is_refused() -> None:
     specs = {
-        "G": {"kind": "gradient_descent", "settings": {"lr": 0.1, "steps": 1, "window": 2}},
-        "S": {"kind": "smcd", "settings": {"num_particles": 8, "noise_std": 0.1, "flip_prob": 0.01, "seed": 0}},
+        "G": {"name": "gradient_descent", "settings": {"lr": 0.1, "steps": 1, "window": 2}},
+        "S": {"name": "smcd", "settings": {"num_particles": 8, "noise_std": 0.1, "flip_prob": 0.01, "seed": 0}},
     }
     result = tuning.Tuning("M", specs, {"G": 1.0, "S": 1.0}, {}, {}, {}, {}, episodes=2, steps=2)
     with pytest.raises(ValueError, match="unknown strategy 'X'"):

@@ -1,7 +1,7 @@
 """The config of ``smcd-rl ant`` (:mod:`smcd_rl.experiments.ant.run`): its settings, ``--full`` preset, tasks and cells.
 
 Example:
-    >>> AntConfig().task, tuple(TASKS), tuple(PLANNERS), ADAPTATIONS["S"]
+    >>> AntConfig().task, tuple(TASKS), tuple(PLANNERS), METHOD_LABELS["S"]
     ('l2a', ('l2a', 'ant-v5'), ('cem', 'mppi', 'rs'), 'M+S')
 """
 
@@ -25,7 +25,7 @@ __all__ = [
     "TASKS",
     "RewardWeights",
     "PLANNERS",
-    "ADAPTATIONS",
+    "METHOD_LABELS",
     "DEFAULT_ADAPTATIONS",
     "PREDICTED",
     "TASK_ADAPTATIONS",
@@ -60,7 +60,7 @@ TASKS: dict[str, tuple[dict[str, Any], RewardWeights, bool]] = {
 #: Planner names and their labels in the table and plot.
 PLANNERS: dict[str, str] = {"cem": "CEM", "mppi": "MPPI", "rs": "RS"}
 #: Adaptation names (:data:`~smcd_rl.experiments.shared.adaptation_config.VARIANTS`) and their method labels.
-ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
+METHOD_LABELS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
 #: Conditions: the Ant the model was trained on, and the Ant with one leg crippled per episode.
 CONDITIONS: tuple[str, ...] = ("healthy", "crippled")
 #: The adaptations whose prediction error is measured, whichever run the return episodes.
@@ -70,7 +70,7 @@ DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "C")
 #: The adaptations of T, the network whose masks were trained to identify the leg (method ``T+<variant>``).
 TASK_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "L", "SL")
 #: Every (planner, adaptation, condition) cell of Fig. 15.
-CELLS: tuple[tuple[str, str, str], ...] = tuple(itertools.product(PLANNERS, ADAPTATIONS, CONDITIONS))
+CELLS: tuple[tuple[str, str, str], ...] = tuple(itertools.product(PLANNERS, METHOD_LABELS, CONDITIONS))
 
 
 @dataclass
@@ -107,7 +107,7 @@ class AntConfig(TuningConfig):
         "error), S(evidence) (SMCD calibrated by its evidence), S(paper) (SMCD at --noise-scale, --flip-prob), "
         "C (the combination of the tuned ones), L (Bayesian last layer), SL (SMCD with a Bayesian readout); the "
         "prediction error always compares all eight",
-        choices=tuple(ADAPTATIONS),
+        choices=tuple(METHOD_LABELS),
     )
     conditions: tuple[str, ...] = setting(CONDITIONS, "conditions to run: healthy, crippled", choices=CONDITIONS)
     crippled_legs: tuple[int, ...] = setting(
@@ -191,7 +191,7 @@ FULL = {
     "epochs": 100,
     "lr": 1e-4,
     "planners": tuple(PLANNERS),
-    "adaptations": tuple(ADAPTATIONS),
+    "adaptations": tuple(METHOD_LABELS),
     "episodes": 110,
     "episode_steps": 1000,
     "horizon": 15,

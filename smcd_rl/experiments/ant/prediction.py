@@ -8,7 +8,7 @@ crippled per episode). :func:`prediction_errors` filters one strategy along ever
 once and scores each episode by
 
 * ``one_step``: the RMSE of the prediction of transition ``t`` from the transitions before it,
-  made before observing it (``t = 1..T-1``, as :func:`smcd_rl.diagnostics.trace` scores it);
+  made before observing it (``t = 1..T-1``, as :func:`smcd_rl.tuning.diagnostics.trace` scores it);
 * ``open_loop``: from each step ``t = 1..T-H``, after observing the transitions before ``t``, the
   adapted model rolled ``H`` steps ahead on the logged actions from the logged state at ``t``, its
   RMSE against the logged states ``t+1..t+H`` (pooled over the ``H`` steps).

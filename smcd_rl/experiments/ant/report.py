@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from smcd_rl.experiments.ant.config import ADAPTATIONS, PLANNERS, AntConfig
+from smcd_rl.experiments.ant.config import METHOD_LABELS, PLANNERS, AntConfig
 from smcd_rl.experiments.ant.episodes import render_states
 from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
 from smcd_rl.experiments.shared.video import video_name, write_gif
@@ -23,7 +23,7 @@ def write_videos(done: dict[tuple[str, str, str], dict[str, Any]], config: AntCo
     for (planner, adaptation, condition), result in done.items():
         for k, episode in enumerate(result.get("video", ())):
             frames, fps = render_states(config.task, episode["leg"], episode["states"], max_steps=config.episode_steps)
-            names.append(video_name(f"{PLANNERS[planner]}-{ADAPTATIONS[adaptation]}-{condition}", k))
+            names.append(video_name(f"{PLANNERS[planner]}-{METHOD_LABELS[adaptation]}-{condition}", k))
             write_gif(frames, out / names[-1], fps=fps)
     return names
 
@@ -64,11 +64,11 @@ def return_rows(
     lookup = {(r["planner"], r["method"], r["condition"]): r for r in stats}
     rows = []
     for (planner, adaptation, condition), records in episodes.items():
-        r = lookup[(PLANNERS[planner], ADAPTATIONS[adaptation], condition)]
+        r = lookup[(PLANNERS[planner], METHOD_LABELS[adaptation], condition)]
         rows.append(
             {
                 "planner": PLANNERS[planner],
-                "method": ADAPTATIONS[adaptation],
+                "method": METHOD_LABELS[adaptation],
                 "condition": condition,
                 "return_mean": r["return_mean"],
                 "return_low": r["return_low"],

@@ -93,7 +93,7 @@ import torch
 
 import smcd_rl
 from smcd_rl.digests import model_digest
-from smcd_rl.experiments.ant.config import ADAPTATIONS, CELLS, CONDITIONS, FULL, PLANNERS, PREDICTED, TASKS, AntConfig
+from smcd_rl.experiments.ant.config import CELLS, CONDITIONS, FULL, METHOD_LABELS, PLANNERS, PREDICTED, TASKS, AntConfig
 from smcd_rl.experiments.ant.episodes import ACTION_DIM, OBS_DIM, collect, run_cell, validation_error
 from smcd_rl.experiments.ant.plan import stage_costs
 from smcd_rl.experiments.ant.prediction import evaluate_predictions, random_episodes
@@ -118,7 +118,7 @@ __all__ = [
     "AntConfig",
     "FULL",
     "PLANNERS",
-    "ADAPTATIONS",
+    "METHOD_LABELS",
     "CONDITIONS",
     "CELLS",
     "TASKS",
@@ -215,7 +215,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
             task_content = {"model": model_digest(task), "specs": tunings["T"].specs}
             networks["T"] = (task, task_strategy, task_content, config.task_adaptations)
         task_methods = [f"T+{v}" for v in config.task_adaptations]
-        ms = ms_column([*ADAPTATIONS.values(), *task_methods], tunings)
+        ms = ms_column([*METHOD_LABELS.values(), *task_methods], tunings)
 
         # --- primary: every strategy's prediction error on the same logged episodes ----------------
         prediction, legs = evaluate_predictions(ex, config, networks)
@@ -275,7 +275,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
         returns: dict[tuple[str, str], dict[str, torch.Tensor]] = {}
         for (planner, adaptation, condition), records in episodes.items():
             values = torch.tensor([e["return"] for e in records], dtype=torch.float64)
-            returns.setdefault((PLANNERS[planner], condition), {})[ADAPTATIONS[adaptation]] = values
+            returns.setdefault((PLANNERS[planner], condition), {})[METHOD_LABELS[adaptation]] = values
         stats, r_comparisons = cell_statistics(
             returns,
             cell=("planner", "condition"),
@@ -287,7 +287,7 @@ def run(config: AntConfig, *, progress: bool = True) -> dict[str, Any]:
         )
         r_rows = return_rows(stats, episodes, {cell: done["/".join(cell)]["seconds"] for cell in cells})
         r_trials = [
-            {"part": "return", "planner": PLANNERS[p], "method": ADAPTATIONS[a], "condition": c, **e}
+            {"part": "return", "planner": PLANNERS[p], "method": METHOD_LABELS[a], "condition": c, **e}
             for (p, a, c), records in episodes.items()
             for e in records
         ]

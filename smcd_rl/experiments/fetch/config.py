@@ -1,7 +1,7 @@
 """The config of ``smcd-rl fetch`` (:mod:`smcd_rl.experiments.fetch.run`): its settings, ``--full`` preset and families.
 
 Example:
-    >>> FetchConfig().families, tuple(FAMILIES), tuple(PLANNERS), ADAPTATIONS["S(paper)"]
+    >>> FetchConfig().families, tuple(FAMILIES), tuple(PLANNERS), METHOD_LABELS["S(paper)"]
     (('reach',), ('reach', 'push'), ('cem', 'mppi'), 'M+S(paper)')
 """
 
@@ -18,7 +18,7 @@ from smcd_rl.experiments.shared.adaptation_config import (
 )
 from smcd_rl.experiments.shared.config import setting
 
-__all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "ADAPTATIONS", "TASK_ADAPTATIONS"]
+__all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "METHOD_LABELS", "TASK_ADAPTATIONS"]
 
 #: Family name -> its registered gymnasium id.
 FAMILIES: dict[str, str] = {
@@ -28,7 +28,7 @@ FAMILIES: dict[str, str] = {
 #: Planner names and their labels in the tables and plot.
 PLANNERS: dict[str, str] = {"cem": "CEM", "mppi": "MPPI"}
 #: Adaptation names (:data:`~smcd_rl.experiments.shared.adaptation_config.VARIANTS`) and their method labels.
-ADAPTATIONS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
+METHOD_LABELS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
 #: The adaptations of the default run: every one.
 DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 #: The adaptations of the network whose masks were trained to identify the draw (method ``T+<variant>``).
@@ -84,7 +84,7 @@ class FetchConfig(TuningConfig):
         "calibrated by its evidence), S(paper) (SMCD at fixed settings: noise --noise-scale x held-out RMSE, "
         "--flip-prob), C (the combination of N and the tuned ones: it predicts with all of them, so its cells "
         "cost about theirs together), L (Bayesian last layer), SL (SMCD with a Bayesian readout)",
-        choices=tuple(ADAPTATIONS),
+        choices=tuple(METHOD_LABELS),
     )
     episodes: int = setting(100, "held-out test draws per family (one MPC episode each, the same in every cell)", low=2)
     episode_steps: int = setting(15, "steps per MPC episode", low=1)

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from smcd_rl.experiments.fetch.config import ADAPTATIONS
+from smcd_rl.experiments.fetch.config import METHOD_LABELS
 from smcd_rl.experiments.shared.outputs import format_table, ms_cell, save_figure
 
 if TYPE_CHECKING:
@@ -81,7 +81,9 @@ def plot(rows: list[dict[str, Any]], config: FetchConfig, path: Path) -> None:
                 r["method"] if r["planner"] == "-" else f"{r['planner']}\n{r['method'].removeprefix('M+')}" for r in sel
             ]
             colors = [
-                f"C{list(ADAPTATIONS.values()).index(r['method'])}" if r["method"] in ADAPTATIONS.values() else "grey"
+                f"C{list(METHOD_LABELS.values()).index(r['method'])}"
+                if r["method"] in METHOD_LABELS.values()
+                else "grey"
                 for r in sel
             ]
             ax.bar(

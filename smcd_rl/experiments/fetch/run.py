@@ -77,7 +77,7 @@ import torch
 
 import smcd_rl
 from smcd_rl.digests import model_digest
-from smcd_rl.experiments.fetch.config import ADAPTATIONS, FAMILIES, FULL, PLANNERS, FetchConfig
+from smcd_rl.experiments.fetch.config import FAMILIES, FULL, METHOD_LABELS, PLANNERS, FetchConfig
 from smcd_rl.experiments.fetch.episodes import collect, random_cell, run_cell, tuning_episodes, validation_error
 from smcd_rl.experiments.fetch.report import METRICS, plot, rename, table, unrename
 from smcd_rl.experiments.fetch.task_network import task_method, task_network
@@ -90,7 +90,7 @@ from smcd_rl.experiments.shared.tuning import tune
 from smcd_rl.experiments.shared.video import video_name
 from smcd_rl.experiments.shared.workers import computed
 
-__all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "ADAPTATIONS", "run", "table"]
+__all__ = ["FetchConfig", "FULL", "FAMILIES", "PLANNERS", "METHOD_LABELS", "run", "table"]
 
 #: Offsets of the env seeds from ``--seed``: test draws, tuning draws.
 EPISODE_SEED, TUNING_SEED = 1_000_003, 2_000_003
@@ -202,7 +202,7 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
                     models[task_method(variant)] = task
                 tables.update(task_tuning.tables())
                 plots[f"tuning-{family}-T.png"] = task_tuning.plot
-            labels = [*ADAPTATIONS.values(), *(task_method(v) for v in config.task_adaptations)]
+            labels = [*METHOD_LABELS.values(), *(task_method(v) for v in config.task_adaptations)]
             ms[family] = ms_column(labels, networks)
 
             # --- MPC episodes of every (planner, adaptation) cell on the same test draws ----------
@@ -238,7 +238,7 @@ def run(config: FetchConfig, *, progress: bool = True) -> dict[str, Any]:
             )
             for name, result in done.items():
                 _, planner, variant = name.split("/")
-                label = ADAPTATIONS.get(variant, variant)
+                label = METHOD_LABELS.get(variant, variant)
                 episodes[(family, PLANNERS[planner], label)] = result["episodes"]
                 seconds[(family, PLANNERS[planner], label)] = result["seconds"]
             episodes[(family, "-", RANDOM)] = reference[f"{family}/random"]["episodes"]

@@ -10,7 +10,7 @@ the main process, while no worker runs. The result is cached in the run's store,
 model, the episodes and the settings.
 
 Example:
-    >>> spec = {"kind": "smcd", "settings": {"num_particles": 10, "noise_std": 0.1, "flip_prob": 0.01, "seed": 0}}
+    >>> spec = {"name": "smcd", "settings": {"num_particles": 10, "noise_std": 0.1, "flip_prob": 0.01, "seed": 0}}
     >>> type(strategy_of(spec)).__name__
     'SMCD'
 """
@@ -28,7 +28,7 @@ from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.regimes.config import BUDGETED, RegimesConfig
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.tuning import VARIANTS, tuned_specs
-from smcd_rl.tuning import build_strategy
+from smcd_rl.strategies.registry import build
 
 __all__ = ["tune_network", "strategy_of", "residual_of", "budgeted_label"]
 
@@ -39,8 +39,8 @@ def budgeted_label(method: str, config: RegimesConfig) -> str:
 
 
 def strategy_of(spec: dict[str, Any]) -> smcd_rl.Adaptation:
-    """A fresh strategy from ``{"kind": ..., "settings": ...}`` (what :func:`tune_network` returns per method)."""
-    return build_strategy(spec["kind"], spec["settings"])
+    """A fresh strategy from ``{"name": ..., "settings": ...}`` (a strategy spec, :func:`smcd_rl.strategies.registry.spec`) (what :func:`tune_network` returns per method)."""
+    return build(spec["name"], spec["settings"])
 
 
 def residual_of(model: smcd_rl.AdaptiveModel, episodes: TensorDictBase) -> torch.Tensor:
@@ -70,7 +70,7 @@ def tune_network(
     specs returned.
 
     Returns:
-        ``{"specs": method -> {"kind", "settings"}, "ms": method -> ms per observation,
+        ``{"specs": method -> {"name", "settings"}, "ms": method -> ms per observation,
         "tables": caption -> Markdown, "residual": [per dimension], "seconds": float}``.
     """
     key = {

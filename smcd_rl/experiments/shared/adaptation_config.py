@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
 from smcd_rl.experiments.shared.config import EvaluationConfig, setting
+from smcd_rl.tuning.defaults import FLIP_PROBS, GD_GRID
 
 __all__ = [
     "TuningConfig",
@@ -34,7 +35,10 @@ class TuningConfig(EvaluationConfig):
     Every method is tuned by :func:`smcd_rl.tune` on ``tuning_episodes`` held-out training-task
     episodes: GD from the grid ``gd_lr x gd_steps x gd_window`` (both losses, extended past an
     edge), SMCD over ``calibrate_flips``, and again under ``budget_ms`` per observation. An
-    experiment redeclares ``tuning_episodes`` to say what its episodes are.
+    experiment redeclares ``tuning_episodes`` to say what its episodes are. The steps and flip
+    probabilities are the library's defaults (:mod:`smcd_rl.tuning.defaults`); the learning rates
+    and windows start finer than :data:`~smcd_rl.tuning.defaults.GD_GRID` (4 rates from 0.003,
+    windows 5 and 10), the grid every experiment's results were measured with.
     """
 
     tuning_episodes: int = setting(
@@ -43,11 +47,9 @@ class TuningConfig(EvaluationConfig):
     gd_lr: tuple[float, ...] = setting(
         (0.003, 0.01, 0.03, 0.1), "gradient-descent learning rates tried in tuning (normalised units)", above=0.0
     )
-    gd_steps: tuple[int, ...] = setting((1, 5), "gradient steps per observation tried in tuning", low=1)
+    gd_steps: tuple[int, ...] = setting(GD_GRID["steps"], "gradient steps per observation tried in tuning", low=1)
     gd_window: tuple[int, ...] = setting((5, 10), "recent transitions in the gradient-descent loss tried", low=1)
-    calibrate_flips: tuple[float, ...] = setting(
-        (0.001, 0.003, 0.01, 0.03), "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
-    )
+    calibrate_flips: tuple[float, ...] = setting(FLIP_PROBS, "flip probabilities SMCD's calibration tries", low=0.0, high=1.0)
     budget_ms: float = setting(10.0, "per-observation budget (ms, one thread) of the budgeted view", above=0.0)
 
     NON_EMPTY: ClassVar[tuple[str, ...]] = ("gd_lr", "gd_steps", "gd_window", "calibrate_flips")

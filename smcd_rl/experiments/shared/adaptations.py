@@ -2,8 +2,8 @@
 
 Every experiment names its methods by the paper's letters: ``N`` (no adaptation), ``G`` (online
 gradient descent) and ``S`` (SMCD). :class:`AdaptationConfig` declares their settings once, and
-:func:`make_adaptation` builds the strategy for a letter (from one :class:`StrategySettings`), so every
-experiment adapts the same way.
+:func:`make_adaptation` builds the strategy for a letter (from one :class:`StrategySettings`) through
+the strategies' registry (:mod:`smcd_rl.strategies.registry`), so every experiment adapts the same way.
 
 Example:
     >>> settings = StrategySettings(particles=50, noise_std=0.05, flip_prob=0.01, gd_lr=0.03, gd_steps=1, gd_window=5)
@@ -17,12 +17,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import torch
 
 import smcd_rl
 from smcd_rl.experiments.shared.adaptation_config import AdaptationConfig, TuningConfig
+from smcd_rl.experiments.shared.tuning_record import TUNED
+from smcd_rl.strategies.registry import build
 
 __all__ = ["TuningConfig", "AdaptationConfig", "AdaptationSettings", "StrategySettings", "make_adaptation", "LETTERS"]
 
@@ -79,15 +81,17 @@ def make_adaptation(
         seed: seed of SMCD's generator (on ``device``).
         device: where SMCD's generator draws.
     """
-    if letter == "N":
-        return smcd_rl.NoAdaptation()
-    if letter == "G":
-        return smcd_rl.GradientDescent(lr=config.gd_lr, steps=config.gd_steps, window=config.gd_window)
-    if letter == "S":
-        return smcd_rl.SMCD(
-            num_particles=particles,
-            flip_prob=config.flip_prob,
-            noise_std=noise_std,
-            generator=torch.Generator(device=device).manual_seed(seed),
-        )
+    settings: dict[str, dict[str, Any]] = {
+        "N": {},
+        "G": {"lr": config.gd_lr, "steps": config.gd_steps, "window": config.gd_window},
+        "S": {
+            "num_particles": particles,
+            "flip_prob": config.flip_prob,
+            "noise_std": noise_std,
+            "seed": seed,
+            "device": str(device),
+        },
+    }
+    if letter in settings:
+        return build(TUNED[letter], settings[letter])
     raise ValueError(f"unknown adaptation {letter!r}; choose from {list(LETTERS)}")

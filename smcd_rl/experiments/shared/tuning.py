@@ -19,7 +19,7 @@ A second call under ``--budget-ms`` per observation (reusing the first call's sc
 budgeted view: what each kind would be within a 100 Hz control step. Each method's median time
 per observation is measured on one stream with the run's threads, where the network is tuned
 (:func:`tune_all`: a worker beside another with ``--workers``). The chosen settings, every kind's best with its time, and a step-by-step diagnosis of each
-method on the tuning episodes (:func:`smcd_rl.diagnostics.trace`: one-step error, ESS, log
+method on the tuning episodes (:func:`smcd_rl.tuning.diagnostics.trace`: one-step error, ESS, log
 evidence, kept share) go into the run's report and ``tuning-<model>.png``. With ``options``,
 the one-step error of the tuned SMCD under each of :data:`OPTIONS` (five times the particles;
 the posterior predictive mean instead of the MMSE mask) and of SMCD with a Student-t likelihood
@@ -41,15 +41,17 @@ from typing import Any
 from tensordict import TensorDictBase
 
 import smcd_rl
-from smcd_rl.calibration import calibrate
-from smcd_rl.diagnostics import Trace, trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.shared.adaptation_config import VARIANTS
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.tuning_options import OPTIONS, STUDENT, trace_options
 from smcd_rl.experiments.shared.tuning_record import TUNED, Tuning, reseeded
 from smcd_rl.experiments.shared.workers import computed, map_jobs
-from smcd_rl.tuning import build_strategy, ms_per_observation
+from smcd_rl.strategies.registry import build
+from smcd_rl.tuning import ms_per_observation
+from smcd_rl.tuning.defaults import kinds_needed
+from smcd_rl.tuning.calibration import calibrate
+from smcd_rl.tuning.diagnostics import Trace, trace
 
 __all__ = [
     "Tuning",
@@ -122,12 +124,12 @@ def tuned_specs(
     for variant, kind in TUNED.items():
         label = f"{variant}@{config.budget_ms:g}ms"
         if kind in free.best_of:
-            specs[variant] = {"kind": kind, "settings": free.best_of[kind].settings}
+            specs[variant] = {"name": kind, "settings": free.best_of[kind].settings}
             ms[variant] = free.best_of[kind].ms_per_step
             if (run := free.trace(kind)) is not None:
                 runs[variant] = run
         if variant in budgeted and kind in budget.best_of:
-            specs[label] = {"kind": kind, "settings": budget.best_of[kind].settings}
+            specs[label] = {"name": kind, "settings": budget.best_of[kind].settings}
             # The same strategy: one time, not two noisy ones.
             same = variant in specs and specs[label] == specs[variant]
             ms[label] = ms[variant] if same else budget.best_of[kind].ms_per_step
@@ -143,18 +145,18 @@ def tuned_specs(
             reuse=free.calibrations.get("per-dimension"),  # the same bracket: its runs are not run again
         )
         settings = {**evidence.strategy.config(), "seed": seed, "device": device}
-        specs["S(evidence)"] = {"kind": "smcd", "settings": settings}
+        specs["S(evidence)"] = {"name": "smcd", "settings": settings}
         if evidence.best.trace is not None:
             runs["S(evidence)"] = evidence.best.trace
     if "S(paper)" in variants:
         noise = list(paper_noise) if isinstance(paper_noise, (tuple, list)) else float(paper_noise)
         paper = {"num_particles": config.particles, "noise_std": noise, "flip_prob": config.flip_prob}
-        specs["S(paper)"] = {"kind": "smcd", "settings": {**paper, "seed": seed, "device": device}}
+        specs["S(paper)"] = {"name": "smcd", "settings": {**paper, "seed": seed, "device": device}}
     for variant in ("S(evidence)", "S(paper)"):
         if variant not in specs:
             continue
         spec = specs[variant]
-        ms[variant] = ms_per_observation(model, build_strategy(spec["kind"], spec["settings"]), episodes[0])
+        ms[variant] = ms_per_observation(model, build(spec["name"], spec["settings"]), episodes[0])
     model.tuning = free.to_dict()  # the unbudgeted choice is the model's own
     return {
         "specs": specs,
@@ -170,7 +172,8 @@ def tuned_specs(
 
 
 def _kinds(variants: Sequence[str]) -> list[str]:
-    """The kinds of :func:`smcd_rl.tune` that ``variants`` need, ``"none"`` always (the table's reference row).
+    """The kinds of :func:`smcd_rl.tune` that ``variants`` need (:func:`~smcd_rl.tuning.defaults.kinds_needed`),
+    ``"none"`` always (the table's reference row).
 
     Example:
         >>> _kinds(["G"]), _kinds(["C"]), _kinds(["S(paper)"])
@@ -181,8 +184,7 @@ def _kinds(variants: Sequence[str]) -> list[str]:
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise ValueError(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
-    needed = {"N", *variants, *(("G", "S") if "C" in variants else ()), *(("S", "L") if "SL" in variants else ())}
-    return [kind for variant, kind in TUNED.items() if variant in needed]
+    return kinds_needed(["none", *(TUNED[v] for v in variants if v in TUNED)])
 
 
 @dataclass(frozen=True)
@@ -360,7 +362,7 @@ def _tune(
         for variant, spec in specs.items():
             run = found["runs"].get(variant)  # the same strategy, seed and episodes: tuning's own run
             if run is None:
-                strategy = build_strategy(spec["kind"], reseeded(spec["kind"], spec["settings"], seed, device))
+                strategy = build(spec["name"], reseeded(spec["name"], spec["settings"], seed, device))
                 run = trace(model, episodes, strategy)
             traces[variant] = run.to_dict()
     traced: dict[str, dict[str, Any]] = {}

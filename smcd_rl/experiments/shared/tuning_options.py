@@ -21,9 +21,10 @@ import torch
 from tensordict import TensorDictBase
 
 import smcd_rl
-from smcd_rl.calibration import calibrate
-from smcd_rl.diagnostics import trace
-from smcd_rl.tuning import build_strategy, describe_settings
+from smcd_rl.strategies.registry import build
+from smcd_rl.tuning import describe_settings
+from smcd_rl.tuning.calibration import calibrate
+from smcd_rl.tuning.diagnostics import trace
 
 __all__ = ["OPTIONS", "STUDENT", "trace_options"]
 
@@ -63,7 +64,7 @@ def trace_options(
     """
     started = time.perf_counter()
     options = {}
-    tuned = build_strategy("smcd", {**settings, "seed": seed, "device": device})
+    tuned = build("smcd", {**settings, "seed": seed, "device": device})
     assert isinstance(tuned, smcd_rl.SMCD)
     for option, changed in OPTIONS.items():
         generator = torch.Generator(device=device).manual_seed(seed)

@@ -29,7 +29,7 @@ PANELS = [
 
 
 def plot_traces(name: str, traces: Mapping[str, Mapping[str, Any]], episodes: int, path: Path) -> None:
-    """Plot each variant's :class:`~smcd_rl.diagnostics.Trace` (as a dict) of model ``name`` to ``path``."""
+    """Plot each variant's :class:`~smcd_rl.tuning.diagnostics.Trace` (as a dict) of model ``name`` to ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")

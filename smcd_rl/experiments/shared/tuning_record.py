@@ -20,8 +20,8 @@ import torch
 import smcd_rl
 from smcd_rl.experiments.shared.outputs import format_table, ms_cell
 from smcd_rl.experiments.shared.tuning_plot import plot_traces
-from smcd_rl.strategy_specs import with_generators
-from smcd_rl.tuning import build_strategy, describe_settings
+from smcd_rl.strategies.registry import build, with_generators
+from smcd_rl.tuning import describe_settings
 
 __all__ = ["Tuning", "TUNED", "reseeded"]
 
@@ -42,13 +42,13 @@ class Tuning:
 
     #: The model's name in the experiment (``"M"``, ``"R"``...).
     name: str
-    #: Variant (:data:`VARIANTS`) -> ``{"kind": ..., "settings": ...}`` for :func:`smcd_rl.tuning.build_strategy`.
+    #: Variant (:data:`VARIANTS`) -> ``{"name": ..., "settings": ...}`` (a strategy spec, :func:`smcd_rl.strategies.registry.spec`) for :func:`smcd_rl.strategies.registry.build`.
     specs: dict[str, dict[str, Any]]
     #: Variant -> median wall milliseconds per observation (one stream, the run's threads).
     ms: dict[str, float]
     #: Caption -> Markdown: :func:`smcd_rl.tune`'s tables, unbudgeted and under ``--budget-ms``.
     tune_tables: dict[str, str]
-    #: Per variant: the :class:`~smcd_rl.diagnostics.Trace` on the tuning episodes, as a dict.
+    #: Per variant: the :class:`~smcd_rl.tuning.diagnostics.Trace` on the tuning episodes, as a dict.
     traces: dict[str, dict[str, Any]]
     #: The tuned SMCD with one option changed (see :data:`OPTIONS`): its trace, per option.
     options: dict[str, dict[str, Any]]
@@ -62,7 +62,7 @@ class Tuning:
         if variant not in self.specs:
             raise ValueError(f"unknown strategy {variant!r}; choose from {list(self.specs)}")
         spec = self.specs[variant]
-        return build_strategy(spec["kind"], reseeded(spec["kind"], spec["settings"], seed, str(device)))
+        return build(spec["name"], reseeded(spec["name"], spec["settings"], seed, str(device)))
 
     def table(self) -> str:
         """Each variant's settings, its one-step RMSE (and SMCD's evidence) on the tuning episodes, its time."""

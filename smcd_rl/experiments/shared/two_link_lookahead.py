@@ -19,8 +19,8 @@ import torch
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
-from smcd_rl.combination import weight_path
 from smcd_rl.envs.two_link_arm import DEFAULT_DT, integrate_joints, sample_link_lengths, two_link_fk
+from smcd_rl.strategies.combination import weight_path
 
 if TYPE_CHECKING:
     from smcd_rl.experiments.two_link.config import TwoLinkConfig
@@ -106,11 +106,11 @@ def combined_errors(
     eta: float,
     share: float,
 ) -> torch.Tensor:
-    """Squared look-ahead errors of a :class:`~smcd_rl.combination.Combination`, from its members' records.
+    """Squared look-ahead errors of a :class:`~smcd_rl.strategies.combination.Combination`, from its members' records.
 
     The members run on the same observations whatever the weights, so their recorded predictions
     (:func:`lookahead_errors` with ``record``) give the combination's weights after each burn-in
-    step (:func:`smcd_rl.combination.weight_path`) and its weighted look-ahead predictions, what
+    step (:func:`smcd_rl.strategies.combination.weight_path`) and its weighted look-ahead predictions, what
     running it would give, without running its members again.
     """
     max_t = max(config.burn_in)

@@ -30,13 +30,13 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 import smcd_rl
-from smcd_rl.criteria import Lookahead
-from smcd_rl.diagnostics import trace
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.stats import cell_statistics, paired_comparisons
 from smcd_rl.experiments.task_masks.config import TaskMasksConfig
 from smcd_rl.experiments.task_masks.families import Family, load
 from smcd_rl.experiments.task_masks.report import label, plot, tables
+from smcd_rl.tuning.criteria import Lookahead
+from smcd_rl.tuning.diagnostics import trace
 
 __all__ = ["TaskMasksConfig", "run", "episode_scores", "beyond_edge"]
 

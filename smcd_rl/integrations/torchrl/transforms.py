@@ -10,8 +10,8 @@ from torch import Tensor
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from smcd_rl.adaptation import SMCD
 from smcd_rl.model import AdaptiveModel
+from smcd_rl.strategies import SMCD
 
 __all__ = ["AdaptationTransform"]
 

@@ -56,7 +56,7 @@ from smcd_rl.experiments.shared.config import config_dict
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.runtime import machine_info, seed_everything
 from smcd_rl.experiments.shared.stages import estimate, mlp_flops
-from smcd_rl.particle_forward import ParticlePath
+from smcd_rl.strategies.particle_forward import ParticlePath
 
 __all__ = ["BenchFilterConfig", "FULL", "GOALS", "GOAL_PARTICLES", "NaiveSMCD", "SCHEDULES", "run"]
 

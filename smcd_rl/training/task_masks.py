@@ -16,9 +16,9 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from smcd_rl.adaptation import SMCD
 from smcd_rl.checks import check_real_tensor
 from smcd_rl.masked_mlp import MaskedMLP
+from smcd_rl.strategies import SMCD
 
 __all__ = ["TaskIndex", "TaskEpochs", "task_index", "TASK_PARTICLES", "MIN_MASK_NOISE"]
 

@@ -18,8 +18,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from smcd_rl.adaptation import ADAPTATIONS, Adaptation, make_adaptation
 from smcd_rl.masked_mlp import MaskedMLP
+from smcd_rl.strategies.base import Adaptation
+from smcd_rl.strategies.registry import from_spec, spec
 
 __all__ = ["Combination", "mixed_log_weights", "weight_path"]
 
@@ -50,7 +51,8 @@ class Combination(Adaptation):
 
     Args:
         members: the strategies, each a distinct instance (a strategy serves one model at a time),
-            or a ``{"name": ..., "config": {...}}`` dict as :meth:`config` lists them.
+            or a ``{"name": ..., "settings": {...}}`` spec as :meth:`config` lists them
+            (:func:`smcd_rl.strategies.registry.spec`).
         eta: learning rate of the weights, finite and ``>= 0``; ``0`` averages the members
             uniformly, a larger one follows the best member sooner and more closely. Losses are
             in the model's normalised units, where the trained network's squared error per
@@ -111,7 +113,7 @@ class Combination(Adaptation):
 
     def config(self) -> dict[str, Any]:
         return {
-            "members": [{"name": member.name, "config": member.config()} for member in self._members],
+            "members": [spec(member) for member in self._members],
             "eta": self.eta,
             "share": self.share,
         }
@@ -315,16 +317,13 @@ def _member(value: Any, index: int) -> Adaptation:
     if isinstance(value, Adaptation):
         return value
     if isinstance(value, Mapping) and isinstance(value.get("name"), str):
-        config = dict(value.get("config", {}))
-        if value["name"] == Combination.name:
-            return Combination(**config)
-        return make_adaptation(value["name"], **config)
+        return from_spec(value)
     hint = ""
     if isinstance(value, type) and issubclass(value, Adaptation):
         hint = f"; pass an instance, {value.__name__}(...), not the class"
     raise TypeError(
         f"members[{index}] must be a smcd_rl.Adaptation (NoAdaptation, GradientDescent, SMCD, Combination) or a "
-        f"{{'name': ..., 'config': {{...}}}} dict, got {value!r} ({type(value).__name__}){hint}"
+        f"{{'name': ..., 'settings': {{...}}}} spec, got {value!r} ({type(value).__name__}){hint}"
     )
 
 
@@ -335,7 +334,3 @@ def _strategies(strategy: Adaptation, where: str) -> list[tuple[str, Adaptation]
         for i, member in enumerate(strategy.members):
             found += _strategies(member, f"{where}.members[{i}]")
     return found
-
-
-# Known by name, so that a model saved with a combination loads with smcd_rl.load(path).
-ADAPTATIONS["combination"] = Combination

@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from smcd_rl.diagnostics import Trace
+from smcd_rl.tuning.diagnostics import Trace
 
 __all__ = ["advice", "NEAR", "CHEAPER"]
 

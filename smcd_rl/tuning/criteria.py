@@ -45,9 +45,9 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
-from smcd_rl.adaptation import Adaptation
 from smcd_rl.checks import check_count
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel
+from smcd_rl.strategies.base import Adaptation
 
 __all__ = ["Criterion", "Score", "Lookahead", "checked_criterion", "CRITERIA"]
 
@@ -136,7 +136,7 @@ def checked_criterion(criterion: str | Score, horizon: int | None = None) -> Cri
 class Lookahead:
     """The episodes' open-loop targets, and each start's predictions of a running strategy (module doc).
 
-    Built once per set of episodes; :func:`smcd_rl.diagnostics.trace_pairs` calls :meth:`predict`
+    Built once per set of episodes; :func:`smcd_rl.tuning.diagnostics.trace_pairs` calls :meth:`predict`
     at every start with the strategy's state after the steps before it.
     """
 

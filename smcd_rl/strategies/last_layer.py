@@ -45,9 +45,9 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from smcd_rl.adaptation import ADAPTATIONS, Adaptation, _checked_noise
 from smcd_rl.checks import check_real
 from smcd_rl.masked_mlp import MaskedMLP
+from smcd_rl.strategies.base import Adaptation, checked_noise
 
 __all__ = ["BayesianLastLayer"]
 
@@ -83,7 +83,7 @@ class BayesianLastLayer(Adaptation):
     ) -> None:
         super().__init__()
         self.prior_scale = check_real(prior_scale, "prior_scale", low=0.0, high=1e6, open_low=True)
-        self._noise = _checked_noise(noise_std, auto=False)
+        self._noise = checked_noise(noise_std, auto=False)
         self.noise_std = noise_std if isinstance(noise_std, (int, float)) else [float(v) for v in noise_std]
         self.drift = check_real(drift, "drift", low=0.0, high=1e6)
         if likelihood not in ("gaussian", "student-t"):
@@ -227,4 +227,3 @@ class BayesianLastLayer(Adaptation):
 
 
 # Known by name, so that a model saved with it loads with smcd_rl.load(path).
-ADAPTATIONS["last_layer"] = BayesianLastLayer

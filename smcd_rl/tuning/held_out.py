@@ -1,6 +1,6 @@
 """Held-out episodes as the tuning functions take them: checked, stacked, and as normalised pairs.
 
-:func:`smcd_rl.calibrate`, :func:`smcd_rl.tune` and :func:`smcd_rl.diagnostics.trace` take the
+:func:`smcd_rl.calibrate`, :func:`smcd_rl.tune` and :func:`smcd_rl.tuning.diagnostics.trace` take the
 same episodes (a TensorDict of batch ``[E, T]`` in the model's keys, or a list of ``[T]`` ones) and
 the same fitted model; this module checks both once, in one way, for all three.
 
@@ -8,10 +8,12 @@ Example:
     >>> import torch, smcd_rl
     >>> from tensordict import TensorDict
     >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
-    >>> td = stacked([TensorDict({"q": torch.rand(5, 2), "ee": torch.rand(5, 2)}, [5])] * 3)
-    >>> x, y = pairs(model, td)
-    >>> tuple(td.batch_size), tuple(x.shape)
-    ((3, 5), (3, 5, 2))
+    >>> model.fitted = True  # a toy network: declare it trained
+    >>> episode = TensorDict({"q": torch.rand(5, 2), "ee": torch.rand(5, 2)}, [5])
+    >>> smcd_rl.tune(model, [episode, episode[:4]], progress=False)
+    Traceback (most recent call last):
+    ...
+    ValueError: calibrate: the episodes have different lengths [4, 5]; cut them to a common length, e.g. [episode[:4] for episode in episodes]
 """
 
 from __future__ import annotations

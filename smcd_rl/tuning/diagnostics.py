@@ -33,11 +33,11 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
-from smcd_rl.adaptation import SMCD, Adaptation
 from smcd_rl.checks import check_count
-from smcd_rl.criteria import Lookahead
-from smcd_rl.held_out import checked_model, pairs, stacked
 from smcd_rl.model import AdaptiveModel
+from smcd_rl.strategies import SMCD, Adaptation
+from smcd_rl.tuning.criteria import Lookahead
+from smcd_rl.tuning.held_out import checked_model, pairs, stacked
 
 __all__ = ["trace", "trace_pairs", "Trace"]
 
@@ -64,7 +64,7 @@ class Trace:
     #: step ``t`` (t = 2..T; each list ends at a refused step); ``one_step_rmse[t - 2] ** 2`` is the
     #: mean over the episodes of ``one_step_errors[e][t - 2] ** 2``.
     one_step_errors: list[list[float]] = field(default_factory=list)
-    #: With a look-ahead (:class:`smcd_rl.criteria.Lookahead`): every start's open-loop predictions
+    #: With a look-ahead (:class:`smcd_rl.tuning.criteria.Lookahead`): every start's open-loop predictions
     #: ``[E, S, H, out]`` in the target's units, ``None`` if the strategy refused a step.
     ahead: Tensor | None = field(default=None, repr=False, compare=False)
     #: With a look-ahead: the RMSE (target units, pooled) of :attr:`ahead` against the recorded
@@ -93,7 +93,7 @@ def trace(
         episodes: as :func:`smcd_rl.calibrate` takes them (batch ``[E, T]``, or a list of ``[T]``).
         strategy: a fresh strategy; it is attached to a copy of ``model`` and reset.
         horizon: also predict ``horizon`` steps ahead open loop from every start
-            (:mod:`smcd_rl.criteria`): :attr:`Trace.ahead` and :attr:`Trace.lookahead_rmse`.
+            (:mod:`smcd_rl.tuning.criteria`): :attr:`Trace.ahead` and :attr:`Trace.lookahead_rmse`.
 
     Returns:
         The :class:`Trace`. A strategy that refuses an observation (an impossible one under every

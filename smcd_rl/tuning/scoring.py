@@ -1,16 +1,18 @@
 """Runs of strategies over checked episodes, scored by one criterion: what tune and calibrate compare.
 
+One :class:`Scorer` serves a whole :func:`smcd_rl.tune` call, the SMCD calibration it runs
+included: the episodes are checked and normalised once, and every candidate is scored the same way.
+
 Example:
     >>> import torch, smcd_rl
     >>> from tensordict import TensorDict
-    >>> from smcd_rl.criteria import checked_criterion
     >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
     >>> model.fitted = True  # a toy network: declare it trained
     >>> episodes = TensorDict({"q": torch.rand(3, 6, 2), "ee": torch.zeros(3, 6, 2)}, [3, 6])
-    >>> scorer = Scorer(model, episodes, checked_criterion("lookahead", 2))
-    >>> run = scorer.run(smcd_rl.NoAdaptation())
-    >>> tuple(run.ahead.shape), scorer.score(run) >= run.rmse * 0  # 3 episodes, 4 starts, 2 steps, 2 outputs
-    ((3, 4, 2, 2), True)
+    >>> result = smcd_rl.tune(model, episodes, strategies=["none", "gradient_descent"], criterion="lookahead",
+    ...                       horizon=2, progress=False)
+    >>> result.score_label
+    '2-step look-ahead RMSE'
 """
 
 from __future__ import annotations
@@ -20,11 +22,11 @@ import math
 from tensordict import TensorDictBase
 from torch import Tensor
 
-from smcd_rl.adaptation import Adaptation
-from smcd_rl.criteria import Criterion, Lookahead
-from smcd_rl.diagnostics import Trace, trace_pairs
-from smcd_rl.held_out import pairs
 from smcd_rl.model import AdaptiveModel
+from smcd_rl.strategies.base import Adaptation
+from smcd_rl.tuning.criteria import Criterion, Lookahead
+from smcd_rl.tuning.diagnostics import Trace, trace_pairs
+from smcd_rl.tuning.held_out import pairs
 
 __all__ = ["Scorer"]
 
@@ -33,7 +35,7 @@ class Scorer:
     """The episodes as normalised pairs (and open-loop targets), and how a run on them scores."""
 
     def __init__(self, model: AdaptiveModel, td: TensorDictBase, criterion: Criterion) -> None:
-        self.model, self.criterion = model, criterion
+        self.model, self.td, self.criterion = model, td, criterion
         self.x, self.y = pairs(model, td)  # checks keys, shapes and values
         self.lookahead = Lookahead(model, td, criterion.horizon) if criterion.looks_ahead else None
 

@@ -7,7 +7,7 @@ resume a run directory whose checkpoint other options wrote: usage and exit 2, b
 
 Example:
     >>> from dataclasses import dataclass, field
-    >>> from smcd_rl.script_options import parse_config
+    >>> from smcd_rl.integrations.script_options import parse_config
     >>> @dataclass(frozen=True)
     ... class Config:
     ...     out: str = field(default="runs", metadata={"help": "output directory"})

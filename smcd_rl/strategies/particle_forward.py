@@ -93,7 +93,7 @@ class ParticleForward:
 
     Example:
         >>> import torch, smcd_rl
-        >>> from smcd_rl.particle_forward import Lineage, ParticleForward
+        >>> from smcd_rl.strategies.particle_forward import Lineage, ParticleForward
         >>> net = smcd_rl.MaskedMLP(3, 2, hidden=(64, 64)).eval()
         >>> parents = (torch.rand(1, 64 + 64) < 0.5).expand(50, -1)   # 50 copies of one mask
         >>> masks = parents.clone(); masks[:, 5] ^= True               # every child flips bit 5

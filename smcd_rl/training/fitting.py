@@ -21,7 +21,7 @@ from smcd_rl.digests import content_digest
 from smcd_rl.files import CheckpointMismatchError, load_file, save_file
 from smcd_rl.filter import SMCDFilter
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel
-from smcd_rl.task_masks import TaskEpochs, task_index
+from smcd_rl.training.task_masks import TaskEpochs, task_index
 
 __all__ = ["fit", "fit_dynamics", "fit_reptile", "MaskTraining"]
 

@@ -1,14 +1,14 @@
 """The bookkeeping of :func:`smcd_rl.tune`: each setting's score, run and time, and the race that spares work.
 
-Every setting is scored on the tuning episodes by the tuning's criterion (:mod:`smcd_rl.criteria`:
+Every setting is scored on the tuning episodes by the tuning's criterion (:mod:`smcd_rl.tuning.criteria`:
 the one-step RMSE, the look-ahead RMSE or a score of your own) from its run
-(:func:`smcd_rl.diagnostics.trace`, with the open-loop predictions where the criterion looks ahead).
+(:func:`smcd_rl.tuning.diagnostics.trace`, with the open-loop predictions where the criterion looks ahead).
 A :class:`Search` keeps each run (its trace and predictions), so that a setting is never run
 twice and the combination and the experiments' diagnosis take the runs as they are.
 
 **Racing.** Settings whose runs are independent per episode (no adaptation, gradient descent: no
-random numbers) are raced: every setting of a batch runs first on :data:`RACE_SHARE` of the
-episodes, and only those within :data:`RACE_MARGIN` of the best on those episodes run on the
+random numbers) are raced: every setting of a batch runs first on :data:`~smcd_rl.tuning.defaults.RACE_SHARE` of the
+episodes, and only those within :data:`~smcd_rl.tuning.defaults.RACE_MARGIN` of the best on those episodes run on the
 rest. The others are dropped, by their error alone, and listed as raced out. A setting that runs
 on would give the same run in one batch: each episode's run depends on that episode only.
 
@@ -18,8 +18,17 @@ kind is tuned. Times are kept per setting: a setting met again, or given by an e
 keeps its time, so that the settings that fit a budget, and the choice among them, repeat.
 
 Example:
-    >>> RACE_SHARE, RACE_MARGIN
-    (0.25, 0.1)
+    >>> import torch, smcd_rl
+    >>> from tensordict import TensorDict
+    >>> _ = torch.manual_seed(0)
+    >>> q = torch.rand(80, 2)
+    >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(16,)), in_keys=["q"], out_key="ee")
+    >>> _ = smcd_rl.fit(model, TensorDict({"q": q, "ee": q.cos()}, [80]), epochs=2, progress=False)
+    >>> episodes = TensorDict({"q": q.reshape(8, 10, 2), "ee": q.cos().reshape(8, 10, 2) + 0.1}, [8, 10])
+    >>> result = smcd_rl.tune(model, episodes, strategies=["gradient_descent"], progress=False)
+    >>> raced_out = [c for c in result.candidates if c.skipped.startswith("raced out")]
+    >>> len(raced_out) > 0  # settings far behind on the first quarter of the episodes ran no further
+    True
 """
 
 from __future__ import annotations
@@ -33,33 +42,24 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from smcd_rl.adaptation import Adaptation
-from smcd_rl.criteria import Criterion
-from smcd_rl.diagnostics import Trace
 from smcd_rl.model import AdaptiveModel
-from smcd_rl.scoring import Scorer
-from smcd_rl.strategy_specs import build_strategy
+from smcd_rl.strategies.base import Adaptation
+from smcd_rl.strategies.registry import build
+from smcd_rl.tuning.defaults import RACE_MARGIN, RACE_SHARE
+from smcd_rl.tuning.diagnostics import Trace
+from smcd_rl.tuning.scoring import Scorer
 
-__all__ = ["TuneCandidate", "Timing", "Search", "RACE_SHARE", "RACE_MARGIN", "setting_key"]
-
-#: The share of the episodes a raced setting runs on first (at least 2 episodes).
-RACE_SHARE = 0.25
-#: A raced setting runs on only if its score on the first episodes is at most ``1 + RACE_MARGIN``
-#: times the best's there: 10 % is well beyond the spread of two settings that tie on all episodes
-#: (paired, on the same episodes), and far below what a learning rate or step count off by a grid
-#: step costs.
-RACE_MARGIN = 0.1
+__all__ = ["TuneCandidate", "Timing", "Search", "setting_key"]
 
 
 @dataclass(frozen=True)
 class TuneCandidate:
     """One setting :func:`smcd_rl.tune` tried: what it is, how well it predicted, how long a step took."""
 
-    #: One of :data:`~smcd_rl.strategy_specs.KINDS`.
+    #: One of :data:`~smcd_rl.strategies.registry.KINDS`.
     kind: str
     #: The strategy's settings (its ``config()``; a combination's members by name).
     settings: dict[str, Any]
@@ -106,7 +106,7 @@ class Timing:
         """The time per observation of ``kind`` with ``settings``, measured the first time it is asked for."""
         key = setting_key(kind, settings)
         if key not in self.times:
-            self.times[key] = self.ms_per_step(build_strategy(kind, settings))
+            self.times[key] = self.ms_per_step(build(kind, settings))
         return self.times[key]
 
     def ms_per_step(self, strategy: Adaptation) -> float:
@@ -132,18 +132,14 @@ class Search:
 
     def __init__(
         self,
-        model: AdaptiveModel,
-        td: TensorDictBase,
+        scorer: Scorer,
         timing: Timing,
         progress: bool,
         known: dict[str, TuneCandidate] | None = None,
         heads: Mapping[str, tuple[Trace, Tensor | None]] | None = None,
-        *,
-        criterion: Criterion,
     ) -> None:
-        self.model, self.td, self.timing = model, td, timing
-        self.scorer = Scorer(model, td, criterion)
-        self.x, self.y = self.scorer.x, self.scorer.y
+        self.scorer, self.timing = scorer, timing
+        self.model, self.td, self.x, self.y = scorer.model, scorer.td, scorer.x, scorer.y
         self.known = known or {}  # scored by an earlier call on the same data: not run again
         #: Raced settings' runs on the first episodes (an earlier call's too): a race is decided
         #: again against the leader of the day, from the same runs.
@@ -177,7 +173,7 @@ class Search:
     def _record(self, kind: str, settings: dict[str, Any], episodes: slice) -> tuple[Trace, Tensor | None]:
         """Run the setting on ``episodes``; a run on all of them is kept, a part is returned."""
         predictions: list[Tensor] = []
-        run = self.scorer.run(build_strategy(kind, settings), episodes, predictions=predictions)
+        run = self.scorer.run(build(kind, settings), episodes, predictions=predictions)
         recorded = torch.stack(predictions, dim=1) if math.isfinite(run.rmse) else None
         if episodes == slice(None):
             key = setting_key(kind, settings)

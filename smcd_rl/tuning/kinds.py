@@ -1,12 +1,22 @@
 """How :func:`smcd_rl.tune` searches each kind of strategy: gradient descent's grid, SMCD's calibration,
 the Bayesian last layer's grid, SMCD with a Bayesian readout, the combination.
 
-Each function adds its kind's candidates to a :class:`~smcd_rl.tuning_search.Search`; the
-module doc of :mod:`smcd_rl.tuning` says what each searches.
+Each function adds its kind's candidates to a :class:`~smcd_rl.tuning.search.Search`; the
+module doc of :mod:`smcd_rl.tuning.protocol` says what each searches, and
+:mod:`smcd_rl.tuning.defaults` holds the grids.
 
 Example:
-    >>> _past((1e-3, 1e-2, 1e-1), "lr", "high"), _past((1, 5), "steps", "high")
-    (1.0, 10)
+    >>> import torch, smcd_rl
+    >>> from tensordict import TensorDict
+    >>> _ = torch.manual_seed(0)
+    >>> q = torch.rand(80, 2)
+    >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(16,)), in_keys=["q"], out_key="ee")
+    >>> _ = smcd_rl.fit(model, TensorDict({"q": q, "ee": q.cos()}, [80]), epochs=2, progress=False)
+    >>> episodes = TensorDict({"q": q.reshape(8, 10, 2), "ee": q.cos().reshape(8, 10, 2) + 0.5}, [8, 10])
+    >>> grid = {"lr": (1e-3, 1e-2), "steps": (1,), "window": (10,), "loss": ("mse",)}
+    >>> result = smcd_rl.tune(model, episodes, strategies=["gradient_descent"], gd_grid=grid, progress=False)
+    >>> any("on the grid's high edge; tried" in note for note in result.notes)  # the best lr was the largest
+    True
 """
 
 from __future__ import annotations
@@ -19,23 +29,24 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from smcd_rl.adaptation import SMCD, GradientDescent
-from smcd_rl.calibration import Calibration, calibrate
 from smcd_rl.checks import check_count, check_real
-from smcd_rl.combination import weight_path
-from smcd_rl.criteria import Criterion
-from smcd_rl.diagnostics import Trace
-from smcd_rl.last_layer import BayesianLastLayer
 from smcd_rl.model import AdaptiveModel
-from smcd_rl.tuning_search import Search, TuneCandidate, setting_key
+from smcd_rl.strategies import SMCD, BayesianLastLayer, GradientDescent
+from smcd_rl.strategies.combination import weight_path
+from smcd_rl.tuning.calibration import Calibration, search_noise
+from smcd_rl.tuning.defaults import (
+    COMBINATION_GRID,
+    EXTENSIBLE,
+    GD_GRID,
+    LAST_LAYER_GRID,
+    MAX_EXTENSIONS,
+    MIN_PARTICLES,
+    SMCD_LAST_LAYER_SCALES,
+)
+from smcd_rl.tuning.diagnostics import Trace
+from smcd_rl.tuning.search import Search, TuneCandidate, setting_key
 
 __all__ = [
-    "GD_GRID",
-    "MAX_EXTENSIONS",
-    "EXTENSIBLE",
-    "COMBINATION_GRID",
-    "LAST_LAYER_GRID",
-    "MIN_PARTICLES",
     "checked_gd_grid",
     "checked_gd_limits",
     "tune_gd",
@@ -44,33 +55,6 @@ __all__ = [
     "tune_smcd_last_layer",
     "tune_combination",
 ]
-
-#: Gradient descent's starting grid: learning rate x steps per observation x window x loss
-#: (:class:`smcd_rl.GradientDescent`'s ``loss``; this dimension is never extended).
-GD_GRID: dict[str, tuple[Any, ...]] = {
-    "lr": (1e-3, 1e-2, 1e-1),
-    "steps": (1, 5),
-    "window": (1, 10),
-    "loss": ("mse", "huber"),
-}
-#: At most this many extensions past each edge of the GD grid.
-MAX_EXTENSIONS = 3
-#: The dimensions of the GD grid that extend past their edges.
-EXTENSIBLE = ("lr", "steps", "window")
-#: The combination's grid: the weights' learning rate and the fixed share.
-COMBINATION_GRID = {"eta": (0.1, 1.0, 10.0, 100.0), "share": (0.0, 0.02)}
-#: The Bayesian last layer's grid: prior scale x drift x likelihood; the Student-t form also
-#: tries its noise at these multiples of the unadapted network's residual (the Gaussian form's
-#: posterior mean does not depend on its noise: it takes the residual itself, for its predictive
-#: variance). The prior scale extends past an edge as gradient descent's learning rate does.
-LAST_LAYER_GRID: dict[str, tuple[Any, ...]] = {
-    "prior_scale": (0.1, 0.3, 1.0, 3.0),
-    "drift": (0.0, 0.01),
-    "likelihood": ("gaussian", "student-t"),
-    "noise_factor": (0.3, 1.0),
-}
-#: SMCD never halves its particles below this to meet a budget.
-MIN_PARTICLES = 8
 
 
 # ---------------------------------------------------------------------------- gradient descent
@@ -124,7 +108,7 @@ def checked_gd_limits(
 def tune_gd(search: Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, tuple[float, float]]) -> None:
     """Score the grid; while the best point lies on an edge, go on past that edge along that dimension.
 
-    The grid, and each extension's settings, are raced (:meth:`~smcd_rl.tuning_search.Search.race`).
+    The grid, and each extension's settings, are raced (:meth:`~smcd_rl.tuning.search.Search.race`).
     Past an edge only the line through the best point is scored (the new value with the other
     settings at their best), not the whole grid again: each extension costs one setting per loss
     at most, and steps and window double the cost of a setting with each extension. The loss is
@@ -210,12 +194,11 @@ def _within(bounds: tuple[float, float], value: float) -> bool:
 def tune_smcd(
     search: Search,
     num_particles: int,
-    criterion: Criterion,
     flip_probs: tuple[float, ...],
     seed: int,
     progress: bool,
 ) -> dict[str, Calibration]:
-    """Halve the particles until a step fits the budget, then calibrate (both noise forms) by ``criterion``.
+    """Halve the particles until a step fits the budget, then calibrate (both noise forms) by the search's criterion.
 
     The per-dimension noise is searched with every flip probability, the scalar noise at the flip
     probability the first search chose.
@@ -247,17 +230,16 @@ def tune_smcd(
     else:
         flips = flip_probs
         for per_dimension in (True, False):
-            result = calibrate(
-                model,
-                search.td,
-                base=SMCD(num_particles=particles),
-                flip_probs=flips,
+            # calibrate's search on the episodes tune checked, scored by tune's scorer; tune's
+            # record is model.tuning, so the model's calibration stays as it was.
+            result = search_noise(
+                search.scorer,
+                SMCD(num_particles=particles),
+                list(flips),
                 per_dimension=per_dimension,
-                criterion=criterion.fn if criterion.fn is not None else criterion.name,  # type: ignore[arg-type]
-                horizon=criterion.horizon if criterion.looks_ahead else None,
+                refine=5,
                 seed=seed,
                 progress=progress,
-                store=False,  # tune's record is model.tuning; calibrate's own stays as it was
             )
             calibrations["per-dimension" if per_dimension else "scalar"] = result
             settings = {**result.strategy.config(), "seed": seed, "device": device}
@@ -331,7 +313,7 @@ def tune_smcd_last_layer(search: Search) -> None:
         search.notes.append("SMCD with a Bayesian readout: needs a tuned SMCD and last layer, so not tuned")
         return
     scale = readout.settings["prior_scale"]
-    for factor in (1.0, 1 / 3, 3.0):
+    for factor in SMCD_LAST_LAYER_SCALES:
         search.score(
             "smcd_last_layer",
             {"smcd": smcd.settings, "last_layer": {**readout.settings, "prior_scale": scale * factor}},
@@ -345,7 +327,7 @@ def tune_combination(search: Search, kinds: list[str]) -> None:
 
     The members run on the same stream whatever the weights, so their one-step predictions are
     recorded once and every ``(eta, share)`` is scored from them (:func:`_combination_trace`), the
-    same error :func:`smcd_rl.diagnostics.trace` gives a :class:`~smcd_rl.combination.Combination`,
+    same error :func:`smcd_rl.tuning.diagnostics.trace` gives a :class:`~smcd_rl.strategies.combination.Combination`,
     at the cost of one combination run instead of one per grid point.
     """
     if len(kinds) < 2:
@@ -414,8 +396,8 @@ def _combination_trace(model: AdaptiveModel, predictions: Tensor, targets: Tenso
 
     ``predictions [E, T, out, K]`` are the members' normalised one-step predictions, each made
     before its step was observed, ``targets [E, T, out]`` the normalised observations. The weights
-    follow :class:`~smcd_rl.combination.Combination` operation for operation, and the errors are
-    accumulated as :func:`smcd_rl.diagnostics.trace` accumulates them.
+    follow :class:`~smcd_rl.strategies.combination.Combination` operation for operation, and the errors are
+    accumulated as :func:`smcd_rl.tuning.diagnostics.trace` accumulates them.
     """
     num_episodes, steps, outputs, count = predictions.shape
     weights = weight_path(predictions, targets, eta=eta, share=share).exp().to(predictions.dtype)  # [E, T + 1, K]

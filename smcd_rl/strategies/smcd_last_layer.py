@@ -40,9 +40,10 @@ from typing import Any
 
 from torch import Tensor
 
-from smcd_rl.adaptation import ADAPTATIONS, SMCD, Adaptation
-from smcd_rl.last_layer import BayesianLastLayer
 from smcd_rl.masked_mlp import MaskedMLP
+from smcd_rl.strategies.base import Adaptation
+from smcd_rl.strategies.last_layer import BayesianLastLayer
+from smcd_rl.strategies.smcd import SMCD
 
 __all__ = ["SMCDLastLayer"]
 
@@ -51,8 +52,8 @@ class SMCDLastLayer(Adaptation):
     """The SMCD mask filter and a Bayesian readout, updated in two stages (see the module doc).
 
     Args:
-        smcd: the filter, or its ``config()`` dict.
-        last_layer: the readout, or its ``config()`` dict.
+        smcd: the filter, or its ``settings()`` dict.
+        last_layer: the readout, or its ``settings()`` dict.
     """
 
     name = "smcd_last_layer"
@@ -62,14 +63,14 @@ class SMCDLastLayer(Adaptation):
         for part, kind in ((smcd, SMCD), (last_layer, BayesianLastLayer)):
             if not isinstance(part, (kind, Mapping)):
                 raise TypeError(
-                    f"SMCDLastLayer takes an smcd_rl.SMCD and an smcd_rl.BayesianLastLayer (or their config() dicts), "
+                    f"SMCDLastLayer takes an smcd_rl.SMCD and an smcd_rl.BayesianLastLayer (or their settings() dicts), "
                     f"got a {type(part).__name__} for the {kind.__name__}"
                 )
-        self.smcd = smcd if isinstance(smcd, SMCD) else SMCD(**smcd)
+        self.smcd = smcd if isinstance(smcd, SMCD) else SMCD.from_settings(smcd)
         self.last_layer = last_layer if isinstance(last_layer, BayesianLastLayer) else BayesianLastLayer(**last_layer)
 
     def config(self) -> dict[str, Any]:
-        return {"smcd": self.smcd.config(), "last_layer": self.last_layer.config()}
+        return {"smcd": self.smcd.settings(), "last_layer": self.last_layer.settings()}
 
     def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
         super().bind(net, output_scale, calibration=calibration)
@@ -136,4 +137,3 @@ class SMCDLastLayer(Adaptation):
 
 
 # Known by name, so that a model saved with it loads with smcd_rl.load(path).
-ADAPTATIONS["smcd_last_layer"] = SMCDLastLayer

@@ -3,7 +3,7 @@
 The likelihood noise ``Σ`` of eq. (1) and the flip probability ``d`` of the mask transition are
 parameters of the state-space model the filter assumes. :func:`calibrate` runs the filter over
 held-out episodes of the *training* tasks for a few candidate settings and keeps the best by one
-of these criteria (:mod:`smcd_rl.criteria`):
+of these criteria (:mod:`smcd_rl.tuning.criteria`):
 
 * ``"one-step"`` (the default): the lowest one-step prediction error, the RMSE of the filter's
   prediction of each step from the steps before it (:attr:`Candidate.one_step_rmse`), which is
@@ -45,18 +45,19 @@ from tensordict import TensorDictBase
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from smcd_rl.adaptation import SMCD, NoAdaptation
 from smcd_rl.checks import check_count, check_real, check_seed
-from smcd_rl.criteria import Criterion as _Criterion
-from smcd_rl.criteria import Score, checked_criterion
-from smcd_rl.diagnostics import Trace
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.filter import SMCDFilter
-from smcd_rl.held_out import checked_model, stacked
 from smcd_rl.model import AdaptiveModel
-from smcd_rl.scoring import Scorer
+from smcd_rl.strategies import SMCD, NoAdaptation
+from smcd_rl.tuning.criteria import Criterion as _Criterion
+from smcd_rl.tuning.criteria import Score, checked_criterion
+from smcd_rl.tuning.defaults import FLIP_PROBS
+from smcd_rl.tuning.diagnostics import Trace
+from smcd_rl.tuning.held_out import checked_model, stacked
+from smcd_rl.tuning.scoring import Scorer
 
-__all__ = ["calibrate", "evidence", "Calibration", "Candidate"]
+__all__ = ["calibrate", "evidence", "Calibration", "Candidate", "checked_flips"]
 
 #: Factors of the residual scale tried first: 1/8 .. 8 in doublings.
 _BRACKET = tuple(range(-3, 4))
@@ -67,7 +68,7 @@ _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 Stage = Literal["bracket", "flip", "rebracket", "refine"]
 #: What :func:`calibrate` optimises by name: the one-step error, the log evidence, or the look-ahead
-#: error (:mod:`smcd_rl.criteria`; a callable score of your own is taken too).
+#: error (:mod:`smcd_rl.tuning.criteria`; a callable score of your own is taken too).
 Criterion = Literal["one-step", "evidence", "lookahead"]
 
 
@@ -87,7 +88,7 @@ class Candidate:
     #: RMSE (target units, all dimensions pooled) of the filter's prediction of each step from the
     #: steps before it (the MMSE mask before its update), over every episode's steps 2..T.
     one_step_rmse: float
-    #: The run step by step (:func:`smcd_rl.diagnostics.trace` of this setting, which it equals).
+    #: The run step by step (:func:`smcd_rl.tuning.diagnostics.trace` of this setting, which it equals).
     trace: Trace | None = field(default=None, compare=False, repr=False)
     #: The score of the calibration's criterion (lower is better): the one-step RMSE (also under
     #: the evidence criterion), the look-ahead RMSE or your own score (``inf`` if the filter refused).
@@ -190,7 +191,7 @@ def calibrate(
     episodes: TensorDictBase | Sequence[TensorDictBase],
     *,
     base: SMCD | None = None,
-    flip_probs: Sequence[float] = (0.001, 0.003, 0.01, 0.03),
+    flip_probs: Sequence[float] = FLIP_PROBS,
     per_dimension: bool = True,
     refine: int = 5,
     criterion: Criterion | Score = "one-step",
@@ -214,7 +215,7 @@ def calibrate(
     noise the filter assumes, the evidence may choose a small noise that makes the filter
     over-confident (it then jumps between masks on every residual), or a large one that pays for
     rare outliers with a filter that barely adapts. ``criterion="lookahead", horizon=H`` scores
-    the filter's open-loop predictions ``H`` steps ahead (:mod:`smcd_rl.criteria`), what a
+    the filter's open-loop predictions ``H`` steps ahead (:mod:`smcd_rl.tuning.criteria`), what a
     planner's rollout or a look-ahead table is scored by: a noise chosen for the next step can be
     too small (a filter that jumps between masks) or too large for ten. A callable
     ``criterion(predicted, observed) -> float`` scores them your way. The search is the same for
@@ -258,7 +259,7 @@ def calibrate(
             one-step RMSE (:attr:`Candidate.one_step_rmse`, lowest wins), ``"evidence"``, the
             log evidence (:attr:`Candidate.log_evidence`, highest wins), ``"lookahead"``, the
             RMSE ``horizon`` steps ahead open loop, or a callable score of your own
-            (:mod:`smcd_rl.criteria`; :attr:`Candidate.score`, lowest wins).
+            (:mod:`smcd_rl.tuning.criteria`; :attr:`Candidate.score`, lowest wins).
         horizon: the steps ahead of ``"lookahead"`` or of your score (episodes must be longer).
         seed: seed of every filter run: two calls with the same arguments give the same result.
         progress: show a progress bar over the filter runs.
@@ -287,12 +288,49 @@ def calibrate(
         raise TypeError(f"store must be True or False, got {store!r} ({type(store).__name__})")
     if not isinstance(per_dimension, bool):  # a string such as "no" is truthy: it would mean True
         raise TypeError(f"per_dimension must be True or False, got {per_dimension!r} ({type(per_dimension).__name__})")
-    grid = _checked_flips(flip_probs, model, base)
+    grid = checked_flips(flip_probs, model, base)
     refine = check_count(refine, "refine", minimum=0)
     seed = check_seed(seed)
-    td = stacked(episodes)
+    scorer = Scorer(model, stacked(episodes), chosen_by)  # checks keys, shapes and values
+    result = search_noise(
+        scorer, base, grid, per_dimension=per_dimension, refine=refine, seed=seed, progress=progress, reuse=reuse
+    )
+    result.seconds = time.perf_counter() - started
+    if not store:
+        return result
+    best = result.best
+    model.calibration = {
+        "noise_std": result.noise_std,
+        "flip_prob": result.flip_prob,
+        "criterion": chosen_by.key,
+        "log_evidence": best.log_evidence,
+        "one_step_rmse": best.one_step_rmse,
+        "episodes": result.episodes,
+        "steps": result.steps,
+        "num_particles": base.num_particles,
+    }
+    return result
+
+
+def search_noise(
+    scorer: Scorer,
+    base: SMCD,
+    grid: list[float],
+    *,
+    per_dimension: bool,
+    refine: int,
+    seed: int,
+    progress: bool,
+    reuse: Calibration | None = None,
+) -> Calibration:
+    """:func:`calibrate`'s search (its doc) on checked arguments: the episodes and the criterion
+    are ``scorer``'s, ``grid`` the sorted flip probabilities; the model is left as it is.
+
+    :func:`smcd_rl.tune` calls it with the scorer of all its runs.
+    """
+    started = time.perf_counter()
+    model, chosen_by, td = scorer.model, scorer.criterion, scorer.td
     num_episodes, steps = td.batch_size
-    scorer = Scorer(model, td, chosen_by)  # checks keys, shapes and values; normalised pairs [E, T, features]
     x, y = scorer.x, scorer.y
 
     recorded = model.residual_scale
@@ -373,7 +411,7 @@ def calibrate(
             "every particle); check that the episodes are in the model's units and free of outliers"
         )
     chosen: float | list[float] = list(best.noise_std) if isinstance(best.noise_std, tuple) else best.noise_std
-    result = Calibration(
+    return Calibration(
         strategy=SMCD(**config, noise_std=chosen, flip_prob=best.flip_prob),
         noise_std=chosen,
         flip_prob=best.flip_prob,
@@ -391,19 +429,6 @@ def calibrate(
         horizon=chosen_by.horizon,
         score_label=chosen_by.label,
     )
-    if not store:
-        return result
-    model.calibration = {
-        "noise_std": chosen,
-        "flip_prob": best.flip_prob,
-        "criterion": chosen_by.key,
-        "log_evidence": best.log_evidence,
-        "one_step_rmse": best.one_step_rmse,
-        "episodes": num_episodes,
-        "steps": steps,
-        "num_particles": base.num_particles,
-    }
-    return result
 
 
 def _reusable(reuse: Calibration | None, data: str) -> dict[tuple[Any, float], Candidate]:
@@ -546,7 +571,7 @@ def _residual_scale(model: AdaptiveModel, x: Tensor, y: Tensor) -> Tensor:
     return torch.maximum(rms, 1e-6 * std).to(torch.float32).cpu()  # a dimension fitted exactly keeps a scale
 
 
-def _checked_flips(flip_probs: Sequence[float], model: AdaptiveModel, base: SMCD) -> list[float]:
+def checked_flips(flip_probs: Sequence[float], model: AdaptiveModel, base: SMCD) -> list[float]:
     """The flip probabilities, sorted and distinct, each one the model's transition can take."""
     if isinstance(flip_probs, (str, bytes)) or not isinstance(flip_probs, Sequence):
         raise TypeError(f"flip_probs must be a sequence of probabilities such as (0.003, 0.01), got {flip_probs!r}")

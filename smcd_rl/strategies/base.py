@@ -1,0 +1,153 @@
+"""The contract every adaptation strategy keeps: :class:`Adaptation`.
+
+A strategy works in the network's normalised units; :class:`smcd_rl.AdaptiveModel` does the
+conversion and the TensorDict plumbing. Every strategy (:mod:`smcd_rl.strategies`) keeps this
+one interface, so experiments and :func:`smcd_rl.tune` swap them by name through the registry
+(:mod:`smcd_rl.strategies.registry`).
+
+Example:
+    >>> import torch, smcd_rl
+    >>> class Shift(smcd_rl.Adaptation):  # predicts the trained network plus the last residual
+    ...     name = "shift"
+    ...     def reset(self, batch_shape):
+    ...         self._batch_shape, self.offset = batch_shape, torch.zeros(*batch_shape, self.net.out_features)
+    ...     def observe(self, inputs, targets):
+    ...         self.offset = targets - self.net(inputs)
+    ...     def predict(self, inputs):
+    ...         return self.net(inputs) + self.offset
+    >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee", adaptation=Shift())
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor
+
+from smcd_rl.masked_mlp import MaskedMLP
+
+__all__ = ["Adaptation", "is_auto", "checked_noise"]
+
+
+class Adaptation(ABC):
+    """Base class of the strategies. A strategy instance serves one model at a time."""
+
+    name: ClassVar[str]
+
+    def __init__(self) -> None:
+        self._net: MaskedMLP | None = None
+        self._batch_shape: tuple[int, ...] = ()
+
+    # -------------------------------------------------------------- called by the model
+    def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
+        """Attach to ``net``; ``output_scale`` converts the target's units to normalised ones.
+
+        ``calibration`` is the model's :attr:`smcd_rl.AdaptiveModel.calibration` (``None`` if it has
+        none), for strategies whose settings come from it.
+        """
+        self._net = net
+
+    @abstractmethod
+    def reset(self, batch_shape: tuple[int, ...]) -> None:
+        """Forget everything adapted so far; keep one independent state per batch element."""
+
+    @abstractmethod
+    def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        """Adapt to one transition per batch element: ``inputs [*B, in]``, ``targets [*B, out]``."""
+
+    @abstractmethod
+    def predict(self, inputs: Tensor) -> Tensor:
+        """Adapted prediction for ``inputs [*B, *extra, in]`` -> ``[*B, *extra, out]``."""
+
+    def predict_particles(self, inputs: Tensor) -> Tensor:
+        """One prediction per posterior sample, ``[*B, *extra, N, out]`` (``N = 1`` without particles)."""
+        return self.predict(inputs).unsqueeze(-2)
+
+    @property
+    def mask(self) -> Tensor | None:
+        """Current mask estimate ``[*B, mask_dim]``, or ``None`` if the strategy has no mask."""
+        return None
+
+    def summary(self) -> dict[str, Tensor]:
+        """Diagnostics per batch element (for example ESS and log evidence)."""
+        return {}
+
+    def state_dict(self) -> dict[str, Any]:
+        """A copy of the adaptation state; :meth:`load_state_dict` restores it, :meth:`restore_rows` rows of it."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:  # noqa: B027 - stateless default
+        """Restore a :meth:`state_dict` exactly (random generator included), as if nothing happened since."""
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:  # noqa: B027 - stateless default
+        """Put back ``state``'s batch elements where ``rows [*B]`` is True, leave the others.
+
+        With :meth:`state_dict` this resets or updates part of a batch: save the state, act on
+        the whole batch, restore the rows that should not have changed.
+        """
+
+    def config(self) -> dict[str, Any]:
+        """Constructor arguments; ``type(s)(**s.config())`` is an unadapted copy."""
+        return {}
+
+    def settings(self) -> dict[str, Any]:
+        """What stores this strategy (JSON types only): :meth:`config`, plus for a strategy that draws
+        random numbers what repeats its draws (SMCD's seed). :meth:`from_settings` rebuilds it."""
+        return self.config()
+
+    @classmethod
+    def from_settings(cls, settings: Mapping[str, Any]) -> Adaptation:
+        """A fresh strategy from :meth:`settings` (see :mod:`smcd_rl.strategies.registry`)."""
+        return cls(**settings)
+
+    # -------------------------------------------------------------- helpers
+    @property
+    def net(self) -> MaskedMLP:
+        if self._net is None:
+            raise RuntimeError(f"{type(self).__name__} is not attached to a model; pass it to AdaptiveModel(...)")
+        return self._net
+
+    def _extra_dims(self, inputs: Tensor) -> int:
+        """How many batch dims ``inputs`` has beyond the model's batch shape (they broadcast)."""
+        extra = inputs.dim() - 1 - len(self._batch_shape)
+        if extra < 0 or tuple(inputs.shape[: len(self._batch_shape)]) != self._batch_shape:
+            raise ValueError(
+                f"inputs of shape {list(inputs.shape)} do not start with the model's batch shape "
+                f"{list(self._batch_shape)}; call model.reset(batch_shape=...) to match"
+            )
+        return extra
+
+    def _mask_view(self, value: Tensor, inputs: Tensor, trailing: int) -> Tensor:
+        """View ``value [*B, *rest]`` with singleton dims for ``inputs``' extra batch dims."""
+        extra = self._extra_dims(inputs)
+        rest = value.shape[value.dim() - trailing :]
+        return value.reshape(*self._batch_shape, *([1] * extra), *rest)
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.config().items())
+        return f"{type(self).__name__}({args})"
+
+
+def is_auto(value: Any) -> bool:
+    return isinstance(value, str) and value == "auto"
+
+
+def checked_noise(noise_std: Any, *, auto: bool = True) -> Tensor:
+    """``noise_std`` as a float tensor if it is a positive finite scalar or 1-d sequence, else a clear error
+    (which names ``'auto'`` among the choices where the caller takes it)."""
+    try:
+        noise = torch.as_tensor(noise_std)
+    except (TypeError, ValueError, RuntimeError) as err:
+        choices = (
+            "a positive number, a sequence of them or 'auto'" if auto else "a positive number or a sequence of them"
+        )
+        raise TypeError(f"noise_std must be {choices}, got {noise_std!r}") from err
+    if noise.dtype == torch.bool or noise.is_complex() or not (noise.is_floating_point() or noise.dtype.is_signed):
+        raise TypeError(f"noise_std must be a positive number or a sequence of them, got {noise_std!r}")
+    noise = noise.to(torch.float32)
+    if noise.dim() > 1 or noise.numel() == 0 or not bool((noise > 0).all()) or not bool(torch.isfinite(noise).all()):
+        raise ValueError(f"noise_std must be a positive finite scalar or 1-d sequence, got {noise_std}")
+    return noise

@@ -1,0 +1,211 @@
+"""Online gradient descent on the most recent transitions: the M+G baseline (:class:`GradientDescent`)."""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Mapping
+from typing import Any, ClassVar, Literal
+
+import torch
+from torch import Tensor
+
+import smcd_rl.strategies.stream_weights as stream_weights
+from smcd_rl.checks import check_count, check_real
+from smcd_rl.masked_mlp import MaskedMLP
+from smcd_rl.strategies.base import Adaptation
+
+__all__ = ["GradientDescent"]
+
+
+class GradientDescent(Adaptation):
+    """Online gradient descent on the most recent transitions (the M+G baseline).
+
+    After each observation, ``steps`` SGD steps on the loss (normalised units) over the last
+    ``window`` transitions update a private copy of the weights, one copy per batch element.
+    :meth:`reset` restores the trained weights; the network itself never changes. An observation
+    after which the weights, or their predictions for the window's inputs, are inf or NaN (an
+    outlier target, a learning rate far too large) is refused with a ValueError and leaves the
+    weights and the window as they were.
+
+    The loss is the mean over the window of the mean over output dimensions of a per-residual
+    loss ``rho(r)``, where ``r`` is the prediction error in normalised units (a unit is one
+    standard deviation of that output in the training targets):
+
+    * ``"mse"``: ``rho(r) = r**2``.
+    * ``"huber"``: ``rho(r) = r**2`` while ``|r| <= huber_delta``, beyond it
+      ``2 * huber_delta * |r| - huber_delta**2`` (twice
+      :func:`torch.nn.functional.huber_loss`, so that it equals ``"mse"`` on residuals within
+      ``huber_delta`` and a learning rate means the same for both losses). Its gradient is
+      bounded: one corrupted observation, which stays in the window for ``window`` steps, pulls
+      the weights with at most the force of a residual of ``huber_delta`` instead of a force
+      that grows with its error.
+
+    Args:
+        lr: learning rate.
+        steps: gradient steps per observation.
+        window: how many recent transitions the loss uses.
+        loss: ``"mse"`` (squared error) or ``"huber"`` (squared, then linear beyond ``huber_delta``).
+        huber_delta: where the Huber loss turns linear, in normalised units: ``1.0`` is one
+            standard deviation of the training targets (of each output). Positive and finite;
+            unused with ``loss="mse"``.
+
+    Example:
+        >>> import smcd_rl
+        >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(8, 8))
+        >>> model = smcd_rl.AdaptiveModel(
+        ...     net, in_keys=["q"], out_key="ee", adaptation=smcd_rl.GradientDescent(lr=0.01, steps=1, window=10))
+        >>> smcd_rl.GradientDescent(lr=0.01, window=10, loss="huber", huber_delta=2.0)
+        GradientDescent(lr=0.01, steps=1, window=10, loss='huber', huber_delta=2.0)
+    """
+
+    name = "gradient_descent"
+
+    #: The losses ``loss`` takes.
+    LOSSES: ClassVar[tuple[str, ...]] = ("mse", "huber")
+
+    def __init__(
+        self,
+        lr: float = 1e-2,
+        steps: int = 1,
+        window: int = 10,
+        loss: Literal["mse", "huber"] = "mse",
+        huber_delta: float = 1.0,
+    ) -> None:
+        super().__init__()
+        self.lr = check_real(lr, "lr", low=0.0, open_low=True)
+        self.steps = check_count(steps, "steps")
+        self.window = check_count(window, "window")
+        if not isinstance(loss, str) or loss not in self.LOSSES:
+            raise ValueError(f"loss must be one of {list(self.LOSSES)}, got {loss!r}")
+        self.loss: Literal["mse", "huber"] = loss
+        # Checked even with loss="mse": config() records it, and a bad value should fail here,
+        # not when someone later switches the loss.
+        try:
+            # Finite too: inf - inf in the linear branch would make NaN gradients (loss="mse" is the squared loss).
+            self.huber_delta = check_real(huber_delta, "huber_delta", low=0.0, high=sys.float_info.max, open_low=True)
+        except ValueError:
+            raise ValueError(
+                f"huber_delta must be positive and finite (normalised units: 1.0 is one standard deviation "
+                f"of the training targets), got {huber_delta}"
+            ) from None
+        self._params: dict[str, Tensor] = {}
+        self._inputs: Tensor | None = None
+        self._targets: Tensor | None = None
+        self._count: Tensor | None = None  # transitions seen, per batch element
+        self._output_scale = torch.tensor(1.0)
+
+    def config(self) -> dict[str, Any]:
+        # Always every argument, so that type(s)(**s.config()) is the same strategy; configs saved
+        # before ``loss`` existed lack it and rebuild with its default, "mse", which they used.
+        return {
+            "lr": self.lr,
+            "steps": self.steps,
+            "window": self.window,
+            "loss": self.loss,
+            "huber_delta": self.huber_delta,
+        }
+
+    def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
+        super().bind(net, output_scale, calibration=calibration)
+        self._output_scale = output_scale.detach()  # to check predictions in the target's units
+
+    def reset(self, batch_shape: tuple[int, ...]) -> None:
+        self._batch_shape = batch_shape
+        net = self.net
+        flat = math.prod(batch_shape)
+        self._params = stream_weights.stream_copies(net, flat)
+        weight = next(net.parameters())  # the buffers take the network's device and dtype
+        self._inputs = weight.new_zeros(flat, self.window, net.in_features)
+        self._targets = weight.new_zeros(flat, self.window, net.out_features)
+        device = weight.device
+        self._count = torch.zeros(flat, dtype=torch.long, device=device)
+
+    def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
+        rows = torch.arange(self._count.numel(), device=self._count.device)
+        slot = self._count % self.window  # a ring buffer per batch element
+        before = (self._count, self._inputs[rows, slot].clone(), self._targets[rows, slot].clone())
+        self._inputs[rows, slot] = inputs.reshape(-1, inputs.shape[-1])
+        self._targets[rows, slot] = targets.reshape(-1, targets.shape[-1])
+        self._count = self._count + 1
+        # Slots filled so far count in the loss; the rest (after a reset) do not.
+        filled = (torch.arange(self.window, device=rows.device) < self._count.unsqueeze(-1)).to(self._inputs.dtype)
+        # The steps write into new tensors, so the weights before the observation stay for a refusal
+        # to put back. A few streams at a time take every step, while their weights are in the cache.
+        stepped = {k: torch.empty_like(v) for k, v in self._params.items()}
+        finite = True
+        for streams in stream_weights.stream_chunks(self._params):
+            into = {k: v[streams] for k, v in stepped.items()}
+            params = {k: v[streams] for k, v in self._params.items()}
+            for _ in range(self.steps):
+                params = stream_weights.sgd_step(
+                    self.net,
+                    params,
+                    self._inputs[streams],
+                    self._targets[streams],
+                    filled[streams],
+                    lr=self.lr,
+                    loss=self.loss,
+                    delta=self.huber_delta,
+                    out=into,
+                )
+            finite = self._predicts_finite(into, self._inputs[streams], filled[streams])  # while in the cache
+            if not finite:
+                break
+        if finite:
+            self._params = stepped
+        else:
+            # Put everything back, so that one outlier does not leave NaN weights for good.
+            self._count = before[0]
+            self._inputs[rows, slot], self._targets[rows, slot] = before[1], before[2]
+            raise ValueError(
+                "gradient descent diverged on this observation (its weights, or its predictions for the "
+                "observed inputs, became inf or NaN); the adaptation state is unchanged. Drop the outlier, "
+                f"or lower the learning rate (lr={self.lr})"
+            )
+
+    def _predicts_finite(self, params: dict[str, Tensor], inputs: Tensor, filled: Tensor) -> bool:
+        """Whether the weights ``params`` are finite and predict finite values, in the target's units, for the window.
+
+        Finite weights are not enough: one step on a 1e18 target (or with a huge ``lr``) leaves
+        weights of 1e20 that predict inf. Checked on the observed inputs, where the loss pulled the
+        weights, and after the model's de-normalisation (``* output_scale``), where a float32 value
+        of 1e37 becomes inf.
+        """
+        if not stream_weights.all_finite(params):
+            return False
+        prediction = stream_weights.forward(self.net, params, inputs)
+        observed = prediction[filled.to(torch.bool)]  # the empty slots after a reset hold no input
+        return bool(torch.isfinite(observed * self._output_scale).all())
+
+    def state_dict(self) -> dict[str, Any]:
+        assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
+        return {
+            "params": {k: v.clone() for k, v in self._params.items()},
+            "inputs": self._inputs.clone(),
+            "targets": self._targets.clone(),
+            "count": self._count.clone(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._params = {k: v.clone() for k, v in state["params"].items()}
+        self._inputs, self._targets = state["inputs"].clone(), state["targets"].clone()
+        self._count = state["count"].clone()
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+        assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
+        rows = rows.to(self._count.device).reshape(-1)
+
+        def pick(saved: Tensor, current: Tensor) -> Tensor:
+            return torch.where(rows.reshape(-1, *([1] * (current.dim() - 1))), saved, current)
+
+        self._params = {k: pick(state["params"][k], p) for k, p in self._params.items()}
+        self._inputs, self._targets = pick(state["inputs"], self._inputs), pick(state["targets"], self._targets)
+        self._count = pick(state["count"], self._count)
+
+    def predict(self, inputs: Tensor) -> Tensor:
+        self._extra_dims(inputs)
+        flat = inputs.reshape(math.prod(self._batch_shape), -1, inputs.shape[-1])
+        out = stream_weights.forward(self.net, self._params, flat)
+        return out.reshape(*inputs.shape[:-1], out.shape[-1])

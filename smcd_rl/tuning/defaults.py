@@ -1,0 +1,106 @@
+"""Every default of the tuning in one table: the kinds and their order, each kind's grid, the flip
+probabilities, the race, and which kinds a strategy built from others needs.
+
+:func:`smcd_rl.tune`, :func:`smcd_rl.calibrate` and the experiments read them from here.
+
+Example:
+    >>> from smcd_rl.tuning.defaults import GD_GRID, kinds_needed
+    >>> kinds_needed(["combination"])  # a combination mixes no adaptation, gradient descent and SMCD
+    ['none', 'gradient_descent', 'smcd', 'combination']
+    >>> kinds_needed(["smcd_last_layer"])
+    ['smcd', 'last_layer', 'smcd_last_layer']
+    >>> {**GD_GRID, "loss": ("huber",)}  # a gd_grid for smcd_rl.tune that tries the Huber loss only
+    {'lr': (0.001, 0.01, 0.1), 'steps': (1, 5), 'window': (1, 10), 'loss': ('huber',)}
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+__all__ = [
+    "KINDS",
+    "ADAPTING",
+    "NEEDS",
+    "kinds_needed",
+    "GD_GRID",
+    "MAX_EXTENSIONS",
+    "EXTENSIBLE",
+    "COMBINATION_GRID",
+    "LAST_LAYER_GRID",
+    "SMCD_LAST_LAYER_SCALES",
+    "FLIP_PROBS",
+    "MIN_PARTICLES",
+    "RACE_SHARE",
+    "RACE_MARGIN",
+    "SEARCHED",
+]
+
+#: The strategies :func:`smcd_rl.tune` knows (names of :data:`smcd_rl.strategies.registry.REGISTRY`),
+#: in the order it tunes them: SMCD with a Bayesian readout starts from the tuned SMCD and last
+#: layer; a combination mixes the others.
+KINDS = ("none", "gradient_descent", "smcd", "last_layer", "smcd_last_layer", "combination")
+#: The kinds that adapt: what a combination mixes, with no adaptation.
+ADAPTING = ("gradient_descent", "smcd", "last_layer", "smcd_last_layer")
+#: What each kind built from others tunes first: a combination mixes no adaptation, gradient
+#: descent and SMCD (and every other kind that adapts and was tuned); SMCD with a Bayesian readout
+#: starts from the tuned SMCD and last layer.
+NEEDS: dict[str, tuple[str, ...]] = {
+    "combination": ("none", "gradient_descent", "smcd"),
+    "smcd_last_layer": ("smcd", "last_layer"),
+}
+
+
+def kinds_needed(strategies: Iterable[str]) -> list[str]:
+    """The kinds :func:`smcd_rl.tune` runs for ``strategies``: each one asked for and what it is built
+    from (:data:`NEEDS`), in :data:`KINDS`' order."""
+    needed = set(strategies)
+    for kind in KINDS[::-1]:  # a kind needs only kinds before it
+        if kind in needed:
+            needed |= set(NEEDS.get(kind, ()))
+    return [kind for kind in KINDS if kind in needed]
+
+
+#: Gradient descent's starting grid: learning rate x steps per observation x window x loss
+#: (:class:`smcd_rl.GradientDescent`'s ``loss``; this dimension is never extended).
+GD_GRID: dict[str, tuple[Any, ...]] = {
+    "lr": (1e-3, 1e-2, 1e-1),
+    "steps": (1, 5),
+    "window": (1, 10),
+    "loss": ("mse", "huber"),
+}
+#: At most this many extensions past each edge of the GD grid (and the last layer's prior scale).
+MAX_EXTENSIONS = 3
+#: The dimensions of the GD grid that extend past their edges.
+EXTENSIBLE = ("lr", "steps", "window")
+#: The combination's grid: the weights' learning rate and the fixed share.
+COMBINATION_GRID: dict[str, tuple[float, ...]] = {"eta": (0.1, 1.0, 10.0, 100.0), "share": (0.0, 0.02)}
+#: The Bayesian last layer's grid: prior scale x drift x likelihood; the Student-t form also
+#: tries its noise at these multiples of the unadapted network's residual (the Gaussian form's
+#: posterior mean does not depend on its noise: it takes the residual itself, for its predictive
+#: variance). The prior scale extends past an edge as gradient descent's learning rate does.
+LAST_LAYER_GRID: dict[str, tuple[Any, ...]] = {
+    "prior_scale": (0.1, 0.3, 1.0, 3.0),
+    "drift": (0.0, 0.01),
+    "likelihood": ("gaussian", "student-t"),
+    "noise_factor": (0.3, 1.0),
+}
+#: SMCD with a Bayesian readout: the tuned last layer's prior scale times each of these.
+SMCD_LAST_LAYER_SCALES = (1.0, 1 / 3, 3.0)
+#: The flip probabilities SMCD's calibration tries.
+FLIP_PROBS = (0.001, 0.003, 0.01, 0.03)
+#: SMCD never halves its particles below this to meet a budget.
+MIN_PARTICLES = 8
+#: The share of the episodes a raced setting runs on first (at least 2 episodes).
+RACE_SHARE = 0.25
+#: A raced setting runs on only if its score on the first episodes is at most ``1 + RACE_MARGIN``
+#: times the best's there: 10 % is well beyond the spread of two settings that tie on all episodes
+#: (paired, on the same episodes), and far below what a learning rate or step count off by a grid
+#: step costs.
+RACE_MARGIN = 0.1
+#: What :func:`smcd_rl.tune` searches of each kind: a tuning table always shows it.
+SEARCHED: dict[str, tuple[str, ...]] = {
+    "smcd": ("num_particles", "flip_prob", "noise_std"),
+    "gradient_descent": ("lr", "steps", "window"),
+    "last_layer": ("prior_scale", "noise_std", "drift", "likelihood"),
+}
