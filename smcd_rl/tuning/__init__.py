@@ -67,7 +67,26 @@ _SOURCES: dict[str, str] = {
     "TuneCandidate": "search",
 }
 
-__all__ = list(_SOURCES)
+__all__ = [
+    "tune",
+    "TuneResult",
+    "TuneCandidate",
+    "calibrate",
+    "Calibration",
+    "Candidate",
+    "evidence",
+    "episodes",
+    "ms_per_observation",
+    "describe_settings",
+    "KINDS",
+    "GD_GRID",
+    "MAX_EXTENSIONS",
+    "EXTENSIBLE",
+    "COMBINATION_GRID",
+    "LAST_LAYER_GRID",
+    "MIN_PARTICLES",
+    "FLIP_PROBS",
+]
 
 
 def _load(name: str) -> Any:

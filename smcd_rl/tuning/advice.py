@@ -24,6 +24,7 @@ import math
 from typing import Any
 
 from smcd_rl.tuning.diagnostics import Trace
+from smcd_rl.tuning.search import usable
 
 __all__ = ["advice", "NEAR", "CHEAPER"]
 
@@ -35,7 +36,7 @@ CHEAPER = 3.0
 
 def advice(result: Any) -> list[str]:
     """The advice lines for ``result``, a :class:`smcd_rl.TuneResult` (empty if fewer than two kinds were scored)."""
-    scored = {kind: c for kind, c in result.best_of.items() if math.isfinite(c.score)}
+    scored = {kind: c for kind, c in result.best_of.items() if usable(c.score)}
     if len(scored) < 2:
         return []
     best_kind = result.best_kind
@@ -44,14 +45,14 @@ def advice(result: Any) -> list[str]:
     plain = scored.get("none")
     against = f" against {plain.score:.4g} unadapted" if plain is not None and best_kind != "none" else ""
     lines.append(f"- best: {best_kind} ({best.score:.4g}{against})")
-    if plain is not None and best_kind != "none" and plain.score <= (1 + NEAR) * best.score:
+    if plain is not None and best_kind != "none" and _near(plain.score, best.score):
         lines.append(f"- adapting gains less than {NEAR:.0%} here: the episodes may not differ from the training tasks")
     lines += _few_and_many(result, scored)
     cheap = [
         (kind, c)
         for kind, c in scored.items()
         if kind not in (best_kind, "none")
-        and c.score <= (1 + NEAR) * best.score
+        and _near(c.score, best.score)
         and math.isfinite(c.ms_per_step)
         and c.ms_per_step * CHEAPER <= best.ms_per_step
     ]
@@ -72,6 +73,13 @@ def advice(result: Any) -> list[str]:
             "or Student-t); with corrupted readings prefer these forms, or SMCD"
         )
     return lines
+
+
+def _near(score: float, best: float) -> bool:
+    """Whether ``score`` is within :data:`NEAR` of ``best``, relative to its size (a score of your own may be negative)."""
+    if not math.isfinite(best):
+        return score == best
+    return score <= ((1 + NEAR) * best if best >= 0 else (1 - NEAR) * best)
 
 
 def _few_and_many(result: Any, scored: dict[str, Any]) -> list[str]:

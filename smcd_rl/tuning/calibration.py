@@ -56,6 +56,7 @@ from smcd_rl.tuning.defaults import FLIP_PROBS
 from smcd_rl.tuning.diagnostics import Trace
 from smcd_rl.tuning.held_out import checked_model, stacked
 from smcd_rl.tuning.scoring import Scorer
+from smcd_rl.tuning.search import usable
 
 __all__ = ["calibrate", "evidence", "Calibration", "Candidate", "checked_flips"]
 
@@ -405,7 +406,12 @@ def search_noise(
         bar.close()
 
     best = _best(candidates, chosen_by.name)
-    if not math.isfinite(_objective(best, chosen_by.name)):
+    if _objective(best, chosen_by.name) == -math.inf:
+        if chosen_by.name != "evidence" and any(math.isfinite(c.one_step_rmse) for c in candidates):
+            raise ValueError(
+                f"your score returned inf for every candidate setting ({chosen_by.label}), although the "
+                "filter ran on the episodes; check the score function, or score with criterion='one-step'"
+            )
         raise ValueError(
             "the filter refused the episodes under every candidate setting (an observation impossible under "
             "every particle); check that the episodes are in the model's units and free of outliers"
@@ -493,7 +499,7 @@ def _objective(candidate: Candidate, criterion: str) -> float:
     """What the search maximises: the log evidence, or minus the score (``-inf`` if not finite)."""
     if criterion == "evidence":
         return candidate.log_evidence
-    return -candidate.score if math.isfinite(candidate.score) else -math.inf
+    return -candidate.score if usable(candidate.score) else -math.inf
 
 
 def _reusable_run(run: Trace, criterion: _Criterion) -> bool:

@@ -44,7 +44,7 @@ from smcd_rl.tuning.defaults import (
     SMCD_LAST_LAYER_SCALES,
 )
 from smcd_rl.tuning.diagnostics import Trace
-from smcd_rl.tuning.search import Search, TuneCandidate, setting_key
+from smcd_rl.tuning.search import Search, TuneCandidate, setting_key, usable
 
 __all__ = [
     "checked_gd_grid",
@@ -129,7 +129,7 @@ def tune_gd(search: Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, 
     race(list(product(grid["lr"], grid["steps"], grid["window"], grid["loss"])))
     extensions = {("lr", "low"): 0, ("lr", "high"): 0, ("steps", "high"): 0, ("window", "high"): 0}
     while True:
-        finite = {k: v for k, v in scored.items() if math.isfinite(v)}
+        finite = {k: v for k, v in scored.items() if usable(v)}
         if not finite:
             search.notes.append(
                 f"gradient descent: every one of its {len(scored)} settings diverged or was over the budget, so none "

@@ -179,7 +179,12 @@ def tune(
     finally:
         search.bar.close()
     if not search.best_of:
-        raise ValueError(f"no strategy fits a budget of {budget_ms:g} ms per observation; raise budget_ms")
+        if budget_ms is not None and all(c.skipped == "over budget" for c in search.candidates):
+            raise ValueError(f"no strategy fits a budget of {budget_ms:g} ms per observation; raise budget_ms")
+        raise ValueError(
+            f"no setting of {kinds} has a usable score on these episodes: each refused an observation or "
+            f"scored inf or NaN by {chosen_by.label}; check the episodes' units and outliers, or the score function"
+        )
     result = TuneResult(
         criterion=chosen_by.name,
         budget_ms=budget_ms,
@@ -196,6 +201,7 @@ def tune(
         calibrations=calibrations,
         horizon=chosen_by.horizon,
         score_label=chosen_by.label if chosen_by.name != "evidence" else "one-step RMSE",
+        score_fn=chosen_by.fn,
     )
     model.tuning = result.to_dict()
     return result
@@ -212,6 +218,13 @@ def _reusable(reuse: TuneResult | None, data: str, criterion: Criterion) -> dict
         raise ValueError(
             "reuse holds a result for another model, other episodes, another seed or another criterion; "
             "pass the result of a tune call on the same ones, or none"
+        )
+    if criterion.name == "custom" and reuse.score_fn is not criterion.fn:
+        # Two functions of one name (two lambdas, a def edited since) cannot be told apart by it.
+        raise ValueError(
+            f"reuse holds a result scored by another score function than this {criterion.label!r} (functions "
+            "of the same name cannot be told apart by it); pass the result of a tune call with this very "
+            "function object, or none"
         )
     return {setting_key(c.kind, c.settings): c for c in reuse.candidates if not c.skipped}
 

@@ -19,7 +19,7 @@ Example:
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -69,6 +69,9 @@ class TuneResult:
     horizon: int = 1
     #: The name of the score the kinds are compared by (``"one-step RMSE"``, ``"10-step look-ahead RMSE"``...).
     score_label: str = "one-step RMSE"
+    #: The score function of your own it was tuned by (this call's; not in :meth:`to_dict`): reuse
+    #: with a score of your own needs this very function.
+    score_fn: Callable[..., float] | None = field(default=None, repr=False, compare=False)
 
     @property
     def best_kind(self) -> str:
@@ -249,7 +252,10 @@ _UNSET = object()
 
 
 def _json_numbers(value: Any) -> Any:
-    """``value`` with every float that JSON cannot hold (inf, NaN) as ``None``."""
+    """``value`` with every float that JSON cannot hold as ``None`` (inf, NaN: unusable) or ``"-inf"``
+    (a score of your own at its best), which :meth:`TuneResult.from_dict` reads back."""
+    if isinstance(value, float) and value == -math.inf:
+        return "-inf"
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):

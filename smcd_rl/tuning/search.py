@@ -52,7 +52,7 @@ from smcd_rl.tuning.defaults import RACE_MARGIN, RACE_SHARE
 from smcd_rl.tuning.diagnostics import Trace
 from smcd_rl.tuning.scoring import Scorer
 
-__all__ = ["TuneCandidate", "Timing", "Search", "setting_key"]
+__all__ = ["TuneCandidate", "Timing", "Search", "setting_key", "usable", "race_threshold"]
 
 
 @dataclass(frozen=True)
@@ -77,6 +77,29 @@ class TuneCandidate:
     def __post_init__(self) -> None:
         if math.isnan(self.score):  # scored by its one-step error (or a record from before scores)
             object.__setattr__(self, "score", self.one_step_rmse)
+
+
+def usable(score: float) -> bool:
+    """Whether a score can be chosen: not NaN and not ``inf`` (``-inf``, the best possible, can).
+
+    Example:
+        >>> usable(-math.inf), usable(math.inf), usable(math.nan), usable(0.3)
+        (True, False, False, True)
+    """
+    return not math.isnan(score) and score != math.inf
+
+
+def race_threshold(leader: float) -> float:
+    """The highest score on the first episodes that still runs on: within :data:`RACE_MARGIN` of the
+    leader's, relative to its size (a score of your own may be negative).
+
+    Example:
+        >>> race_threshold(2.0), race_threshold(-2.0), race_threshold(-math.inf)
+        (2.2, -1.8, -inf)
+    """
+    if math.isinf(leader):
+        return leader
+    return (1 + RACE_MARGIN) * leader if leader >= 0 else (1 - RACE_MARGIN) * leader
 
 
 def setting_key(kind: str, settings: dict[str, Any]) -> str:
@@ -248,7 +271,7 @@ class Search:
                 scores.append(self.score(kind, settings))
             elif not math.isfinite(heads[i][0].rmse):  # refused on the first episodes: on all of them too
                 scores.append(self._add(kind, settings, math.inf))
-            elif head_score[keys[i]] > (1 + RACE_MARGIN) * leader:
+            elif head_score[keys[i]] > race_threshold(leader):
                 why = f"raced out: {head_score[keys[i]]:.4g} on the first {first} episodes, the best {leader:.4g}"
                 ms = self.timing.times.get(keys[i], math.nan)
                 self.candidates.append(TuneCandidate(kind, settings, math.inf, ms, why))
@@ -297,7 +320,7 @@ class Search:
         ms = self.timing.times.get(setting_key(kind, settings), math.nan)
         candidate = TuneCandidate(kind, settings, rmse, ms, "", score)
         self.candidates.append(candidate)
-        if math.isfinite(score) and (kind not in self.best_of or score < self.best_of[kind].score):
+        if usable(score) and (kind not in self.best_of or score < self.best_of[kind].score):
             self.best_of[kind] = candidate
         self.bar.update(1)
         self.bar.set_postfix(kind=kind, score=f"{score:.4g}")

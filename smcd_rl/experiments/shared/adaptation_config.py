@@ -49,7 +49,9 @@ class TuningConfig(EvaluationConfig):
     )
     gd_steps: tuple[int, ...] = setting(GD_GRID["steps"], "gradient steps per observation tried in tuning", low=1)
     gd_window: tuple[int, ...] = setting((5, 10), "recent transitions in the gradient-descent loss tried", low=1)
-    calibrate_flips: tuple[float, ...] = setting(FLIP_PROBS, "flip probabilities SMCD's calibration tries", low=0.0, high=1.0)
+    calibrate_flips: tuple[float, ...] = setting(
+        FLIP_PROBS, "flip probabilities SMCD's calibration tries", low=0.0, high=1.0
+    )
     budget_ms: float = setting(10.0, "per-observation budget (ms, one thread) of the budgeted view", above=0.0)
 
     NON_EMPTY: ClassVar[tuple[str, ...]] = ("gd_lr", "gd_steps", "gd_window", "calibrate_flips")

@@ -49,8 +49,8 @@ from smcd_rl.experiments.shared.tuning_record import TUNED, Tuning, reseeded
 from smcd_rl.experiments.shared.workers import computed, map_jobs
 from smcd_rl.strategies.registry import build
 from smcd_rl.tuning import ms_per_observation
-from smcd_rl.tuning.defaults import kinds_needed
 from smcd_rl.tuning.calibration import calibrate
+from smcd_rl.tuning.defaults import kinds_needed
 from smcd_rl.tuning.diagnostics import Trace, trace
 
 __all__ = [
