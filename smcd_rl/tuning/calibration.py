@@ -52,13 +52,13 @@ from smcd_rl.model import AdaptiveModel
 from smcd_rl.strategies import SMCD, NoAdaptation
 from smcd_rl.tuning.criteria import Criterion as _Criterion
 from smcd_rl.tuning.criteria import Score, checked_criterion
-from smcd_rl.tuning.defaults import FLIP_PROBS
+from smcd_rl.tuning.defaults import CALIBRATION_REFINE, FLIP_PROBS
 from smcd_rl.tuning.diagnostics import Trace
 from smcd_rl.tuning.held_out import checked_model, stacked
 from smcd_rl.tuning.scoring import Scorer
 from smcd_rl.tuning.search import usable
 
-__all__ = ["calibrate", "evidence", "Calibration", "Candidate", "checked_flips"]
+__all__ = ["calibrate", "evidence", "Calibration", "Candidate", "checked_flips", "NOISE_SHAPES", "NoiseShape"]
 
 #: Factors of the residual scale tried first: 1/8 .. 8 in doublings.
 _BRACKET = tuple(range(-3, 4))
@@ -67,7 +67,13 @@ _EXTEND = 6
 _LOG2 = math.log(2.0)
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
-Stage = Literal["bracket", "flip", "rebracket", "refine"]
+Stage = Literal["bracket", "flip", "shape", "rebracket", "refine"]
+#: The noise's shape across output dimensions: ``"proportional"`` keeps the residual's proportions,
+#: ``"scalar"`` is one noise for every dimension, ``"sqrt"`` lies between (each dimension's noise
+#: proportional to the square root of its residual); ``"search"`` tries all three.
+NoiseShape = Literal["search", "proportional", "sqrt", "scalar"]
+#: The noise shapes by name, in the order a search tries them.
+NOISE_SHAPES = ("proportional", "scalar", "sqrt")
 #: What :func:`calibrate` optimises by name: the one-step error, the log evidence, or the look-ahead
 #: error (:mod:`smcd_rl.tuning.criteria`; a callable score of your own is taken too).
 Criterion = Literal["one-step", "evidence", "lookahead"]
@@ -77,7 +83,7 @@ Criterion = Literal["one-step", "evidence", "lookahead"]
 class Candidate:
     """One filter run of :func:`calibrate`: a setting and how well it explains the episodes."""
 
-    #: Which part of the search proposed it: ``bracket``, ``flip``, ``rebracket`` or ``refine``.
+    #: Which part of the search proposed it: ``bracket``, ``flip``, ``shape``, ``rebracket`` or ``refine``.
     stage: Stage
     #: The noise as a multiple of the residual scale the search started from.
     factor: float
@@ -94,6 +100,8 @@ class Candidate:
     #: The score of the calibration's criterion (lower is better): the one-step RMSE (also under
     #: the evidence criterion), the look-ahead RMSE or your own score (``inf`` if the filter refused).
     score: float = math.nan
+    #: The noise's shape across output dimensions (:data:`NoiseShape`).
+    shape: str = "proportional"
 
     def __post_init__(self) -> None:
         if math.isnan(self.score):  # scored by its one-step error
@@ -118,8 +126,9 @@ class Calibration:
     residual_scale: list[float]
     #: Where it came from: the model's fit (``"fit"``) or, without one, the episodes themselves.
     residual_source: Literal["fit", "episodes"]
-    #: Whether the noise kept the residual's proportions (else a scalar, the factor times its RMS).
-    per_dimension: bool
+    #: The chosen noise's shape (:data:`NoiseShape`): ``"proportional"`` (the residual's
+    #: proportions), ``"sqrt"`` or ``"scalar"`` (the factor times the residual's RMS).
+    noise_shape: str
     #: The flip probabilities tried, sorted.
     flip_probs: list[float]
     episodes: int
@@ -133,6 +142,13 @@ class Calibration:
     score_label: str = "one-step RMSE"
     #: A digest of the model, the episodes, the seed and the base settings: what ``reuse`` checks.
     data: str = field(default="", compare=False)
+    #: The shapes searched, in the order searched.
+    shapes: list[str] = field(default_factory=lambda: ["proportional"])
+
+    @property
+    def per_dimension(self) -> bool:
+        """Whether the chosen noise has one value per output dimension (any shape but ``"scalar"``)."""
+        return self.noise_shape != "scalar"
 
     @property
     def best(self) -> Candidate:
@@ -142,13 +158,21 @@ class Calibration:
     def table(self) -> str:
         """Every candidate's setting, log evidence and one-step error; the chosen one marked ``*``."""
         scale = "[" + ", ".join(f"{s:.4g}" for s in self.residual_scale) + "]"
-        if not self.per_dimension:
+        if self.shapes == ["scalar"]:
             scale = f"RMS of {scale}"
+        shaped = len(self.shapes) > 1
         ahead = self.criterion in ("lookahead", "custom")
         lines = [
             f"calibrate: {self.episodes} episodes x {self.steps} steps, {self.num_particles} particles; "
-            f"noise = factor x residual scale {scale} (from {self.residual_source})",
-            f"{'':1} {'run':>3}  {'stage':<9}  {'factor':>8}  {'noise(rms)':>10}  {'flip_prob':>9}  "
+            f"noise = factor x residual scale {scale} (from {self.residual_source})"
+            + (
+                f" in the shapes {self.shapes} (sqrt: each dimension's noise as the root of its residual's)"
+                if shaped
+                else ""
+            ),
+            f"{'':1} {'run':>3}  {'stage':<9}  "
+            + (f"{'shape':<12}  " if shaped else "")
+            + f"{'factor':>8}  {'noise(rms)':>10}  {'flip_prob':>9}  "
             f"{'log evidence/ep':>15}  {'1-step RMSE':>11}" + (f"  {self.score_label}" if ahead else ""),
         ]
         best = self.best
@@ -159,7 +183,9 @@ class Calibration:
                 else math.sqrt(sum(v * v for v in c.noise_std) / len(c.noise_std))
             )
             lines.append(
-                f"{'*' if c is best else ' '} {i:>3}  {c.stage:<9}  {c.factor:>8.4g}  {noise:>10.4g}  "
+                f"{'*' if c is best else ' '} {i:>3}  {c.stage:<9}  "
+                + (f"{c.shape:<12}  " if shaped else "")
+                + f"{c.factor:>8.4g}  {noise:>10.4g}  "
                 f"{c.flip_prob:>9.4g}  {c.log_evidence:>15.6g}  {c.one_step_rmse:>11.4g}"
                 + (f"  {c.score:.4g}" if ahead else "")
             )
@@ -172,7 +198,9 @@ class Calibration:
             self.criterion, f"lowest {self.score_label}"
         )
         lines.append(
-            f"chosen ({by}): noise_std={noise_text}, flip_prob={self.flip_prob:g} "
+            f"chosen ({by}): noise_std={noise_text}"
+            + (f" ({self.noise_shape})" if shaped else "")
+            + f", flip_prob={self.flip_prob:g} "
             f"({len(self.candidates)} filter runs, {self.seconds:.1f} s)"
         )
         if len(self.flip_probs) > 1 and self.flip_prob in (self.flip_probs[0], self.flip_probs[-1]):
@@ -193,8 +221,9 @@ def calibrate(
     *,
     base: SMCD | None = None,
     flip_probs: Sequence[float] = FLIP_PROBS,
-    per_dimension: bool = True,
-    refine: int = 5,
+    noise_shape: NoiseShape = "search",
+    per_dimension: bool | None = None,
+    refine: int = CALIBRATION_REFINE,
     criterion: Criterion | Score = "one-step",
     horizon: int | None = None,
     seed: int = 0,
@@ -224,22 +253,32 @@ def calibrate(
 
     The noise is searched as ``factor x residual scale``, starting from the model's
     :attr:`~smcd_rl.AdaptiveModel.residual_scale` (recorded by :func:`smcd_rl.fit`; without one,
-    the RMS residual of the network with dropout off on the episodes). With ``per_dimension`` the
-    noise keeps the residual's proportions across output dimensions and only the common factor is
-    searched (one parameter, well posed even for few episodes); without it the noise is a scalar.
-    Search, in log factor:
+    the RMS residual of the network with dropout off on the episodes), in one of three shapes
+    across output dimensions: the residual's proportions (``"proportional"``), one noise for every
+    dimension (``"scalar"``, the residual's RMS) and between them (``"sqrt"``: each dimension's
+    noise as the square root of its residual's, times the RMS's). Each shape has one parameter,
+    the common factor, well posed even for few episodes. Which shape is right depends on the
+    criterion: the one-step error weighs each dimension by its own residual (proportional), while
+    a look-ahead may need the filter to listen to a dimension whose residual is large but where
+    the task shows most (a pendulum's angular velocity). ``noise_shape="search"`` (the default)
+    lets the criterion choose; ``"proportional"`` (the search before shapes were searched),
+    ``"sqrt"`` or ``"scalar"`` searches that shape alone. Search, in log factor:
 
     1. a bracket of factors 1/8 .. 8 in doublings at the middle of ``flip_probs`` (7 runs),
-       extended past an end while the best value lies there;
+       extended past an end while the best value lies there (the proportional shape first, when
+       searching shapes);
     2. the other ``flip_probs`` at the best factor (``len(flip_probs) - 1`` runs);
-    3. if the best flip probability changed, the factors half and twice the best one at it
-       (2 runs, extended in the same way);
-    4. a golden-section refinement between those neighbours (``refine`` runs), which narrows
+    3. when searching shapes, each other shape at the chosen flip probability: the factors half,
+       once and twice the best one (3 runs, extended while the best lies at an end); the shape of
+       the best run is kept;
+    4. if the best flip probability changed, the factors half and twice the best one at it
+       (2 runs, extended in the same way; done by step 3 for a shape it searched);
+    5. a golden-section refinement between those neighbours (``refine`` runs), which narrows
        the bracket around the optimum to a factor ``4 ** (0.618 ** (refine - 1))`` (1.22 for
        the default 5).
 
-    That is 17 filter runs by default (15 when the flip probability stays, one more per
-    extension), each over all episodes at once as one batch of independent filters, every one seeded alike from ``seed``
+    That is 17 filter runs for one shape (15 when the flip probability stays, one more per
+    extension) and about 23 for the three, each over all episodes at once as one batch of independent filters, every one seeded alike from ``seed``
     (common random numbers, so candidates differ by their setting and not by their draws). The
     cost of a run is that of ``steps`` SMCD updates of batch ``episodes`` (memory: ``episodes x
     num_particles`` masks and activations at once). The chosen setting is the best candidate by
@@ -254,7 +293,10 @@ def calibrate(
         base: the SMCD whose other settings (particles, resampling, transition...) the filter
             runs use and the result keeps (default ``SMCD()``); its noise and flip are ignored.
         flip_probs: the flip probabilities tried.
-        per_dimension: one noise per output dimension in the residual's proportions (else one scalar).
+        noise_shape: ``"search"`` (the three shapes, the criterion chooses), ``"proportional"``,
+            ``"sqrt"`` or ``"scalar"`` (that shape alone).
+        per_dimension: the older spelling of one shape: ``True`` is ``noise_shape="proportional"``,
+            ``False`` is ``"scalar"`` (``None``: use ``noise_shape``).
         refine: golden-section runs at the end (0 for none).
         criterion: what the search optimises and the choice is made by: ``"one-step"``, the
             one-step RMSE (:attr:`Candidate.one_step_rmse`, lowest wins), ``"evidence"``, the
@@ -287,15 +329,22 @@ def calibrate(
     model, base = checked_model(model), _checked_base(base)
     if not isinstance(store, bool):
         raise TypeError(f"store must be True or False, got {store!r} ({type(store).__name__})")
-    if not isinstance(per_dimension, bool):  # a string such as "no" is truthy: it would mean True
+    if per_dimension is not None and not isinstance(per_dimension, bool):  # "no" is truthy: it would mean True
         raise TypeError(f"per_dimension must be True or False, got {per_dimension!r} ({type(per_dimension).__name__})")
+    if noise_shape not in NOISE_SHAPES and noise_shape != "search":
+        raise ValueError(f"noise_shape must be 'search' or one of {list(NOISE_SHAPES)}, got {noise_shape!r}")
+    shapes = (
+        ["proportional" if per_dimension else "scalar"]
+        if per_dimension is not None
+        else list(NOISE_SHAPES)
+        if noise_shape == "search"
+        else [noise_shape]
+    )
     grid = checked_flips(flip_probs, model, base)
     refine = check_count(refine, "refine", minimum=0)
     seed = check_seed(seed)
     scorer = Scorer(model, stacked(episodes), chosen_by)  # checks keys, shapes and values
-    result = search_noise(
-        scorer, base, grid, per_dimension=per_dimension, refine=refine, seed=seed, progress=progress, reuse=reuse
-    )
+    result = search_noise(scorer, base, grid, shapes=shapes, refine=refine, seed=seed, progress=progress, reuse=reuse)
     result.seconds = time.perf_counter() - started
     if not store:
         return result
@@ -318,14 +367,15 @@ def search_noise(
     base: SMCD,
     grid: list[float],
     *,
-    per_dimension: bool,
+    shapes: Sequence[str],
     refine: int,
     seed: int,
     progress: bool,
     reuse: Calibration | None = None,
 ) -> Calibration:
     """:func:`calibrate`'s search (its doc) on checked arguments: the episodes and the criterion
-    are ``scorer``'s, ``grid`` the sorted flip probabilities; the model is left as it is.
+    are ``scorer``'s, ``grid`` the sorted flip probabilities, ``shapes`` the noise shapes searched
+    (:data:`NOISE_SHAPES`' names, the first bracketed at every flip); the model is left as it is.
 
     :func:`smcd_rl.tune` calls it with the scorer of all its runs.
     """
@@ -338,18 +388,25 @@ def search_noise(
     source: Literal["fit", "episodes"] = "fit" if recorded is not None else "episodes"
     scale = recorded if recorded is not None else _residual_scale(model, x, y)
     start = scale.to(torch.float64)
-    searched = start if per_dimension else start.square().mean().sqrt().reshape(1)
+    rms = start.square().mean().sqrt()
+    # Each shape's noise at factor 1: the residual's proportions, their root (times the RMS's, so
+    # that every shape's factors mean about the same), or the RMS alone.
+    unit = {
+        "proportional": start,
+        "sqrt": start.sqrt() * rms.sqrt(),
+        "scalar": rms.reshape(1),
+    }
 
-    def noise_of(log_factor: float) -> float | tuple[float, ...]:
-        values = (math.exp(log_factor) * searched).tolist()
-        return tuple(values) if per_dimension else values[0]
+    def noise_of(log_factor: float, shape: str) -> float | tuple[float, ...]:
+        values = (math.exp(log_factor) * unit[shape]).tolist()
+        return values[0] if shape == "scalar" else tuple(values)
 
     config = {k: v for k, v in base.config().items() if k not in ("noise_std", "flip_prob")}
     device = next(model.net.parameters()).device
     candidates: list[Candidate] = []
-    scores: dict[tuple[float, float], float] = {}
+    scores: dict[tuple[float, float, str], float] = {}
     middle = grid[len(grid) // 2]
-    planned = len(_BRACKET) + len(grid) - 1 + refine
+    planned = len(_BRACKET) + len(grid) - 1 + refine + 3 * (len(shapes) - 1)
     data = content_digest(
         {
             "model": model_digest(model),
@@ -362,8 +419,8 @@ def search_noise(
     ran_before = _reusable(reuse, data)
     bar = tqdm(total=planned, desc="calibrate", unit="run", disable=not progress)
 
-    def score(log_factor: float, flip: float, stage: Stage) -> float:
-        key = (round(log_factor, 9), flip)
+    def score(log_factor: float, flip: float, stage: Stage, shape: str) -> float:
+        key = (round(log_factor, 9), flip, shape)
         if key in scores:
             return scores[key]
         nonlocal planned
@@ -371,7 +428,7 @@ def search_noise(
             planned += 1
             bar.total = planned
             bar.refresh()
-        noise = noise_of(log_factor)
+        noise = noise_of(log_factor, shape)
         earlier = ran_before.get((noise, flip))
         if earlier is not None and earlier.trace is not None and _reusable_run(earlier.trace, chosen_by):
             evidence, rmse, run = earlier.log_evidence, earlier.one_step_rmse, earlier.trace
@@ -383,7 +440,7 @@ def search_noise(
                 generator=torch.Generator(device=device).manual_seed(seed),
             )
             evidence, rmse, run = _run(scorer, strategy)
-        candidate = Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse, run, scorer.score(run))
+        candidate = Candidate(stage, math.exp(log_factor), noise, flip, evidence, rmse, run, scorer.score(run), shape)
         candidates.append(candidate)
         scores[key] = value = _objective(candidate, chosen_by.name)
         bar.update(1)
@@ -394,14 +451,24 @@ def search_noise(
 
     try:
         # 1. Bracket the noise at the middle flip probability; 2. the other flip probabilities there.
-        log_factor = _climb([k * _LOG2 for k in _BRACKET], lambda u: score(u, middle, "bracket"))
-        flip = max(grid, key=lambda f: score(log_factor, f, "flip"))
-        # 3. Bracket again if the flip probability moved; 4. narrow the bracket by golden section.
-        if flip != middle:
-            log_factor = _climb(
-                [log_factor - _LOG2, log_factor, log_factor + _LOG2], lambda u: score(u, flip, "rebracket")
+        first = shapes[0]
+        log_factor = _climb([k * _LOG2 for k in _BRACKET], lambda u: score(u, middle, "bracket", first))
+        flip = max(grid, key=lambda f: score(log_factor, f, "flip", first))
+        # 3. The other shapes at that flip probability, each around the best factor; the best shape stays.
+        best_of_shape = {first: log_factor}
+        for other in shapes[1:]:
+            best_of_shape[other] = _climb(
+                [log_factor - _LOG2, log_factor, log_factor + _LOG2],
+                lambda u, other=other: score(u, flip, "shape", other),  # type: ignore[misc]
             )
-        _golden(log_factor - _LOG2, log_factor + _LOG2, refine, lambda u: score(u, flip, "refine"))
+        shape = max(shapes, key=lambda one: scores[(round(best_of_shape[one], 9), flip, one)])
+        log_factor = best_of_shape[shape]
+        # 4. Bracket again if the flip probability moved (step 3 did for its shapes); 5. golden section.
+        if flip != middle and shape == first:
+            log_factor = _climb(
+                [log_factor - _LOG2, log_factor, log_factor + _LOG2], lambda u: score(u, flip, "rebracket", shape)
+            )
+        _golden(log_factor - _LOG2, log_factor + _LOG2, refine, lambda u: score(u, flip, "refine", shape))
     finally:
         bar.close()
 
@@ -425,7 +492,7 @@ def search_noise(
         candidates=candidates,
         residual_scale=start.tolist(),
         residual_source=source,
-        per_dimension=per_dimension,
+        noise_shape=best.shape,
         flip_probs=grid,
         episodes=num_episodes,
         steps=steps,
@@ -434,6 +501,7 @@ def search_noise(
         data=data,
         horizon=chosen_by.horizon,
         score_label=chosen_by.label,
+        shapes=list(shapes),
     )
 
 
@@ -445,8 +513,8 @@ def _reusable(reuse: Calibration | None, data: str) -> dict[tuple[Any, float], C
         raise TypeError(f"reuse must be a Calibration of an earlier calibrate call, got {type(reuse).__name__}")
     if reuse.data != data:
         raise ValueError(
-            "reuse holds a calibration of another model, other episodes, another seed or other base settings "
-            "(or of another noise form); pass one of the same, or none"
+            "reuse holds a calibration of another model, other episodes, another seed or other base settings"
+            "; pass one of the same, or none"
         )
     return {(c.noise_std, c.flip_prob): c for c in reuse.candidates}
 

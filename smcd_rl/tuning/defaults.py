@@ -30,6 +30,7 @@ __all__ = [
     "LAST_LAYER_GRID",
     "SMCD_LAST_LAYER_SCALES",
     "FLIP_PROBS",
+    "CALIBRATION_REFINE",
     "MIN_PARTICLES",
     "RACE_SHARE",
     "RACE_MARGIN",
@@ -89,6 +90,8 @@ LAST_LAYER_GRID: dict[str, tuple[Any, ...]] = {
 SMCD_LAST_LAYER_SCALES = (1.0, 1 / 3, 3.0)
 #: The flip probabilities SMCD's calibration tries.
 FLIP_PROBS = (0.001, 0.003, 0.01, 0.03)
+#: Golden-section runs at the end of SMCD's calibration (:func:`smcd_rl.calibrate`'s ``refine``).
+CALIBRATION_REFINE = 5
 #: SMCD never halves its particles below this to meet a budget.
 MIN_PARTICLES = 8
 #: The share of the episodes a raced setting runs on first (at least 2 episodes).

@@ -33,8 +33,9 @@ from smcd_rl.checks import check_count, check_real
 from smcd_rl.model import AdaptiveModel
 from smcd_rl.strategies import SMCD, BayesianLastLayer, GradientDescent
 from smcd_rl.strategies.combination import weight_path
-from smcd_rl.tuning.calibration import Calibration, search_noise
+from smcd_rl.tuning.calibration import NOISE_SHAPES, Calibration, search_noise
 from smcd_rl.tuning.defaults import (
+    CALIBRATION_REFINE,
     COMBINATION_GRID,
     EXTENSIBLE,
     GD_GRID,
@@ -198,13 +199,12 @@ def tune_smcd(
     seed: int,
     progress: bool,
 ) -> dict[str, Calibration]:
-    """Halve the particles until a step fits the budget, then calibrate (both noise forms) by the search's criterion.
+    """Halve the particles until a step fits the budget, then calibrate by the search's criterion:
+    the noise's factor, its shape (:data:`~smcd_rl.tuning.calibration.NOISE_SHAPES`) and the flip
+    probability (:func:`~smcd_rl.tuning.calibration.search_noise`).
 
-    The per-dimension noise is searched with every flip probability, the scalar noise at the flip
-    probability the first search chose.
-
-    Returns the calibrations run, by noise form (``"per-dimension"``, ``"scalar"``); the model's
-    own calibration is left as it is.
+    Returns the calibration run (``{"search": ...}``, empty where an earlier call's choice was
+    reused); the model's own calibration is left as it is.
     """
     model = search.model
     particles, ms = num_particles, math.nan
@@ -224,29 +224,24 @@ def tune_smcd(
     device = str(next(model.net.parameters()).device)
     known = [c for c in search.known.values() if c.kind == "smcd" and c.settings.get("num_particles") == particles]
     calibrations: dict[str, Calibration] = {}
-    if known:  # an earlier call calibrated these particles on the same data: its two choices stand
+    if known:  # an earlier call calibrated these particles on the same data: its choice stands
         for candidate in known:
             search.score("smcd", candidate.settings)
     else:
-        flips = flip_probs
-        for per_dimension in (True, False):
-            # calibrate's search on the episodes tune checked, scored by tune's scorer; tune's
-            # record is model.tuning, so the model's calibration stays as it was.
-            result = search_noise(
-                search.scorer,
-                SMCD(num_particles=particles),
-                list(flips),
-                per_dimension=per_dimension,
-                refine=5,
-                seed=seed,
-                progress=progress,
-            )
-            calibrations["per-dimension" if per_dimension else "scalar"] = result
-            settings = {**result.strategy.config(), "seed": seed, "device": device}
-            search.score("smcd", settings, ms=None if math.isnan(ms) else ms, run=result.best.trace)
-            # The flip probability belongs to the masks' dynamics, not to the noise's form: the
-            # scalar noise is searched at the one the per-dimension search chose.
-            flips = (result.flip_prob,)
+        # calibrate's search, every noise shape, on the episodes tune checked, scored by tune's
+        # scorer; tune's record is model.tuning, so the model's calibration stays as it was.
+        result = search_noise(
+            search.scorer,
+            SMCD(num_particles=particles),
+            list(flip_probs),
+            shapes=NOISE_SHAPES,
+            refine=CALIBRATION_REFINE,
+            seed=seed,
+            progress=progress,
+        )
+        calibrations["search"] = result
+        settings = {**result.strategy.config(), "seed": seed, "device": device}
+        search.score("smcd", settings, ms=None if math.isnan(ms) else ms, run=result.best.trace)
     search.time_best("smcd")
     return calibrations
 

@@ -13,11 +13,11 @@ a planner's rollout or a look-ahead table scores); or a callable score of your o
   (the result says which edges it extended). The settings are raced: each runs first on a
   quarter of the episodes, and only those within 10 % of the best there run on the rest
   (:mod:`smcd_rl.tuning.search`); the others are listed as raced out;
-* SMCD by :func:`smcd_rl.calibrate` (noise and flip probability; per-dimension noise, then a
-  scalar noise at the flip probability chosen for it, the better kept);
+* SMCD by :func:`smcd_rl.calibrate`: the noise's factor and shape across output dimensions and
+  the flip probability, one search;
 * :class:`smcd_rl.BayesianLastLayer` over prior scale x drift x likelihood (Gaussian, or
   Student-t at two noise scales), raced, the prior scale extended past an edge
-  (:data:`~smcd_rl.tuning.kinds.LAST_LAYER_GRID`);
+  (:data:`~smcd_rl.tuning.defaults.LAST_LAYER_GRID`);
 * :class:`smcd_rl.SMCDLastLayer`: the tuned SMCD with the tuned last layer's readout at three
   prior scales around its best (it tunes both first);
 * :class:`smcd_rl.Combination` of the best members, its ``eta`` and ``share`` chosen on the same

@@ -62,7 +62,7 @@ class TuneResult:
     traces: dict[str, Trace] = field(default_factory=dict, repr=False, compare=False)
     #: Raced settings' runs on the first episodes, by setting (this call's; not in :meth:`to_dict`).
     heads: dict[str, tuple[Trace, Any]] = field(default_factory=dict, repr=False, compare=False)
-    #: SMCD's calibrations by noise form, ``"per-dimension"`` and ``"scalar"`` (this call's; not in
+    #: SMCD's calibration, ``{"search": ...}`` (this call's, every noise shape searched; not in
     #: :meth:`to_dict`): ``calibrate(..., reuse=...)`` of the other criterion runs fewer filters from them.
     calibrations: dict[str, Calibration] = field(default_factory=dict, repr=False, compare=False)
     #: The steps ahead the criterion scores (1 for one-step and evidence).

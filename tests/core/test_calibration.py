@@ -307,7 +307,9 @@ def test_fit_records_the_residual_scale_without_changing_training(monkeypatch: p
 def test_calibration_starts_from_the_fit_and_keeps_the_residual_proportions() -> None:
     model, _, data = tiny_fitted(validation=True)
     episodes = data[4:]  # held out from training: [2 episodes, 16 steps]
-    result = smcd_rl.calibrate(model, episodes, base=smcd_rl.SMCD(num_particles=32), progress=False)
+    result = smcd_rl.calibrate(
+        model, episodes, base=smcd_rl.SMCD(num_particles=32), noise_shape="proportional", progress=False
+    )
     assert result.residual_source == "fit" and result.residual_scale == model.residual_scale.double().tolist()
     assert isinstance(result.noise_std, list) and len(result.noise_std) == 2
     ratio = torch.tensor(result.noise_std, dtype=torch.float64) / torch.tensor(result.residual_scale)
@@ -401,3 +403,42 @@ def test_per_dimension_takes_a_bool_not_a_truthy_value() -> None:
     with pytest.raises(TypeError, match="per_dimension must be True or False, got 'no'"):
         smcd_rl.calibrate(model, data[4:], per_dimension="no", progress=False)
     assert model.calibration is None
+
+
+def test_the_searched_shape_finds_a_noise_equal_in_every_dimension() -> None:
+    """The episodes' noise is SIGMA in both outputs while the network's residual is twice as large in
+    the second: the residual's proportions cannot be right in both (they end 1.5x off in one), so the
+    evidence must choose the shape, and the search must offer the right one."""
+    model, episodes, _ = known_mask_episodes()
+    searched = smcd_rl.calibrate(model, episodes, base=small_base(), criterion="evidence", progress=False)
+    proportional = smcd_rl.calibrate(
+        model, episodes, base=small_base(), criterion="evidence", noise_shape="proportional", progress=False
+    )
+    assert searched.residual_scale[1] > 1.5 * searched.residual_scale[0]
+    assert {c.shape for c in searched.candidates} == {"proportional", "scalar", "sqrt"}
+    noise = torch.tensor(searched.noise_std, dtype=torch.float64).expand(2)
+    assert bool(((noise / SIGMA).log().abs() < math.log(1.2)).all()), noise
+    off = torch.tensor(proportional.noise_std, dtype=torch.float64) / SIGMA
+    assert float(off.log().abs().max()) > math.log(1.4), off
+    assert searched.best.log_evidence > proportional.best.log_evidence
+    table = str(searched)
+    assert "shape" in table and f"({searched.noise_shape})" in table
+
+
+def test_the_search_before_shapes_stays_reachable_and_begins_the_shape_search() -> None:
+    """per_dimension=True is noise_shape="proportional", run for run; the shape search starts with
+    exactly those runs (the same seeds), so it only adds runs to the old search."""
+    model, episodes, _ = known_mask_episodes(episodes=4, steps=10)
+    base = smcd_rl.SMCD(num_particles=32)
+
+    def runs(result: calibration.Calibration) -> list[tuple]:
+        return [(c.stage, c.noise_std, c.flip_prob, c.log_evidence, c.score) for c in result.candidates]
+
+    old = smcd_rl.calibrate(model, episodes, base=base, per_dimension=True, progress=False, store=False)
+    shape = smcd_rl.calibrate(model, episodes, base=base, noise_shape="proportional", progress=False, store=False)
+    searched = smcd_rl.calibrate(model, episodes, base=base, progress=False, store=False)
+    assert runs(old) == runs(shape) and old.noise_shape == "proportional" and old.shapes == ["proportional"]
+    first = [r for r in runs(old) if r[0] in ("bracket", "flip")]
+    assert runs(searched)[: len(first)] == first
+    with pytest.raises(ValueError, match="noise_shape must be 'search' or one of"):
+        smcd_rl.calibrate(model, episodes, base=base, noise_shape="diagonal", progress=False)  # type: ignore[arg-type]

@@ -197,7 +197,7 @@ _REFERENCE_SECONDS = {
     "train pendulum-task": 60.0,  # the pendulum network's training and each pendulum's mask posterior
     "train pendulum-reptile": 30.0,
     "train arm-task": 70.0,  # the arm network's training and each arm's mask posterior
-    "tune": 510.0,  # per network: the GD grid, its extensions, two calibrations, the combination
+    "tune": 510.0,  # per network: the GD grid, its extensions, SMCD's calibration, the combination
     "evaluate N": 0.05,  # per family, 50 tasks; the methods' tuned settings set their cost
     "evaluate G": 70.0,
     "evaluate G@": 4.0,

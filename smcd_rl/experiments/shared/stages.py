@@ -108,8 +108,8 @@ def update_cost(variant: str, config: Any) -> tuple[float, float]:
 def tuning_cost(config: Any, *, episodes: int, steps: int, flops: float, options: bool = True) -> float:
     """Rough seconds of :func:`~smcd_rl.experiments.shared.tuning.tune` on ``episodes`` x ``steps`` at ``config``.
 
-    It counts filter runs over all episodes at once: :func:`smcd_rl.tune` calibrates SMCD twice
-    (scalar and per-dimension noise, about ``len(calibrate_flips) + 8`` runs each) and scores
+    It counts filter runs over all episodes at once: :func:`smcd_rl.tune` calibrates SMCD once
+    (the noise's factor and its three shapes, about ``len(calibrate_flips) + 17`` runs) and scores
     eight combinations, the evidence calibration runs as many again, the diagnosis five times,
     and the options (5x particles, predictive mean, a Student-t calibration)
     ``len(calibrate_flips) + 15`` times more; each run is ``steps`` SMCD updates
@@ -121,10 +121,10 @@ def tuning_cost(config: Any, *, episodes: int, steps: int, flops: float, options
         >>> grid = {"gd_lr": (0.1,), "gd_steps": (1,), "gd_window": (5,)}
         >>> config = SimpleNamespace(calibrate_flips=(0.01, 0.03), particles=100, **grid)
         >>> round(tuning_cost(config, episodes=32, steps=20, flops=mlp_flops(2, (64, 64), 2)), 1)
-        11.0
+        12.4
     """
     flips = len(config.calibrate_flips)
-    runs = 3 * (flips + 8) + 8 + 5 + (flips + 15 if options else 0)
+    runs = 2 * (flips + 17) + 8 + 5 + (flips + 15 if options else 0)
     overhead, forwards = update_cost("S", config)
     smcd = estimate(steps=runs * steps * overhead, forwards=runs * episodes * steps * forwards, flops=flops)
     gd = 0.0

@@ -142,7 +142,7 @@ def tuned_specs(
             criterion="evidence",
             seed=seed,
             progress=progress,
-            reuse=free.calibrations.get("per-dimension"),  # the same bracket: its runs are not run again
+            reuse=free.calibrations.get("search"),  # the same bracket: its runs are not run again
         )
         settings = {**evidence.strategy.config(), "seed": seed, "device": device}
         specs["S(evidence)"] = {"name": "smcd", "settings": settings}

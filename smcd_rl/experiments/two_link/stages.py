@@ -24,7 +24,7 @@ _REFERENCE_SECONDS = {
     "train task": 66.0,  # M's training and, from the second epoch, each arm's mask posterior
     "train latent": 92.0,
     "tune G": 20.0,  # the raced grid of gradient descent and its extensions, on one network
-    "tune S": 75.0,  # SMCD's two calibrations (scalar and per-dimension noise), 1000 particles of 2 x 512
+    "tune S": 75.0,  # SMCD's calibration (the noise's factor, shape and flip), 1000 particles of 2 x 512
     "tune S grouped": 20.0,  # the same on the task-mask network, whose particles cost a fraction
     "tune references": 23.0,  # S(evidence): a calibration that reuses the one-step search's bracket
     "tune L": 6.0,  # the last layer's raced grid
