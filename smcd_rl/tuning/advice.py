@@ -69,8 +69,8 @@ def advice(result: Any) -> list[str]:
     ]
     if robust:
         lines.append(
-            f"- heavy-tailed residuals in these episodes: {', '.join(robust)} chose a robust form (Huber loss "
-            "or Student-t); with corrupted readings prefer these forms, or SMCD"
+            f"- robust forms: {', '.join(robust)} (Huber loss or Student-t), which bound what one corrupted reading "
+            "does; the plain forms break on one"
         )
     return lines
 

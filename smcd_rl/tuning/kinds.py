@@ -146,6 +146,7 @@ def tune_gd(search: Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, 
                 for name, side in extensions
                 if _on_edge(grid[name], best[name], side) and not _within(limits[name], _past(grid[name], name, side))
             )
+            search.prefer_robust("gradient_descent", lambda s: s["loss"] == "huber", "Huber loss")
             search.time_best("gradient_descent")
             return
         name, side = edge
@@ -285,6 +286,7 @@ def tune_last_layer(search: Search) -> None:
         form = (best.settings["likelihood"], best.settings["noise_std"])
         race([(new, best.settings["drift"], form)])
         search.notes.append(f"last layer: best prior_scale {scale:g} on the grid's edge; tried {new:g}")
+    search.prefer_robust("last_layer", lambda s: s["likelihood"] == "student-t", "Student-t likelihood")
     search.time_best("last_layer")
 
 

@@ -158,7 +158,14 @@ def tune(
     data = content_digest({"model": model_digest(model), "episodes": content_digest(td), "seed": seed, "flips": flips})
     known = _reusable(reuse, data, chosen_by)
     timing = Timing(model, scorer.x[0], scorer.y[0], budget_ms, known=None if reuse is None else reuse.timings)
-    search = Search(scorer, timing, progress, known, heads=None if reuse is None else reuse.heads)
+    search = Search(
+        scorer,
+        timing,
+        progress,
+        known,
+        heads=None if reuse is None else reuse.heads,
+        chosen_before=None if reuse is None else {kind: c.settings for kind, c in reuse.best_of.items()},
+    )
     kinds = kinds_needed(strategies)
     calibrations: dict[str, Calibration] = {}
     try:

@@ -37,7 +37,7 @@ import json
 import math
 import statistics
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -160,10 +160,13 @@ class Search:
         progress: bool,
         known: dict[str, TuneCandidate] | None = None,
         heads: Mapping[str, tuple[Trace, Tensor | None]] | None = None,
+        chosen_before: Mapping[str, dict[str, Any]] | None = None,
     ) -> None:
         self.scorer, self.timing = scorer, timing
         self.model, self.td, self.x, self.y = scorer.model, scorer.td, scorer.x, scorer.y
         self.known = known or {}  # scored by an earlier call on the same data: not run again
+        #: The settings that earlier call chose, by kind: a choice its runs decided stands.
+        self.chosen_before: dict[str, dict[str, Any]] = dict(chosen_before or {})
         #: Raced settings' runs on the first episodes (an earlier call's too): a race is decided
         #: again against the leader of the day, from the same runs.
         self.heads: dict[str, tuple[Trace, Tensor | None]] = dict(heads or {})
@@ -287,6 +290,55 @@ class Search:
                     self.predictions[keys[i]] = torch.cat([head_predictions, rest_predictions])
                 scores.append(self._add(kind, settings, joined.rmse, self.scorer.score(joined)))
         return scores
+
+    def prefer_robust(self, kind: str, robust: Callable[[dict[str, Any]], bool], form: str) -> None:
+        """Where the best of ``kind`` is a plain form and its best robust form (``robust(settings)``)
+        is not worse beyond the episodes' noise, keep the robust one, and say so in :attr:`notes`.
+
+        Clean tuning episodes cannot show what a robust form (a Huber loss, a Student-t likelihood)
+        is for: a corrupted reading. Where they cannot tell the two apart, the robust one costs
+        little there and bounds the damage of the reading they lack. The noise is that of the
+        paired per-episode scores: the robust form is kept unless its mean excess over the plain
+        form's is more than twice its standard error.
+        """
+        best = self.best_of.get(kind)
+        if best is None or robust(best.settings):
+            return
+        rivals = [c for c in self.candidates if c.kind == kind and robust(c.settings) and usable(c.score)]
+        if not rivals:
+            return
+        rival = min(rivals, key=lambda c: c.score)
+        if any(setting_key(kind, c.settings) not in self.traces for c in (best, rival)):
+            # Scores reused from an earlier call, without their runs: its choice stands.
+            if self.chosen_before.get(kind) == rival.settings:
+                self.best_of[kind] = rival
+            return
+        plain, tough = (self._episode_scores(setting_key(kind, c.settings)) for c in (best, rival))
+        excess = [a - b for a, b in zip(tough, plain, strict=True)]
+        if len(excess) < 2 or not all(math.isfinite(e) for e in excess):
+            return
+        mean, spread = statistics.fmean(excess), statistics.stdev(excess)
+        noise = 2 * spread / math.sqrt(len(excess))
+        if mean > noise:
+            return
+        self.best_of[kind] = rival
+        self.notes.append(
+            f"{kind.replace('_', ' ')}: kept the robust form ({form}), {rival.score:.4g} against the plain form's {best.score:.4g}: "
+            f"its excess per episode, {mean:.3g}, is within the episodes' noise ({noise:.3g}), and a robust "
+            "form bounds what one corrupted reading does"
+        )
+
+    def _episode_scores(self, key: str) -> list[float]:
+        """Each episode's score of a setting's run on every episode, by the criterion."""
+        run = self.traces[key]
+        lookahead = self.scorer.lookahead
+        if lookahead is None:
+            return list(run.per_episode_rmse)
+        assert run.ahead is not None
+        return [
+            self.scorer.criterion.score(run.ahead[e : e + 1], lookahead.observed[e : e + 1])
+            for e in range(run.ahead.shape[0])
+        ]
 
     def time_best(self, kind: str) -> None:
         """Measure the time of ``kind``'s best setting, where it has none yet (no budget measured it)."""

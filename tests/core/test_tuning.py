@@ -22,9 +22,9 @@ def model(sine_model) -> smcd_rl.AdaptiveModel:
     return sine_model
 
 
-def shifted_episodes(shift: float, count: int = 6, steps: int = 12) -> TensorDict:
+def shifted_episodes(shift: float, count: int = 6, steps: int = 12, seed: int = 1) -> TensorDict:
     """Episodes of a task the network never saw: its targets moved by ``shift`` in every output."""
-    generator = torch.Generator().manual_seed(1)
+    generator = torch.Generator().manual_seed(seed)
     q = torch.rand(count, steps, 2, generator=generator) * 2 - 1
     return TensorDict({"q": q, "ee": torch.sin(q) + shift}, [count, steps])
 
@@ -411,10 +411,11 @@ def test_racing_drops_settings_by_their_error_alone_and_keeps_the_runs_exact(mod
     """Every raced-out setting was worse than the leader by more than RACE_MARGIN on the first episodes,
     every setting that ran on has the errors a run on all episodes gives, and the choice is the one
     a search without racing makes (here, where the best is far ahead of the runners-up)."""
-    from smcd_rl.tuning.search import RACE_MARGIN
+    from smcd_rl.tuning.defaults import RACE_MARGIN
 
     episodes = shifted_episodes(0.5, count=12)
-    grid = {"lr": (1e-4, 1e-3, 1e-2, 1e-1), "steps": (1, 3), "window": (2, 6)}
+    # One loss: the race alone decides (where two losses tie, the robust-form rule would choose).
+    grid = {"lr": (1e-4, 1e-3, 1e-2, 1e-1), "steps": (1, 3), "window": (2, 6), "loss": ("mse",)}
     result = smcd_rl.tune(model, episodes, strategies=["gradient_descent"], gd_grid=grid, progress=False)
     gd = [c for c in result.candidates if c.kind == "gradient_descent"]
     raced_out = [c for c in gd if c.skipped.startswith("raced out")]
@@ -513,3 +514,30 @@ def test_smcd_with_a_bayesian_readout_starts_from_the_tuned_smcd_and_last_layer(
     # The tuned strategy repeats the scored run: its one-step error on the episodes is the candidate's.
     rerun = smcd_rl.tuning.diagnostics.trace(model, shifted_episodes(0.5), strategy)
     assert rerun.rmse == pytest.approx(result.best_of["smcd_last_layer"].one_step_rmse, rel=1e-6)
+
+
+def test_clean_episodes_keep_the_robust_form_where_they_cannot_tell_it_from_the_plain_one(model) -> None:
+    """Clean tuning episodes once chose the squared loss by a hair, and one corrupted reading then broke it.
+
+    On episodes without outliers the Huber loss and the squared loss predict alike (every residual
+    within the Huber delta is squared by both), so tune keeps the Huber loss and says so. After one
+    reading corrupted by 20 (about 40 target standard deviations), which stays in the window for its
+    5 steps, the squared loss's gradient pulls the weights 20 times harder than any clean residual;
+    the Huber loss's pull is bounded at its delta, so its error afterwards is far lower.
+    """
+    grid = {"lr": (1e-2, 1e-1), "steps": (1,), "window": (5,)}
+    result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["gradient_descent"], gd_grid=grid, progress=False)
+    chosen = result.best_of["gradient_descent"].settings
+    assert chosen["loss"] == "huber"
+    assert any("kept the robust form (Huber loss)" in note for note in result.notes), result.notes
+    plain = smcd_rl.GradientDescent(**{**chosen, "loss": "mse"})
+    corrupted = shifted_episodes(0.5, count=6, steps=12, seed=7)
+    corrupted["ee"][:, 4] += 20.0
+
+    def error_after(strategy: smcd_rl.Adaptation) -> float:
+        run = smcd_rl.tuning.diagnostics.trace(model, corrupted, strategy)
+        after = run.one_step_rmse[4:]  # steps 6.. (index t - 2): every prediction after the corrupted one
+        return math.sqrt(sum(v * v for v in after) / len(after))
+
+    robust, squared = error_after(result.strategy("gradient_descent")), error_after(plain)
+    assert robust < 0.5 * squared, (robust, squared)
