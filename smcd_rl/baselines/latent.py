@@ -24,7 +24,7 @@ from torch.nn import functional as F
 from smcd_rl.checks import check_key, check_shape, check_tensordict, read_inputs, read_tensor
 from smcd_rl.files import CheckpointMismatchError, load_file
 from smcd_rl.normalization import Normalizer
-from smcd_rl.training.fitting import _normalised_pairs, _require_samples, _shuffled_epoch, _train
+from smcd_rl.training.fitting import _Loop, _normalised_pairs, _require_samples, _shuffled_epoch, _train
 
 __all__ = ["LatentVariableModel", "fit_latent"]
 
@@ -345,17 +345,5 @@ def fit_latent(
             n, batch_size, optimizer, generator, lambda idx: model.negative_elbo(x[idx], y[idx], generator).mean()
         )
 
-    return _train(
-        model,
-        one_epoch,
-        data,
-        trained=model,
-        epochs=epochs,
-        seed=seed,
-        settings=settings,
-        optimizer=optimizer,
-        checkpoint=checkpoint,
-        desc="fit_latent",
-        progress=progress,
-        callback=callback,
-    )
+    loop = _Loop("fit_latent", epochs, seed, checkpoint, progress, callback)
+    return _train(model, one_epoch, data, loop, trained=model, settings=settings, optimizer=optimizer)
