@@ -35,6 +35,7 @@ __all__ = [
     "check_tensordict",
     "check_key",
     "read_tensor",
+    "read_inputs",
 ]
 
 
@@ -191,3 +192,25 @@ def read_tensor(
             "Drop or repair the transition before passing it"
         )
     return converted
+
+
+def read_inputs(
+    td: TensorDictBase,
+    keys: Sequence[Any],
+    *,
+    what: str,
+    like: Tensor,
+    check_finite: bool = True,
+    exact: bool = False,
+) -> Tensor:
+    """A model's input: ``td``'s ``keys``, each read with :func:`read_tensor`, concatenated along the last dim.
+
+    Each key may hold any number of features; the caller checks their total against its network,
+    in its own words.
+    """
+    parts = [read_tensor(td, key, None, what=what, like=like, check_finite=check_finite, exact=exact) for key in keys]
+    try:
+        return torch.cat(parts, dim=-1) if len(parts) > 1 else parts[0]
+    except RuntimeError as err:
+        shapes = {str(k): list(p.shape) for k, p in zip(keys, parts, strict=True)}
+        raise ValueError(f"{what}: cannot concatenate inputs {shapes} along the last dim") from err

@@ -17,7 +17,15 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from smcd_rl.checks import check_key, check_real, check_real_tensor, check_shape, check_tensordict, read_tensor
+from smcd_rl.checks import (
+    check_key,
+    check_real,
+    check_real_tensor,
+    check_shape,
+    check_tensordict,
+    read_inputs,
+    read_tensor,
+)
 from smcd_rl.files import CheckpointMismatchError, UnreadableFileError, load_file, save_file
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.normalization import Normalizer
@@ -648,14 +656,10 @@ class AdaptiveModel(TensorDictModuleBase):
         return self.input_norm(self._raw_inputs(td, what=what, check_finite=check_finite, exact=exact))
 
     def _raw_inputs(self, td: TensorDictBase, *, what: str, check_finite: bool = True, exact: bool = False) -> Tensor:
-        parts = [self._read(td, key, None, what=what, check_finite=check_finite, exact=exact) for key in self.in_keys]
-        try:
-            x = torch.cat(parts, dim=-1) if len(parts) > 1 else parts[0]
-        except RuntimeError as err:
-            shapes = {str(k): list(p.shape) for k, p in zip(self.in_keys, parts, strict=True)}
-            raise ValueError(f"{what}: cannot concatenate inputs {shapes} along the last dim") from err
+        like = self.input_norm.mean
+        x = read_inputs(td, self.in_keys, what=what, like=like, check_finite=check_finite, exact=exact)
         if x.shape[-1] != self.net.in_features:
-            shapes = {str(k): list(p.shape) for k, p in zip(self.in_keys, parts, strict=True)}
+            shapes = {str(k): list(td.get(k).shape) for k in self.in_keys}  # as read: the dtype changed, not the shape
             raise ValueError(
                 f"{what}: inputs {shapes} give {x.shape[-1]} features but the network takes {self.net.in_features}"
             )

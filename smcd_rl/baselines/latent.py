@@ -21,10 +21,10 @@ from tensordict.utils import NestedKey
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from smcd_rl.checks import check_key, check_shape, check_tensordict, read_tensor
+from smcd_rl.checks import check_key, check_shape, check_tensordict, read_inputs, read_tensor
 from smcd_rl.files import CheckpointMismatchError, load_file
 from smcd_rl.normalization import Normalizer
-from smcd_rl.training.fitting import _normalised_pairs, _require_samples, _shuffled_epoch, _train
+from smcd_rl.training.fitting import _Loop, _normalised_pairs, _require_samples, _shuffled_epoch, _train
 
 __all__ = ["LatentVariableModel", "fit_latent"]
 
@@ -160,7 +160,7 @@ class LatentVariableModel(TensorDictModuleBase):
                 f"batch_shape={list(h.shape[:-1])}; pass one pair per batch element or reset with that shape"
             )
         x = self.input_norm(self._inputs(td, "observe", check_finite=True, exact=True))
-        y = self.output_norm(self._read(td, self.out_key, self.out_features, "observe", check_finite=True, exact=True))
+        y = self.output_norm(self._target(td, self.out_key, "observe", exact=True))
         fx, fy = self.phi_x(x), self.phi_y(y)
         z, _ = _gaussian(self.posterior(torch.cat([fx, fy, h], -1)))
         self._h = self._advance(fx, fy, self.phi_z(z), h)
@@ -188,8 +188,8 @@ class LatentVariableModel(TensorDictModuleBase):
         steps = [(key, _next_key(key)) for key in self.in_keys]
         x0 = self._inputs(td, "fit_latent", keys=[a for a, _ in steps])
         x1 = self._inputs(td, "fit_latent", keys=[b for _, b in steps])
-        y0 = self._read(td, self.out_key, self.out_features, "fit_latent")
-        y1 = self._read(td, _next_key(self.out_key), self.out_features, "fit_latent")
+        y0 = self._target(td, self.out_key, "fit_latent")
+        y1 = self._target(td, _next_key(self.out_key), "fit_latent")
         return torch.stack([x0, x1], -2), torch.stack([y0, y1], -2)
 
     def negative_elbo(self, x: Tensor, y: Tensor, generator: torch.Generator | None = None) -> Tensor:
@@ -273,33 +273,18 @@ class LatentVariableModel(TensorDictModuleBase):
         check_finite: bool = True,
         exact: bool = False,
     ) -> Tensor:
-        parts = [
-            self._read(td, key, None, what, check_finite=check_finite, exact=exact) for key in keys or self.in_keys
-        ]
-        try:
-            x = torch.cat(parts, -1) if len(parts) > 1 else parts[0]
-        except RuntimeError as err:
-            shapes = {str(k): list(p.shape) for k, p in zip(keys or self.in_keys, parts, strict=True)}
-            raise ValueError(f"{what}: cannot concatenate inputs {shapes} along the last dim") from err
+        keys = keys or self.in_keys
+        like = self.input_norm.mean
+        x = read_inputs(td, keys, what=what, like=like, check_finite=check_finite, exact=exact)
         if x.shape[-1] != self.in_features:
             raise ValueError(
-                f"{what}: the inputs {keys or self.in_keys} give {x.shape[-1]} features, "
-                f"the model takes {self.in_features}"
+                f"{what}: the inputs {keys} give {x.shape[-1]} features, the model takes {self.in_features}"
             )
         return x
 
-    def _read(
-        self,
-        td: TensorDictBase,
-        key: NestedKey,
-        size: int | None,
-        what: str,
-        *,
-        check_finite: bool = True,
-        exact: bool = False,
-    ) -> Tensor:
-        """``td[key]`` checked and in the model's dtype (see :func:`smcd_rl.checks.read_tensor`)."""
-        return read_tensor(td, key, size, what=what, like=self.input_norm.mean, check_finite=check_finite, exact=exact)
+    def _target(self, td: TensorDictBase, key: NestedKey, what: str, *, exact: bool = False) -> Tensor:
+        """``td[key]``, ``out_features`` values, checked and in the model's dtype (see :func:`smcd_rl.checks.read_tensor`)."""
+        return read_tensor(td, key, self.out_features, what=what, like=self.input_norm.mean, exact=exact)
 
 
 def fit_latent(
@@ -360,17 +345,5 @@ def fit_latent(
             n, batch_size, optimizer, generator, lambda idx: model.negative_elbo(x[idx], y[idx], generator).mean()
         )
 
-    return _train(
-        model,
-        one_epoch,
-        data,
-        trained=model,
-        epochs=epochs,
-        seed=seed,
-        settings=settings,
-        optimizer=optimizer,
-        checkpoint=checkpoint,
-        desc="fit_latent",
-        progress=progress,
-        callback=callback,
-    )
+    loop = _Loop("fit_latent", epochs, seed, checkpoint, progress, callback)
+    return _train(model, one_epoch, data, loop, trained=model, settings=settings, optimizer=optimizer)

@@ -83,19 +83,23 @@ class _Hook:
     """What both wrappers share: checks, tensors, the context vector, the summary and per-element state.
 
     With a ``Dict`` observation space the model reads the entry named by its observation key
-    (``state_key``) and the context becomes the new entry ``context_key``.
+    (``state_key``) and the context becomes the new entry ``context_key``. The spaces are those of
+    one env: a vector env's single (per sub-env) spaces.
     """
 
     def __init__(
         self,
         model: AdaptiveDynamicsModel,
-        observation_space: spaces.Space[Any],
-        action_space: spaces.Space[Any],
+        env: gymnasium.Env[Any, Any] | VectorEnv,
         *,
         context: int | None,
         context_seed: int,
         context_key: str = CONTEXT_KEY,
     ) -> None:
+        if isinstance(env, VectorEnv):
+            observation_space, action_space = env.single_observation_space, env.single_action_space
+        else:
+            observation_space, action_space = env.observation_space, env.action_space
         if not isinstance(model, AdaptiveDynamicsModel):
             raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel, got {type(model).__name__}")
         net = model.net
@@ -312,14 +316,7 @@ class AdaptationWrapper(gymnasium.Wrapper[Any, np.ndarray, Any, np.ndarray], gym
             _disable_deepcopy=True,
         )
         gymnasium.Wrapper.__init__(self, env)
-        self._hook = _Hook(
-            model,
-            env.observation_space,
-            env.action_space,
-            context=context,
-            context_seed=context_seed,
-            context_key=context_key,
-        )
+        self._hook = _Hook(model, env, context=context, context_seed=context_seed, context_key=context_key)
         self.model = model
         self.info_key = info_key
         self.context_key = context_key
@@ -423,14 +420,7 @@ class AdaptationVectorWrapper(VectorWrapper):
         context_key: str = CONTEXT_KEY,
     ) -> None:
         super().__init__(env)
-        self._hook = _Hook(
-            model,
-            env.single_observation_space,
-            env.single_action_space,
-            context=context,
-            context_seed=context_seed,
-            context_key=context_key,
-        )
+        self._hook = _Hook(model, env, context=context, context_seed=context_seed, context_key=context_key)
         self.model = model
         self.info_key = info_key
         self.context_key = context_key

@@ -605,27 +605,20 @@ def pets_loop(
     _check_int("seed", seed, 0, " (numpy and gymnasium take only non-negative seeds)")
     if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not math.isfinite(lr) or lr <= 0:
         raise ValueError(f"lr must be a finite number > 0, got {lr!r}")
-    _check_cem_settings(
-        planning_horizon=planning_horizon,
-        num_iterations=num_iterations,
-        population_size=population_size,
-        elite_ratio=elite_ratio,
-        alpha=alpha,
-        num_particles=num_particles,
-        replan_freq=1,
-    )
+    # The agent's settings, named once: checked here, before any step, then given to the agent and recorded.
+    cem: dict[str, Any] = {
+        "planning_horizon": planning_horizon,
+        "num_iterations": num_iterations,
+        "population_size": population_size,
+        "elite_ratio": elite_ratio,
+        "alpha": alpha,
+        "num_particles": num_particles,
+    }
+    _check_cem_settings(**cem, replan_freq=1)
     planning, util_common, util = _mbrl("planning"), _mbrl("util.common"), _mbrl("util")
     # Both check the env's sizes and the propagation before any step; neither draws a random number.
     model_env = make_model_env(env, model, reward_fn, termination_fn, propagation=propagation, seed=seed)
-    agent = make_cem_agent(
-        model_env,
-        planning_horizon=planning_horizon,
-        num_iterations=num_iterations,
-        population_size=population_size,
-        elite_ratio=elite_ratio,
-        alpha=alpha,
-        num_particles=num_particles,
-    )
+    agent = make_cem_agent(model_env, **cem)
     settings = {
         "env": None if env.spec is None else env.spec.id,
         "num_steps": num_steps,
@@ -635,12 +628,7 @@ def pets_loop(
         "fit_batch_size": fit_batch_size,
         "lr": lr,
         "propagation": propagation,
-        "planning_horizon": planning_horizon,
-        "num_iterations": num_iterations,
-        "population_size": population_size,
-        "elite_ratio": elite_ratio,
-        "alpha": alpha,
-        "num_particles": num_particles,
+        **cem,
         "seed": seed,
         "net": model.net.config,
         "adaptation": {"name": model.adaptation.name, **model.adaptation.config()},

@@ -70,7 +70,7 @@ from __future__ import annotations
 import math
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, SupportsFloat, runtime_checkable
+from typing import Any, ClassVar, Protocol, SupportsFloat, runtime_checkable
 
 import gymnasium
 import numpy as np
@@ -120,7 +120,36 @@ def _finite(value: Any, what: str) -> float:
 
 
 @dataclass(frozen=True)
-class Uniform:
+class _Interval:
+    """A distribution on ``[low, high]``: the bounds are checked, and made floats, when it is built."""
+
+    low: float
+    high: float
+
+    #: Whether ``low`` must also be positive (a log-uniform's logarithm needs it): a subclass says so
+    #: in its bases, ``class LogUniform(_Interval, positive_low=True)``.
+    _positive_low: ClassVar[bool] = False
+
+    def __init_subclass__(cls, *, positive_low: bool = False, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls._positive_low = positive_low
+
+    def __post_init__(self) -> None:
+        name = type(self).__name__
+        low, high = _finite(self.low, f"{name} low"), _finite(self.high, f"{name} high")
+        if not low <= high or (self._positive_low and not 0.0 < low):
+            needs = "0 < low <= high" if self._positive_low else "low <= high"
+            raise ValueError(f"{name} needs {needs}, got ({self.low}, {self.high})")
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
+
+    def support(self) -> tuple[float, float]:
+        """The smallest and largest value a draw can take."""
+        return self.low, self.high
+
+
+@dataclass(frozen=True)
+class Uniform(_Interval):
     """Uniform on ``[low, high]``.
 
     Example:
@@ -129,27 +158,13 @@ class Uniform:
         True
     """
 
-    low: float
-    high: float
-
-    def __post_init__(self) -> None:
-        low, high = _finite(self.low, "Uniform low"), _finite(self.high, "Uniform high")
-        if not low <= high:
-            raise ValueError(f"Uniform needs low <= high, got ({self.low}, {self.high})")
-        object.__setattr__(self, "low", low)
-        object.__setattr__(self, "high", high)
-
     def sample(self, rng: np.random.Generator) -> float:
         """One draw."""
         return float(rng.uniform(self.low, self.high))
 
-    def support(self) -> tuple[float, float]:
-        """The smallest and largest value a draw can take."""
-        return self.low, self.high
-
 
 @dataclass(frozen=True)
-class LogUniform:
+class LogUniform(_Interval, positive_low=True):
     """Log-uniform on ``[low, high]``, ``0 < low <= high``: as likely to halve as to double.
 
     Example:
@@ -158,23 +173,9 @@ class LogUniform:
         True
     """
 
-    low: float
-    high: float
-
-    def __post_init__(self) -> None:
-        low, high = _finite(self.low, "LogUniform low"), _finite(self.high, "LogUniform high")
-        if not 0.0 < low <= high:
-            raise ValueError(f"LogUniform needs 0 < low <= high, got ({self.low}, {self.high})")
-        object.__setattr__(self, "low", low)
-        object.__setattr__(self, "high", high)
-
     def sample(self, rng: np.random.Generator) -> float:
         """One draw."""
         return float(np.exp(rng.uniform(np.log(self.low), np.log(self.high))))
-
-    def support(self) -> tuple[float, float]:
-        """The smallest and largest value a draw can take."""
-        return self.low, self.high
 
 
 @dataclass(frozen=True)
@@ -345,14 +346,14 @@ class ModelParameters:
         """The parameter names, in the order given."""
         return tuple(self._entries)
 
+    def values(self) -> dict[str, float]:
+        """The model's current values."""
+        return {name: self._get(entry) for name, entry in self._entries.items()}
+
     @property
     def defaults(self) -> dict[str, float]:
         """The model's values when this object was built."""
         return dict(self._defaults)
-
-    def values(self) -> dict[str, float]:
-        """The model's current values."""
-        return {name: self._get(entry) for name, entry in self._entries.items()}
 
     def bind(self, model: mujoco.MjModel) -> ModelParameters:
         """The same parameters on another compile of the same model (a copy's), with these defaults.

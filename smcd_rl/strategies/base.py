@@ -22,20 +22,27 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import torch
 from torch import Tensor
 
+from smcd_rl.checks import check_real
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["Adaptation", "is_auto", "checked_noise"]
+__all__ = ["Adaptation", "is_auto", "checked_noise", "checked_likelihood", "Likelihood"]
+
+#: The observation likelihoods of the strategies that weigh residuals (SMCD, the Bayesian last layer).
+Likelihood = Literal["gaussian", "student-t"]
 
 
 class Adaptation(ABC):
     """Base class of the strategies. A strategy instance serves one model at a time."""
 
     name: ClassVar[str]
+
+    #: The constructor arguments :meth:`config` reports, each kept in the attribute of its name.
+    _CONFIG: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self) -> None:
         self._net: MaskedMLP | None = None
@@ -91,7 +98,7 @@ class Adaptation(ABC):
 
     def config(self) -> dict[str, Any]:
         """Constructor arguments; ``type(s)(**s.config())`` is an unadapted copy."""
-        return {}
+        return {name: getattr(self, name) for name in self._CONFIG}
 
     def settings(self) -> dict[str, Any]:
         """What stores this strategy (JSON types only): :meth:`config`, plus for a strategy that draws
@@ -151,3 +158,11 @@ def checked_noise(noise_std: Any, *, auto: bool = True) -> Tensor:
     if noise.dim() > 1 or noise.numel() == 0 or not bool((noise > 0).all()) or not bool(torch.isfinite(noise).all()):
         raise ValueError(f"noise_std must be a positive finite scalar or 1-d sequence, got {noise_std}")
     return noise
+
+
+def checked_likelihood(likelihood: Any, dof: Any) -> tuple[Likelihood, float]:
+    """``likelihood`` and the Student-t's degrees of freedom ``dof``, checked (``dof`` is checked with either
+    likelihood, so that a bad value fails now and not when the likelihood is switched)."""
+    if likelihood not in ("gaussian", "student-t"):
+        raise ValueError(f"likelihood must be 'gaussian' or 'student-t', got {likelihood!r}")
+    return likelihood, check_real(dof, "dof", low=0.0, high=1e12, open_low=True)  # beyond, use likelihood="gaussian"

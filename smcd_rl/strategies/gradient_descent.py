@@ -64,6 +64,10 @@ class GradientDescent(Adaptation):
     #: The losses ``loss`` takes.
     LOSSES: ClassVar[tuple[str, ...]] = ("mse", "huber")
 
+    # Always every argument, so that type(s)(**s.config()) is the same strategy; configs saved
+    # before ``loss`` existed lack it and rebuild with its default, "mse", which they used.
+    _CONFIG = ("lr", "steps", "window", "loss", "huber_delta")
+
     def __init__(
         self,
         lr: float = 1e-2,
@@ -94,17 +98,6 @@ class GradientDescent(Adaptation):
         self._targets: Tensor | None = None
         self._count: Tensor | None = None  # transitions seen, per batch element
         self._output_scale = torch.tensor(1.0)
-
-    def config(self) -> dict[str, Any]:
-        # Always every argument, so that type(s)(**s.config()) is the same strategy; configs saved
-        # before ``loss`` existed lack it and rebuild with its default, "mse", which they used.
-        return {
-            "lr": self.lr,
-            "steps": self.steps,
-            "window": self.window,
-            "loss": self.loss,
-            "huber_delta": self.huber_delta,
-        }
 
     def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
         super().bind(net, output_scale, calibration=calibration)

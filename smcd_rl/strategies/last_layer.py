@@ -47,7 +47,7 @@ from torch import Tensor
 
 from smcd_rl.checks import check_real
 from smcd_rl.masked_mlp import MaskedMLP
-from smcd_rl.strategies.base import Adaptation, checked_noise
+from smcd_rl.strategies.base import Adaptation, checked_likelihood, checked_noise
 
 __all__ = ["BayesianLastLayer"]
 
@@ -72,6 +72,7 @@ class BayesianLastLayer(Adaptation):
     """
 
     name = "last_layer"
+    _CONFIG = ("prior_scale", "noise_std", "drift", "likelihood", "dof")
 
     def __init__(
         self,
@@ -86,22 +87,10 @@ class BayesianLastLayer(Adaptation):
         self._noise = checked_noise(noise_std, auto=False)
         self.noise_std = noise_std if isinstance(noise_std, (int, float)) else [float(v) for v in noise_std]
         self.drift = check_real(drift, "drift", low=0.0, high=1e6)
-        if likelihood not in ("gaussian", "student-t"):
-            raise ValueError(f"likelihood must be 'gaussian' or 'student-t', got {likelihood!r}")
-        self.likelihood: Literal["gaussian", "student-t"] = likelihood
-        self.dof = check_real(dof, "dof", low=0.0, high=1e12, open_low=True)
+        self.likelihood, self.dof = checked_likelihood(likelihood, dof)
         self._mean: Tensor | None = None  # [B, D, out]: the posterior mean of the readout per stream
         self._cov: Tensor | None = None  # [B, D, D]: its covariance, in units of each output's noise variance
         self._sigma = torch.ones(1)
-
-    def config(self) -> dict[str, Any]:
-        return {
-            "prior_scale": self.prior_scale,
-            "noise_std": self.noise_std,
-            "drift": self.drift,
-            "likelihood": self.likelihood,
-            "dof": self.dof,
-        }
 
     # -------------------------------------------------------------- called by the model
     def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:

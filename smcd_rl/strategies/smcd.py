@@ -13,7 +13,7 @@ from smcd_rl.checks import check_count, check_real
 from smcd_rl.filter import SMCDFilter, Transition, check_transition
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.resampling import ResamplingScheme, check_scheme
-from smcd_rl.strategies.base import Adaptation, checked_noise, is_auto
+from smcd_rl.strategies.base import Adaptation, checked_likelihood, checked_noise, is_auto
 from smcd_rl.strategies.particle_forward import Lineage, ParticleForward, ParticlePath, check_path
 
 __all__ = ["SMCD"]
@@ -70,6 +70,18 @@ class SMCD(Adaptation):
     """
 
     name = "smcd"
+    _CONFIG = (
+        "num_particles",
+        "flip_prob",
+        "noise_std",
+        "resampling",
+        "ess_threshold",
+        "transition",
+        "forward_path",
+        "prediction",
+        "likelihood",
+        "dof",
+    )
 
     def __init__(
         self,
@@ -92,10 +104,7 @@ class SMCD(Adaptation):
                 f"prediction must be 'mask' (the MMSE mask) or 'predictive' (its mean), got {prediction!r}"
             )
         self.prediction: Literal["mask", "predictive"] = prediction
-        if likelihood not in ("gaussian", "student-t"):
-            raise ValueError(f"likelihood must be 'gaussian' or 'student-t', got {likelihood!r}")
-        self.likelihood: Literal["gaussian", "student-t"] = likelihood
-        self.dof = check_real(dof, "dof", low=0.0, high=1e12, open_low=True)  # beyond, use likelihood="gaussian"
+        self.likelihood, self.dof = checked_likelihood(likelihood, dof)
         self.num_particles = check_count(num_particles, "num_particles")
         self.flip_prob: float | Literal["auto"] = (
             "auto" if is_auto(flip_prob) else check_real(flip_prob, "flip_prob", low=0.0, high=1.0)
@@ -150,19 +159,10 @@ class SMCD(Adaptation):
         return {**self.config(), **self._seeded}
 
     def config(self) -> dict[str, Any]:
-        noise = self.noise_std if isinstance(self.noise_std, (int, float, str)) else list(self.noise_std)
-        return {
-            "num_particles": self.num_particles,
-            "flip_prob": self.flip_prob,
-            "noise_std": noise,
-            "resampling": self.resampling,
-            "ess_threshold": self.ess_threshold,
-            "transition": self.transition,
-            "forward_path": self.forward_path,
-            "prediction": self.prediction,
-            "likelihood": self.likelihood,
-            "dof": self.dof,
-        }
+        config = super().config()
+        if not isinstance(self.noise_std, (int, float, str)):
+            config["noise_std"] = list(self.noise_std)  # a tensor or tuple as given: stored as a list
+        return config
 
     def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
         super().bind(net, output_scale, calibration=calibration)

@@ -7,6 +7,7 @@ import math
 import os
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
@@ -243,20 +244,9 @@ def fit(
         train_epoch, before_epoch = task_epoch, task_epoch.start
 
     _forget_fitted_records(model)
+    loop = _Loop("fit", epochs, seed, checkpoint, progress, callback)
     history = _train(
-        model,
-        train_epoch,
-        data,
-        trained=net,
-        epochs=epochs,
-        seed=seed,
-        settings=settings,
-        optimizer=optimizer,
-        checkpoint=checkpoint,
-        desc="fit",
-        progress=progress,
-        callback=callback,
-        before_epoch=before_epoch,
+        model, train_epoch, data, loop, trained=net, settings=settings, optimizer=optimizer, before_epoch=before_epoch
     )
     _record_residual_scale(model, (x, y) if validation is None else validation)
     return history
@@ -417,20 +407,8 @@ def fit_reptile(
         return total / (num_tasks * n * inner_epochs)
 
     _forget_fitted_records(model)
-    history = _train(
-        model,
-        one_epoch,
-        data,
-        trained=net,
-        epochs=epochs,
-        seed=seed,
-        settings=settings,
-        optimizer=None,
-        checkpoint=checkpoint,
-        desc="fit_reptile",
-        progress=progress,
-        callback=callback,
-    )
+    loop = _Loop("fit_reptile", epochs, seed, checkpoint, progress, callback)
+    history = _train(model, one_epoch, data, loop, trained=net, settings=settings, optimizer=None)
     _record_residual_scale(
         model, (x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])) if validation is None else validation
     )
@@ -535,24 +513,32 @@ def _normalised_pairs(model: Any, data: TensorDictBase, device: torch.device) ->
     return model.input_norm(x), model.output_norm(y)
 
 
+@dataclass(frozen=True)
+class _Loop:
+    """A trainer's own name and the options of its epoch loop, which every trainer takes from its caller as they are."""
+
+    name: str  # the progress bar's label
+    epochs: int
+    seed: int
+    checkpoint: str | os.PathLike[str] | None
+    progress: bool
+    callback: Callable[[int, float], None] | None
+
+
 def _train(
     model: _Checkpointable,
     one_epoch: Callable[[torch.Generator], float],
     data: TensorDictBase,
+    loop: _Loop,
     *,
     trained: nn.Module,
-    epochs: int,
-    seed: int,
     settings: dict[str, Any],
     optimizer: torch.optim.Optimizer | None,
-    checkpoint: str | os.PathLike[str] | None,
-    desc: str,
-    progress: bool,
-    callback: Callable[[int, float], None] | None,
     before_epoch: Callable[[int], None] | None = None,
 ) -> list[float]:
     """The epoch loop shared by the trainers: resume, seeding, progress bar, checkpoints, callback.
 
+    ``loop`` holds the caller's epochs, seed, checkpoint path, progress flag and callback.
     ``one_epoch(generator)`` trains one epoch and returns its mean loss; the generator is
     reseeded from (seed, epoch) before each epoch, which is what makes a resumed run identical
     to an uninterrupted one. ``before_epoch(epoch)``, if given, is told each epoch's number
@@ -566,24 +552,26 @@ def _train(
     net = trained
     device = next(net.parameters()).device
     history: list[float] = []
-    start = 0
-    path = Path(checkpoint) if checkpoint is not None else None
+    start, epochs = 0, loop.epochs
+    path = Path(loop.checkpoint) if loop.checkpoint is not None else None
     digest = content_digest(data) if path is not None else ""
     if path is not None and path.is_file():
         start, history = _resume(path, model, optimizer, settings, digest, epochs)
     generator = torch.Generator(device=device)
-    bar = tqdm(range(start, epochs), desc=desc, unit="epoch", disable=not progress, initial=start, total=epochs)
+    bar = tqdm(
+        range(start, epochs), desc=loop.name, unit="epoch", disable=not loop.progress, initial=start, total=epochs
+    )
     for epoch in bar:
         net.train()
-        generator.manual_seed(seed * 1_000_003 + epoch)
+        generator.manual_seed(loop.seed * 1_000_003 + epoch)
         if before_epoch is not None:
             before_epoch(epoch)
         history.append(one_epoch(generator))
         bar.set_postfix(loss=f"{history[-1]:.4g}")
         if path is not None:
             _save(path, model, optimizer, epoch + 1, history, settings, digest)
-        if callback is not None:
-            callback(epoch, history[-1])
+        if loop.callback is not None:
+            loop.callback(epoch, history[-1])
     net.eval()
     return history
 

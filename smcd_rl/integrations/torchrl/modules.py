@@ -82,31 +82,29 @@ class _WorldModel(TensorDictModuleBase):
 
 
 def _checked_reward(reward: Tensor, obs: Tensor) -> Tensor:
-    batch = obs.shape[:-1]
-    if not isinstance(reward, Tensor):
-        raise TypeError(f"reward_fn must return a Tensor, got {type(reward).__name__}")
-    if reward.shape == (*batch, 1):
-        reward = reward.squeeze(-1)
-    if reward.shape != batch:
-        raise ValueError(
-            f"reward_fn returned shape {list(reward.shape)} for observations of shape {list(obs.shape)}; "
-            f"it must return one reward per transition, shape {list(batch)} (or {[*batch, 1]})"
-        )
-    return reward
+    return _one_per_transition(reward, obs, function="reward_fn", each="reward")
 
 
 def _checked_termination(terminated: Tensor, obs: Tensor) -> Tensor:
+    return _one_per_transition(terminated, obs, function="termination_fn", each="flag").to(torch.bool)
+
+
+def _one_per_transition(value: Tensor, obs: Tensor, *, function: str, each: str) -> Tensor:
+    """``value`` of shape ``obs.shape[:-1]`` (a trailing dim of 1 is dropped), else an error naming ``function``.
+
+    Reward and termination functions are checked alike: both return one number per transition.
+    """
     batch = obs.shape[:-1]
-    if not isinstance(terminated, Tensor):
-        raise TypeError(f"termination_fn must return a Tensor, got {type(terminated).__name__}")
-    if terminated.shape == (*batch, 1):
-        terminated = terminated.squeeze(-1)
-    if terminated.shape != batch:
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{function} must return a Tensor, got {type(value).__name__}")
+    if value.shape == (*batch, 1):
+        value = value.squeeze(-1)
+    if value.shape != batch:
         raise ValueError(
-            f"termination_fn returned shape {list(terminated.shape)} for observations of shape "
-            f"{list(obs.shape)}; it must return one flag per transition, shape {list(batch)} (or {[*batch, 1]})"
+            f"{function} returned shape {list(value.shape)} for observations of shape {list(obs.shape)}; "
+            f"it must return one {each} per transition, shape {list(batch)} (or {[*batch, 1]})"
         )
-    return terminated.to(torch.bool)
+    return value
 
 
 class RewardToGo(TensorDictModuleBase):
