@@ -11,7 +11,7 @@ from torch import Tensor, nn
 
 from smcd_rl.checks import check_count, check_real, check_real_tensor
 
-__all__ = ["MaskedMLP"]
+__all__ = ["MaskedMLP", "task_mask_groups"]
 
 Activation = Literal["relu", "tanh", "elu", "silu"]
 _ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -106,19 +106,7 @@ class MaskedMLP(nn.Module):
         layers = tuple(sorted({check_count(i, "masked_layers entry", minimum=0) for i in chosen}))
         if not layers or not all(0 <= i < len(hidden) for i in layers):
             raise ValueError(f"masked_layers must index hidden layers 0..{len(hidden) - 1}, got {masked_layers}")
-        if mask_groups is not None:
-            mask_groups = check_count(mask_groups, "mask_groups")
-            widths_masked = [hidden[i] for i in layers]
-            uneven = [f"hidden[{i}]={hidden[i]}" for i in layers if hidden[i] % mask_groups]
-            if uneven:
-                common = math.gcd(*widths_masked)
-                divisors = [g for g in range(1, common + 1) if common % g == 0]
-                verb = "is" if len(uneven) == 1 else "are"
-                raise ValueError(
-                    f"mask_groups={mask_groups} must divide the width of every masked layer, but "
-                    f"{', '.join(uneven)} {verb} not divisible by it; choose one of {divisors}, or change the widths"
-                )
-
+        mask_groups = _checked_groups(mask_groups, hidden, layers)
         self.in_features = in_features
         self.out_features = out_features
         self.hidden = hidden
@@ -126,19 +114,37 @@ class MaskedMLP(nn.Module):
         self.keep_prob = 1.0 - self.dropout
         self.activation = activation
         self.masked_layers = layers
-        #: Bits per masked layer, each for a block of consecutive units (``None``: one bit per unit).
-        self.mask_groups = mask_groups
         widths = (self.in_features, *hidden, self.out_features)
         self.linears = nn.ModuleList(
             nn.Linear(a, b, device=device, dtype=dtype) for a, b in zip(widths[:-1], widths[1:], strict=True)
         )
         self.act = _ACTIVATIONS[activation]()
+        self._lay_out_masks(mask_groups)
+
+    def group_masks(self, mask_groups: int) -> None:
+        """Give every masked layer ``mask_groups`` bits, each for a block of consecutive units (weights unchanged).
+
+        :func:`smcd_rl.fit` does this with ``mask_training="task"`` to a network with one bit per
+        unit (see its doc); a strategy attached before must be attached again
+        (``model.with_adaptation(...)``), since the masks' size changes.
+
+        Example:
+            >>> net = MaskedMLP(2, 2, hidden=(16, 16))
+            >>> net.group_masks(4)
+            >>> net.mask_dim, net.config["mask_groups"]
+            (8, 4)
+        """
+        self._lay_out_masks(_checked_groups(mask_groups, self.hidden, self.masked_layers))
+
+    def _lay_out_masks(self, mask_groups: int | None) -> None:
+        #: Bits per masked layer, each for a block of consecutive units (``None``: one bit per unit).
+        self.mask_groups = mask_groups
         # Where each hidden layer's bits sit in the flat mask (None: the layer is not masked); a
         # layer has one bit per unit, or mask_groups bits with grouped masks.
         self.mask_slices: list[slice | None] = []
         start = 0
-        for i, width in enumerate(hidden):
-            if i in layers:
+        for i, width in enumerate(self.hidden):
+            if i in self.masked_layers:
                 bits = width if mask_groups is None else mask_groups
                 self.mask_slices.append(slice(start, start + bits))
                 start += bits
@@ -286,3 +292,33 @@ def _as_multiplier(mask: Tensor, dtype: torch.dtype) -> Tensor:
     is about 2.5x faster than multiplying by the bool mask or converting it to float first.
     """
     return mask.view(torch.uint8) if mask.dtype == torch.bool else mask.to(dtype)
+
+
+def _checked_groups(mask_groups: int | None, hidden: tuple[int, ...], layers: tuple[int, ...]) -> int | None:
+    """``mask_groups`` if it divides every masked layer's width (or ``None``), else a clear error."""
+    if mask_groups is None:
+        return None
+    mask_groups = check_count(mask_groups, "mask_groups")
+    uneven = [f"hidden[{i}]={hidden[i]}" for i in layers if hidden[i] % mask_groups]
+    if uneven:
+        common = math.gcd(*(hidden[i] for i in layers))
+        divisors = [g for g in range(1, common + 1) if common % g == 0]
+        verb = "is" if len(uneven) == 1 else "are"
+        raise ValueError(
+            f"mask_groups={mask_groups} must divide the width of every masked layer, but "
+            f"{', '.join(uneven)} {verb} not divisible by it; choose one of {divisors}, or change the widths"
+        )
+    return mask_groups
+
+
+def task_mask_groups(net: MaskedMLP, target: int = 16) -> int:
+    """The mask groups a network with one bit per unit takes for task-trained masks: the divisor of
+    every masked layer's width nearest ``target`` (the larger of two equally near).
+
+    Example:
+        >>> task_mask_groups(MaskedMLP(2, 2, hidden=(512, 512))), task_mask_groups(MaskedMLP(2, 2, hidden=(200,)))
+        (16, 20)
+    """
+    common = math.gcd(*(net.hidden[i] for i in net.masked_layers))
+    divisors = [g for g in range(1, common + 1) if common % g == 0]
+    return min(divisors, key=lambda g: (abs(g - target), -g))

@@ -86,8 +86,10 @@ def test_random_is_the_old_training_bit_for_bit(tmp_path) -> None:
 
 
 def test_task_training_starts_as_random_and_then_differs() -> None:
-    """Epoch 0 has no posterior and is random dropout exactly; epoch 1 trains through posteriors."""
+    """Epoch 0 has no posterior and is random dropout exactly (on the grouped masks task training
+    gives the network); epoch 1 trains through posteriors."""
     random_run, task_run = _model(), _model()
+    random_run.net.group_masks(16)
     random_losses = smcd_rl.fit(random_run, _data(), epochs=2, lr=1e-3, progress=False)
     task_losses = smcd_rl.fit(task_run, _data(), epochs=2, lr=1e-3, progress=False, mask_training="task")
     assert task_losses[0] == random_losses[0]
@@ -155,7 +157,7 @@ def test_posterior_diagnostics_are_shaped_and_in_range() -> None:
         mask_callback=lambda e, p: reports.append(p),
     )
     (p,) = reports
-    mask_dim = 64
+    mask_dim = 32  # two layers of 16 blocks: the grouping task training gives the network
     assert p["mean_masks"].shape == (4, mask_dim) and bool(((p["mean_masks"] >= 0) & (p["mean_masks"] <= 1)).all())
     for name in ("ess_share", "distinct_share"):
         assert p[name].shape == (4,) and bool(((p[name] >= 1 / 40) & (p[name] <= 1)).all()), name
@@ -342,3 +344,28 @@ def test_reporting_the_posteriors_does_not_change_the_training() -> None:
     losses = smcd_rl.fit(quiet, _data(), **settings)
     assert smcd_rl.fit(reported, _data(), mask_callback=lambda e, p: None, **settings) == losses
     assert _same_weights(quiet, reported)
+
+
+def test_task_training_groups_a_network_of_one_bit_per_unit_and_reattaches_its_strategy() -> None:
+    """A network built with its defaults gets the grouping task-mask training was measured best
+    with (the divisor of its widths nearest 16), before any epoch; its SMCD then runs on the
+    grouped masks. A network built with mask_groups keeps its own."""
+    model = smcd_rl.AdaptiveModel(
+        smcd_rl.MaskedMLP(2, 2, hidden=(48, 48), dropout=0.2),
+        in_keys=["q"],
+        out_key="ee",
+        adaptation=smcd_rl.SMCD(num_particles=8),
+    )
+    assert model.net.mask_dim == 96
+    smcd_rl.fit(model, _data(), epochs=2, lr=1e-3, progress=False, mask_training="task")
+    assert model.net.mask_groups == 16 and model.net.mask_dim == 32
+    model.reset(batch_shape=(2,))
+    model.observe(_data()[:2].exclude("task"))
+    assert model.adaptation.particles.shape == (2, 8, 32)
+    own = _model()
+    own.net.group_masks(8)
+    smcd_rl.fit(own, _data(), epochs=1, lr=1e-3, progress=False, mask_training="task")
+    assert own.net.mask_groups == 8
+    random = _model()
+    smcd_rl.fit(random, _data(), epochs=1, lr=1e-3, progress=False)
+    assert random.net.mask_groups is None  # random training keeps one bit per unit

@@ -37,9 +37,10 @@ def task_mask_settings(config: Any) -> dict[str, Any]:
     Example:
         >>> from types import SimpleNamespace
         >>> task_mask_settings(SimpleNamespace(task_share=1.0))
-        {'mask_training': 'task', 'task_share': 1.0}
+        {'mask_training': 'task', 'task_share': 1.0, 'group_masks': False}
     """
-    return {"mask_training": "task", "task_share": config.task_share}
+    # The network's grouping is the command's --mask-groups (0: one bit per unit), not fit's default.
+    return {"mask_training": "task", "task_share": config.task_share, "group_masks": False}
 
 
 def task_verdict_table(

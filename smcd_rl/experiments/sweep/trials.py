@@ -75,6 +75,7 @@ def train(config: Mapping[str, Any]) -> dict[str, Any]:
             masks = {
                 "mask_training": "task",
                 "task_share": float(config["task_share"]),
+                "group_masks": False,  # the grid's network keeps one bit per unit
                 "mask_callback": lambda epoch, found: posteriors.append(
                     training_posteriors(epoch, found, model.net.keep_prob)
                 ),

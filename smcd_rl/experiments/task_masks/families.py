@@ -93,7 +93,7 @@ def _pendulum(config: Any, device: torch.device, generator: torch.Generator) -> 
 
     data = regimes.training_data("pendulum", config, generator).to(device)
     _, trainer, task_data, settings = regimes.other_network("pendulum-task", config, data, device)
-    settings = {k: v for k, v in settings.items() if k not in ("mask_training", "task_share")}
+    settings = {k: v for k, v in settings.items() if k not in ("mask_training", "task_share", "group_masks")}
     doubled = dataclasses.replace(config, tuning_episodes=2 * config.tuning_episodes)
 
     def build(groups: int) -> smcd_rl.AdaptiveModel:
