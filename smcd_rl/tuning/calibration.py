@@ -150,6 +150,16 @@ class Calibration:
         """Whether the chosen noise has one value per output dimension (any shape but ``"scalar"``)."""
         return self.noise_shape != "scalar"
 
+    def ranked(self) -> list[Candidate]:
+        """The candidates best first by :attr:`criterion`, one per setting (noise, flip)."""
+        seen: set[tuple[Any, float]] = set()
+        ranked = []
+        for c in sorted(self.candidates, key=lambda c: -_objective(c, self.criterion)):  # stable: first of equals
+            if (c.noise_std, c.flip_prob) not in seen:
+                seen.add((c.noise_std, c.flip_prob))
+                ranked.append(c)
+        return ranked
+
     @property
     def best(self) -> Candidate:
         """The chosen candidate: the best by :attr:`criterion` (the first of equals)."""

@@ -31,6 +31,9 @@ __all__ = [
     "SMCD_LAST_LAYER_SCALES",
     "FLIP_PROBS",
     "CALIBRATION_REFINE",
+    "SEARCH_PARTICLE_SHARE",
+    "FINALISTS",
+    "MIN_SEARCH_PARTICLES",
     "MIN_PARTICLES",
     "RACE_SHARE",
     "RACE_MARGIN",
@@ -92,6 +95,14 @@ SMCD_LAST_LAYER_SCALES = (1.0, 1 / 3, 3.0)
 FLIP_PROBS = (0.001, 0.003, 0.01, 0.03)
 #: Golden-section runs at the end of SMCD's calibration (:func:`smcd_rl.calibrate`'s ``refine``).
 CALIBRATION_REFINE = 5
+#: With tune's shortcuts, SMCD's calibration searches with this share of the particles, then
+#: confirms its best :data:`FINALISTS` settings at full size (at least :data:`MIN_SEARCH_PARTICLES`
+#: particles in the search, else it searches at full size).
+SEARCH_PARTICLE_SHARE = 0.25
+#: ... the settings confirmed at full size.
+FINALISTS = 5
+#: ... the fewest particles a reduced search runs with.
+MIN_SEARCH_PARTICLES = 64
 #: SMCD never halves its particles below this to meet a budget.
 MIN_PARTICLES = 8
 #: The share of the episodes a raced setting runs on first (at least 2 episodes).

@@ -38,10 +38,13 @@ from smcd_rl.tuning.defaults import (
     CALIBRATION_REFINE,
     COMBINATION_GRID,
     EXTENSIBLE,
+    FINALISTS,
     GD_GRID,
     LAST_LAYER_GRID,
     MAX_EXTENSIONS,
     MIN_PARTICLES,
+    MIN_SEARCH_PARTICLES,
+    SEARCH_PARTICLE_SHARE,
     SMCD_LAST_LAYER_SCALES,
 )
 from smcd_rl.tuning.diagnostics import Trace
@@ -199,10 +202,17 @@ def tune_smcd(
     flip_probs: tuple[float, ...],
     seed: int,
     progress: bool,
+    shortcuts: bool = True,
 ) -> dict[str, Calibration]:
     """Halve the particles until a step fits the budget, then calibrate by the search's criterion:
     the noise's factor, its shape (:data:`~smcd_rl.tuning.calibration.NOISE_SHAPES`) and the flip
     probability (:func:`~smcd_rl.tuning.calibration.search_noise`).
+
+    With ``shortcuts`` (not under the evidence criterion, whose choice is SMCD's own score) the
+    search runs with :data:`~smcd_rl.tuning.defaults.SEARCH_PARTICLE_SHARE` of the particles, and
+    its :data:`~smcd_rl.tuning.defaults.FINALISTS` best settings run again at full size, the best of
+    those kept: a filter's error moves with its particle count, but the ranking of settings far
+    apart hardly does, and the finalists settle the close ones.
 
     Returns the calibration run (``{"search": ...}``, empty where an earlier call's choice was
     reused); the model's own calibration is left as it is.
@@ -229,11 +239,13 @@ def tune_smcd(
         for candidate in known:
             search.score("smcd", candidate.settings)
     else:
+        small = int(particles * SEARCH_PARTICLE_SHARE)
+        reduced = shortcuts and search.scorer.criterion.name != "evidence" and small >= MIN_SEARCH_PARTICLES
         # calibrate's search, every noise shape, on the episodes tune checked, scored by tune's
         # scorer; tune's record is model.tuning, so the model's calibration stays as it was.
         result = search_noise(
             search.scorer,
-            SMCD(num_particles=particles),
+            SMCD(num_particles=small if reduced else particles),
             list(flip_probs),
             shapes=NOISE_SHAPES,
             refine=CALIBRATION_REFINE,
@@ -241,8 +253,19 @@ def tune_smcd(
             progress=progress,
         )
         calibrations["search"] = result
-        settings = {**result.strategy.config(), "seed": seed, "device": device}
-        search.score("smcd", settings, ms=None if math.isnan(ms) else ms, run=result.best.trace)
+        at_full = {"num_particles": particles}
+        if not reduced:
+            settings = {**result.strategy.config(), "seed": seed, "device": device}
+            search.score("smcd", settings, ms=None if math.isnan(ms) else ms, run=result.best.trace)
+        for finalist in result.ranked()[:FINALISTS] if reduced else ():
+            noise = list(finalist.noise_std) if isinstance(finalist.noise_std, tuple) else finalist.noise_std
+            config = {**result.strategy.config(), **at_full, "noise_std": noise, "flip_prob": finalist.flip_prob}
+            search.score("smcd", {**config, "seed": seed, "device": device}, ms=None if math.isnan(ms) else ms)
+        if reduced:
+            search.notes.append(
+                f"SMCD: searched with {small} particles ({len(result.candidates)} runs), its {FINALISTS} best settings "
+                f"confirmed with {particles}"
+            )
     search.time_best("smcd")
     return calibrations
 

@@ -45,7 +45,7 @@ Example:
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Literal
 
 from tensordict import TensorDictBase
@@ -89,6 +89,7 @@ def tune(
     seed: int = 0,
     progress: bool = True,
     reuse: TuneResult | None = None,
+    shortcuts: bool = True,
 ) -> TuneResult:
     """Tune each of ``strategies`` on held-out training-task ``episodes`` by one criterion (see the module doc).
 
@@ -123,6 +124,9 @@ def tune(
             call and machine to machine; pass ``reuse`` to take an earlier call's times and repeat
             its choice.
         progress: show a progress bar.
+        shortcuts: search SMCD's settings with a quarter of the particles and confirm the five
+            best at full size (:func:`~smcd_rl.tuning.kinds.tune_smcd`); ``False``: the full search,
+            every run at full size. Both choices repeat bit for bit for one seed.
         reuse: an earlier result of this function on the same model, episodes, seed, flip
             probabilities and criterion (e.g. the unbudgeted one, before a call with ``budget_ms``): each setting
             it scored takes its score from there, and each setting it timed its time, instead of running again.
@@ -168,21 +172,23 @@ def tune(
     )
     kinds = kinds_needed(strategies)
     calibrations: dict[str, Calibration] = {}
+    kind_seconds: dict[str, float] = {}
     try:
-        if "none" in kinds:
-            search.score("none", {})
-        if "gradient_descent" in kinds:
-            tune_gd(search, grid, limits)
-        if "smcd" in kinds:
-            calibrations = tune_smcd(search, num_particles, tuple(flips), seed, progress)
-        if "last_layer" in kinds:
-            tune_last_layer(search)
-        if "smcd_last_layer" in kinds:
-            tune_smcd_last_layer(search)
-        if "combination" in kinds:
-            tune_combination(search, [k for k in ("none", *ADAPTING) if k in search.best_of])
+        steps: dict[str, Callable[[], Any]] = {
+            "none": lambda: search.score("none", {}),
+            "gradient_descent": lambda: tune_gd(search, grid, limits),
+            "smcd": lambda: calibrations.update(
+                tune_smcd(search, num_particles, tuple(flips), seed, progress, shortcuts)
+            ),
+            "last_layer": lambda: tune_last_layer(search),
+            "smcd_last_layer": lambda: tune_smcd_last_layer(search),
+            "combination": lambda: tune_combination(search, [k for k in ("none", *ADAPTING) if k in search.best_of]),
+        }
         for kind in kinds:
+            begun = time.perf_counter()
+            steps[kind]()
             search.time_best(kind)
+            kind_seconds[kind] = time.perf_counter() - begun
     finally:
         search.bar.close()
     if not search.best_of:
@@ -209,6 +215,7 @@ def tune(
         horizon=chosen_by.horizon,
         score_label=chosen_by.label if chosen_by.name != "evidence" else "one-step RMSE",
         score_fn=chosen_by.fn,
+        kind_seconds=kind_seconds,
     )
     model.tuning = result.to_dict()
     return result

@@ -72,6 +72,8 @@ class TuneResult:
     #: The score function of your own it was tuned by (this call's; not in :meth:`to_dict`): reuse
     #: with a score of your own needs this very function.
     score_fn: Callable[..., float] | None = field(default=None, repr=False, compare=False)
+    #: Wall seconds of each kind's search (its runs and its best's timing), in the order tuned.
+    kind_seconds: dict[str, float] = field(default_factory=dict)
 
     @property
     def best_kind(self) -> str:
@@ -155,6 +157,7 @@ class TuneResult:
             timings={k: math.inf if v is None else float(v) for k, v in record.get("timings", {}).items()},
             horizon=int(record.get("horizon", 1)),
             score_label=str(record.get("score_label", "one-step RMSE")),
+            kind_seconds={k: float(v) for k, v in record.get("kind_seconds", {}).items()},
         )
 
     def table(self) -> str:
@@ -200,6 +203,7 @@ class TuneResult:
                 "seconds": self.seconds,
                 "data": self.data,
                 "timings": dict(self.timings),
+                "kind_seconds": dict(self.kind_seconds),
             }
         )
 

@@ -541,3 +541,20 @@ def test_clean_episodes_keep_the_robust_form_where_they_cannot_tell_it_from_the_
 
     robust, squared = error_after(result.strategy("gradient_descent")), error_after(plain)
     assert robust < 0.5 * squared, (robust, squared)
+
+
+def test_the_shortcut_search_repeats_bit_for_bit_and_confirms_its_finalists_at_full_size(model) -> None:
+    """With 256 particles tune searches SMCD with 64 and runs its five best settings again with 256;
+    every SMCD candidate it keeps is a full-size one. Each search repeats exactly for one seed."""
+    episodes = shifted_episodes(0.3)
+    common = {"strategies": ["smcd"], "num_particles": 256, "progress": False}
+    fast, again = (smcd_rl.tune(model, episodes, **common) for _ in range(2))
+    full, full_again = (smcd_rl.tune(model, episodes, shortcuts=False, **common) for _ in range(2))
+    for one, other in ((fast, again), (full, full_again)):
+        assert [(c.settings, c.score) for c in one.candidates] == [(c.settings, c.score) for c in other.candidates]
+    assert fast.calibrations["search"].num_particles == 64 and full.calibrations["search"].num_particles == 256
+    finalists = [c for c in fast.candidates if c.kind == "smcd"]
+    assert len(finalists) == 5 and all(c.settings["num_particles"] == 256 for c in finalists)
+    assert fast.best_of["smcd"].score == min(c.score for c in finalists)
+    assert any("searched with 64 particles" in note for note in fast.notes)
+    assert set(fast.kind_seconds) == {"smcd"} and fast.kind_seconds["smcd"] > 0

@@ -49,7 +49,7 @@ from smcd_rl.experiments.shared.tuning_record import TUNED, Tuning, reseeded
 from smcd_rl.experiments.shared.workers import computed, map_jobs
 from smcd_rl.strategies.registry import build
 from smcd_rl.tuning import ms_per_observation
-from smcd_rl.tuning.calibration import calibrate
+from smcd_rl.tuning.calibration import Calibration, calibrate
 from smcd_rl.tuning.defaults import kinds_needed
 from smcd_rl.tuning.diagnostics import Trace, trace
 
@@ -142,7 +142,7 @@ def tuned_specs(
             criterion="evidence",
             seed=seed,
             progress=progress,
-            reuse=free.calibrations.get("search"),  # the same bracket: its runs are not run again
+            reuse=_same_particles(free.calibrations.get("search"), config.particles),  # its bracket is not run again
         )
         settings = {**evidence.strategy.config(), "seed": seed, "device": device}
         specs["S(evidence)"] = {"name": "smcd", "settings": settings}
@@ -169,6 +169,12 @@ def tuned_specs(
         "seconds": free.seconds + budget.seconds,
         "candidates": len(free.candidates) + len(budget.candidates),
     }
+
+
+def _same_particles(calibration: Calibration | None, particles: int) -> Calibration | None:
+    """``calibration`` where it ran ``particles`` (the evidence search can take its runs), else ``None``
+    (tune's shortcuts search with fewer)."""
+    return calibration if calibration is not None and calibration.num_particles == particles else None
 
 
 def _kinds(variants: Sequence[str]) -> list[str]:
