@@ -213,6 +213,3 @@ class BayesianLastLayer(Adaptation):
         if self._mean is None or self._cov is None:
             raise RuntimeError("BayesianLastLayer has no posterior yet; call model.reset() first")
         return self._mean, self._cov
-
-
-# Known by name, so that a model saved with it loads with smcd_rl.load(path).

@@ -134,6 +134,3 @@ class SMCDLastLayer(Adaptation):
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         self.smcd.restore_rows(state["smcd"], rows)
         self.last_layer.restore_rows(state["last_layer"], rows)
-
-
-# Known by name, so that a model saved with it loads with smcd_rl.load(path).
