@@ -49,7 +49,7 @@ from smcd_rl.experiments.shared.tuning_record import TUNED, Tuning, reseeded
 from smcd_rl.experiments.shared.workers import computed, map_jobs
 from smcd_rl.strategies.registry import build
 from smcd_rl.tuning import ms_per_observation
-from smcd_rl.tuning.calibration import Calibration, calibrate
+from smcd_rl.tuning.calibration import calibrate
 from smcd_rl.tuning.defaults import kinds_needed
 from smcd_rl.tuning.diagnostics import Trace, trace
 
@@ -134,6 +134,7 @@ def tuned_specs(
             same = variant in specs and specs[label] == specs[variant]
             ms[label] = ms[variant] if same else budget.best_of[kind].ms_per_step
     if "S(evidence)" in variants:
+        searched = free.calibrations.get("search")  # its runs at these particles are not run again
         evidence = calibrate(
             model,
             episodes,
@@ -142,7 +143,7 @@ def tuned_specs(
             criterion="evidence",
             seed=seed,
             progress=progress,
-            reuse=_same_particles(free.calibrations.get("search"), config.particles),  # its bracket is not run again
+            reuse=searched if searched and searched.num_particles == config.particles else None,
         )
         settings = {**evidence.strategy.config(), "seed": seed, "device": device}
         specs["S(evidence)"] = {"name": "smcd", "settings": settings}
@@ -171,15 +172,8 @@ def tuned_specs(
     }
 
 
-def _same_particles(calibration: Calibration | None, particles: int) -> Calibration | None:
-    """``calibration`` where it ran ``particles`` (the evidence search can take its runs), else ``None``
-    (tune's shortcuts search with fewer)."""
-    return calibration if calibration is not None and calibration.num_particles == particles else None
-
-
 def _kinds(variants: Sequence[str]) -> list[str]:
-    """The kinds of :func:`smcd_rl.tune` that ``variants`` need (:func:`~smcd_rl.tuning.defaults.kinds_needed`),
-    ``"none"`` always (the table's reference row).
+    """The kinds of :func:`smcd_rl.tune` that ``variants`` need (``"none"`` always: the table's reference row).
 
     Example:
         >>> _kinds(["G"]), _kinds(["C"]), _kinds(["S(paper)"])
