@@ -7,7 +7,7 @@ one criterion: the error its table reports where that is a look-ahead (``--tunin
 
 - **gradient descent (``G``)** over the grid ``--gd-lr`` x ``--gd-steps`` x ``--gd-window`` x
   {squared error, Huber}, extended past an edge while the best point lies there;
-- **SMCD (``S``)**: noise (scalar or per dimension) and flip probability (``--calibrate-flips``);
+- **SMCD (``S``)**: the noise (its factor and shape across dimensions) and flip probability (``--calibrate-flips``);
 - **the Bayesian last layer (``L``)** over prior scale x drift x likelihood, and **SMCD with a
   Bayesian readout (``SL``)**: the tuned S with L's readout (:class:`smcd_rl.SMCDLastLayer`);
 - **the combination (``C``)** of N and the other tuned methods (G, S, and L and SL where they
