@@ -24,7 +24,7 @@ import math
 from typing import Any
 
 from smcd_rl.tuning.diagnostics import Trace
-from smcd_rl.tuning.search import usable
+from smcd_rl.tuning.search import usable, within
 
 __all__ = ["advice", "NEAR", "CHEAPER"]
 
@@ -76,10 +76,8 @@ def advice(result: Any) -> list[str]:
 
 
 def _near(score: float, best: float) -> bool:
-    """Whether ``score`` is within :data:`NEAR` of ``best``, relative to its size (a score of your own may be negative)."""
-    if not math.isfinite(best):
-        return score == best
-    return score <= ((1 + NEAR) * best if best >= 0 else (1 - NEAR) * best)
+    """Whether ``score`` is within :data:`NEAR` of ``best`` (``best`` usable: finite or ``-inf``)."""
+    return score <= within(best, NEAR)
 
 
 def _few_and_many(result: Any, scored: dict[str, Any]) -> list[str]:

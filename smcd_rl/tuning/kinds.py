@@ -253,15 +253,15 @@ def tune_smcd(
             progress=progress,
         )
         calibrations["search"] = result
-        at_full = {"num_particles": particles}
+        measured = None if math.isnan(ms) else ms
+        generator = {"seed": seed, "device": device}
         if not reduced:
-            settings = {**result.strategy.config(), "seed": seed, "device": device}
-            search.score("smcd", settings, ms=None if math.isnan(ms) else ms, run=result.best.trace)
-        for finalist in result.ranked()[:FINALISTS] if reduced else ():
-            noise = list(finalist.noise_std) if isinstance(finalist.noise_std, tuple) else finalist.noise_std
-            config = {**result.strategy.config(), **at_full, "noise_std": noise, "flip_prob": finalist.flip_prob}
-            search.score("smcd", {**config, "seed": seed, "device": device}, ms=None if math.isnan(ms) else ms)
-        if reduced:
+            search.score("smcd", {**result.strategy.config(), **generator}, ms=measured, run=result.best.trace)
+        else:
+            for finalist in result.ranked()[:FINALISTS]:  # each run again at full size
+                noise = list(finalist.noise_std) if isinstance(finalist.noise_std, tuple) else finalist.noise_std
+                config = {**result.strategy.config(), "num_particles": particles, "noise_std": noise}
+                search.score("smcd", {**config, "flip_prob": finalist.flip_prob, **generator}, ms=measured)
             search.notes.append(
                 f"SMCD: searched with {small} particles ({len(result.candidates)} runs), its {FINALISTS} best settings "
                 f"confirmed with {particles}"

@@ -59,6 +59,16 @@ class Scorer:
             raise ValueError("this run recorded no open-loop predictions; run it with Scorer.run")
         return self.criterion.score(run.ahead, self.lookahead.observed[rows])
 
+    def episode_scores(self, run: Trace) -> list[float]:
+        """Each episode's score of a run on every episode, by the criterion."""
+        if self.lookahead is None:
+            return list(run.per_episode_rmse)
+        assert run.ahead is not None
+        return [
+            self.criterion.score(run.ahead[e : e + 1], self.lookahead.observed[e : e + 1])
+            for e in range(run.ahead.shape[0])
+        ]
+
     def head_score(self, run: Trace, first: int) -> float:
         """The score of a run on every episode, over its first ``first`` episodes only."""
         if not math.isfinite(run.rmse):

@@ -52,7 +52,7 @@ from smcd_rl.tuning.defaults import RACE_MARGIN, RACE_SHARE
 from smcd_rl.tuning.diagnostics import Trace
 from smcd_rl.tuning.scoring import Scorer
 
-__all__ = ["TuneCandidate", "Timing", "Search", "setting_key", "usable", "race_threshold"]
+__all__ = ["TuneCandidate", "Timing", "Search", "setting_key", "usable", "within", "race_threshold"]
 
 
 @dataclass(frozen=True)
@@ -89,17 +89,22 @@ def usable(score: float) -> bool:
     return not math.isnan(score) and score != math.inf
 
 
-def race_threshold(leader: float) -> float:
-    """The highest score on the first episodes that still runs on: within :data:`RACE_MARGIN` of the
-    leader's, relative to its size (a score of your own may be negative).
+def within(best: float, margin: float) -> float:
+    """The highest score within ``margin`` of ``best``, relative to its size (a score of your own may be
+    negative; an infinite ``best`` is its own bound).
 
     Example:
-        >>> race_threshold(2.0), race_threshold(-2.0), race_threshold(-math.inf)
+        >>> within(2.0, 0.1), within(-2.0, 0.1), within(-math.inf, 0.1)
         (2.2, -1.8, -inf)
     """
-    if math.isinf(leader):
-        return leader
-    return (1 + RACE_MARGIN) * leader if leader >= 0 else (1 - RACE_MARGIN) * leader
+    if math.isinf(best):
+        return best
+    return (1 + margin) * best if best >= 0 else (1 - margin) * best
+
+
+def race_threshold(leader: float) -> float:
+    """The highest score on the first episodes that still runs on: within :data:`RACE_MARGIN` of the leader's."""
+    return within(leader, RACE_MARGIN)
 
 
 def setting_key(kind: str, settings: dict[str, Any]) -> str:
@@ -313,7 +318,7 @@ class Search:
             if self.chosen_before.get(kind) == rival.settings:
                 self.best_of[kind] = rival
             return
-        plain, tough = (self._episode_scores(setting_key(kind, c.settings)) for c in (best, rival))
+        plain, tough = (self.scorer.episode_scores(self.traces[setting_key(kind, c.settings)]) for c in (best, rival))
         excess = [a - b for a, b in zip(tough, plain, strict=True)]
         if len(excess) < 2 or not all(math.isfinite(e) for e in excess):
             return
@@ -327,18 +332,6 @@ class Search:
             f"its excess per episode, {mean:.3g}, is within the episodes' noise ({noise:.3g}), and a robust "
             "form bounds what one corrupted reading does"
         )
-
-    def _episode_scores(self, key: str) -> list[float]:
-        """Each episode's score of a setting's run on every episode, by the criterion."""
-        run = self.traces[key]
-        lookahead = self.scorer.lookahead
-        if lookahead is None:
-            return list(run.per_episode_rmse)
-        assert run.ahead is not None
-        return [
-            self.scorer.criterion.score(run.ahead[e : e + 1], lookahead.observed[e : e + 1])
-            for e in range(run.ahead.shape[0])
-        ]
 
     def time_best(self, kind: str) -> None:
         """Measure the time of ``kind``'s best setting, where it has none yet (no budget measured it)."""
