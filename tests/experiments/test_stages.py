@@ -130,3 +130,13 @@ def test_an_experiment_prints_its_stages_in_plan_order(tmp_path, capsys) -> None
         "run [3/4] evaluate M+N",
         "run [4/4] evaluate LV+N",
     ]
+
+
+def test_a_report_rounds_its_wall_time_into_the_next_minute(tmp_path) -> None:
+    """599.6 s once printed as "9 min 60 s": the seconds were rounded after the minutes were taken."""
+    from smcd_rl.experiments.shared.report import write_report
+
+    machine = {"processor": "cpu", "cpus": 2, "torch_threads": 1, "torch": "2"}
+    result = {"experiment": "x", "config": {}, "seconds": {"total": 599.6}, "machine": machine}
+    write_report(tmp_path / "report.md", result, {}, [])
+    assert "Wall time 10 min 0 s on cpu" in (tmp_path / "report.md").read_text()

@@ -9,6 +9,7 @@ from typing import Any
 
 from smcd_rl.experiments.shared.config import OUTPUT_ONLY
 from smcd_rl.experiments.shared.outputs import settings_fingerprint, write_text
+from smcd_rl.experiments.shared.stages import duration
 
 __all__ = ["write_report"]
 
@@ -29,7 +30,7 @@ def write_report(path: Path, result: Mapping[str, Any], tables: Mapping[str, str
         lines += [f"![{plot}]({plot})", ""]
     seconds = result["seconds"]["total"]
     lines += [
-        f"Wall time {int(seconds // 60)} min {seconds % 60:.0f} s on {machine['processor']} "
+        f"Wall time {duration(seconds)} on {machine['processor']} "
         f"({machine['cpus']} CPUs, {_count(machine['torch_threads'], 'torch thread')}, torch {machine['torch']}"
         + (f", {machine['gpu']}" if "gpu" in machine else "")
         + ").",
