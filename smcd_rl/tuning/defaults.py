@@ -24,6 +24,7 @@ __all__ = [
     "NEEDS",
     "kinds_needed",
     "GD_GRID",
+    "HUBER_DELTA_FACTOR",
     "MAX_EXTENSIONS",
     "EXTENSIBLE",
     "COMBINATION_GRID",
@@ -37,6 +38,7 @@ __all__ = [
     "MIN_PARTICLES",
     "RACE_SHARE",
     "RACE_MARGIN",
+    "ROBUST_MARGIN",
     "SEARCHED",
 ]
 
@@ -73,6 +75,9 @@ GD_GRID: dict[str, tuple[Any, ...]] = {
     "window": (1, 10),
     "loss": ("mse", "huber"),
 }
+#: The Huber loss gradient descent is tuned with turns linear at this multiple of the unadapted
+#: network's root-mean-square residual on the episodes (normalised units).
+HUBER_DELTA_FACTOR = 1.0
 #: At most this many extensions past each edge of the GD grid (and the last layer's prior scale).
 MAX_EXTENSIONS = 3
 #: The dimensions of the GD grid that extend past their edges.
@@ -112,6 +117,10 @@ RACE_SHARE = 0.25
 #: (paired, on the same episodes), and far below what a learning rate or step count off by a grid
 #: step costs.
 RACE_MARGIN = 0.1
+#: A robust form (a Huber loss, a Student-t likelihood) is kept where its score on the tuning
+#: episodes is within this share of the plain form's, or within their paired noise: clean
+#: episodes cannot show what it is for, a corrupted reading (:meth:`~smcd_rl.tuning.search.Search.prefer_robust`).
+ROBUST_MARGIN = 0.05
 #: What :func:`smcd_rl.tune` searches of each kind: a tuning table always shows it.
 SEARCHED: dict[str, tuple[str, ...]] = {
     "smcd": ("num_particles", "flip_prob", "noise_std"),

@@ -22,7 +22,8 @@ Example:
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+import statistics
+from collections.abc import Callable, Mapping, Sequence
 from itertools import product
 from typing import Any
 
@@ -40,15 +41,17 @@ from smcd_rl.tuning.defaults import (
     EXTENSIBLE,
     FINALISTS,
     GD_GRID,
+    HUBER_DELTA_FACTOR,
     LAST_LAYER_GRID,
     MAX_EXTENSIONS,
     MIN_PARTICLES,
     MIN_SEARCH_PARTICLES,
+    RACE_MARGIN,
     SEARCH_PARTICLE_SHARE,
     SMCD_LAST_LAYER_SCALES,
 )
 from smcd_rl.tuning.diagnostics import Trace
-from smcd_rl.tuning.search import Search, TuneCandidate, setting_key, usable
+from smcd_rl.tuning.search import Search, TuneCandidate, setting_key, usable, within
 
 __all__ = [
     "checked_gd_grid",
@@ -114,32 +117,67 @@ def tune_gd(search: Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, 
 
     The grid, and each extension's settings, are raced (:meth:`~smcd_rl.tuning.search.Search.race`).
     Past an edge only the line through the best point is scored (the new value with the other
-    settings at their best), not the whole grid again: each extension costs one setting per loss
-    at most, and steps and window double the cost of a setting with each extension. The loss is
-    a dimension of the grid but has no edge: the search tries each loss given and extends only the
-    learning rate, steps and window, never past ``limits``.
+    settings at their best), not the whole grid again: each extension costs one setting, and
+    steps and window double the cost of a setting with each extension. The search extends only
+    the learning rate, steps and window, never past ``limits``.
+
+    The loss has no edge and is not crossed with the grid: the first loss (the squared error,
+    where given) is searched, and every other loss runs at its best setting. A Huber loss equals
+    the squared one on residuals within its delta, so on the episodes the two share their best
+    setting up to the noise, which :meth:`~smcd_rl.tuning.search.Search.prefer_robust` then
+    weighs; searching the grid once halves gradient descent's runs. Where every setting of a
+    loss diverges, the next loss is searched on the whole grid instead.
     """
-    # The losses keep GradientDescent.LOSSES' order, so that among equal errors the squared one wins.
-    grid = {k: tuple(sorted(v)) for k, v in grid.items() if k != "loss"} | {
-        "loss": tuple(loss for loss in GradientDescent.LOSSES if loss in grid["loss"])
-    }
+    # The losses keep GradientDescent.LOSSES' order, so that the squared one is searched.
+    losses = [loss for loss in GradientDescent.LOSSES if loss in grid["loss"]]
+    grid = {k: tuple(sorted(v)) for k, v in grid.items() if k != "loss"}
     scored: dict[tuple[Any, ...], float] = {}
+
+    # The Huber loss turns linear at the unadapted network's residual: a reading far beyond what
+    # the network gets wrong pulls no harder than one it merely mispredicts. At the default delta
+    # (one standard deviation of the targets) a corrupted reading tens of residuals off still
+    # pulls with tens of residuals' force where the network predicts well.
+    delta = math.sqrt(statistics.fmean(r * r for r in _unadapted_residual(search))) * HUBER_DELTA_FACTOR
 
     def race(points: list[tuple[Any, ...]]) -> None:
         points = [p for p in points if p not in scored]
-        configs = [GradientDescent(lr=lr, steps=s, window=w, loss=loss).config() for lr, s, w, loss in points]
+        configs = [
+            GradientDescent(lr=lr, steps=s, window=w, loss=loss, huber_delta=delta).config()
+            for lr, s, w, loss in points
+        ]
         scored.update(zip(points, search.race("gradient_descent", configs), strict=True))
 
-    race(list(product(grid["lr"], grid["steps"], grid["window"], grid["loss"])))
+    for i, loss in enumerate(losses):
+        best = _search_grid(search, dict(grid), limits, loss, race, scored)
+        if best is not None:
+            race([(*best[:3], other) for other in losses[i + 1 :]])  # the other losses at its best setting
+            break
+    else:
+        search.notes.append(
+            f"gradient descent: every one of its {len(scored)} settings diverged or was over the budget, so none "
+            "is kept; try smaller learning rates (gd_grid['lr'])"
+        )
+        return
+    search.prefer_robust("gradient_descent", lambda s: s["loss"] == "huber", "Huber loss")
+    search.time_best("gradient_descent")
+
+
+def _search_grid(
+    search: Search,
+    grid: dict[str, tuple[Any, ...]],
+    limits: dict[str, tuple[float, float]],
+    loss: str,
+    race: Callable[[list[tuple[Any, ...]]], None],
+    scored: dict[tuple[Any, ...], float],
+) -> tuple[Any, ...] | None:
+    """:func:`tune_gd`'s search of one loss: the grid, then past its edges; the best point, or
+    ``None`` where every setting diverged or was over the budget."""
+    race(list(product(grid["lr"], grid["steps"], grid["window"], (loss,))))
     extensions = {("lr", "low"): 0, ("lr", "high"): 0, ("steps", "high"): 0, ("window", "high"): 0}
     while True:
-        finite = {k: v for k, v in scored.items() if usable(v)}
+        finite = {k: v for k, v in scored.items() if usable(v) and k[3] == loss}
         if not finite:
-            search.notes.append(
-                f"gradient descent: every one of its {len(scored)} settings diverged or was over the budget, so none "
-                "is kept; try smaller learning rates (gd_grid['lr'])"
-            )
-            return
+            return None
         point = min(finite.items(), key=lambda item: item[1])[0]
         best = dict(zip(("lr", "steps", "window", "loss"), point, strict=True))
         edge = _edge(grid, best, extensions, limits)
@@ -149,14 +187,12 @@ def tune_gd(search: Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, 
                 for name, side in extensions
                 if _on_edge(grid[name], best[name], side) and not _within(limits[name], _past(grid[name], name, side))
             )
-            search.prefer_robust("gradient_descent", lambda s: s["loss"] == "huber", "Huber loss")
-            search.time_best("gradient_descent")
-            return
+            return point
         name, side = edge
         extensions[edge] += 1
         new = _past(grid[name], name, side)
         grid[name] = tuple(sorted({*grid[name], new}))
-        race([tuple({**best, name: new, "loss": loss}.values()) for loss in grid["loss"]])
+        race([tuple({**best, name: new}.values())])
         search.notes.append(f"gradient descent: best {name} {best[name]:g} on the grid's {side} edge; tried {new:g}")
 
 
@@ -210,7 +246,8 @@ def tune_smcd(
 
     With ``shortcuts`` (not under the evidence criterion, whose choice is SMCD's own score) the
     search runs with :data:`~smcd_rl.tuning.defaults.SEARCH_PARTICLE_SHARE` of the particles, and
-    its :data:`~smcd_rl.tuning.defaults.FINALISTS` best settings run again at full size, the best of
+    its best settings (at most :data:`~smcd_rl.tuning.defaults.FINALISTS`, each within
+    :data:`~smcd_rl.tuning.defaults.RACE_MARGIN` of the best) run again at full size, the best of
     those kept: a filter's error moves with its particle count, but the ranking of settings far
     apart hardly does, and the finalists settle the close ones.
 
@@ -258,13 +295,16 @@ def tune_smcd(
         if not reduced:
             search.score("smcd", {**result.strategy.config(), **generator}, ms=measured, run=result.best.trace)
         else:
-            for finalist in result.ranked()[:FINALISTS]:  # each run again at full size
+            ranked = result.ranked()
+            near = within(ranked[0].score, RACE_MARGIN)  # a setting further behind is not a contender
+            finalists = [c for c in ranked[:FINALISTS] if c.score <= near]
+            for finalist in finalists:  # each run again at full size
                 noise = list(finalist.noise_std) if isinstance(finalist.noise_std, tuple) else finalist.noise_std
                 config = {**result.strategy.config(), "num_particles": particles, "noise_std": noise}
                 search.score("smcd", {**config, "flip_prob": finalist.flip_prob, **generator}, ms=measured)
             search.notes.append(
-                f"SMCD: searched with {small} particles ({len(result.candidates)} runs), its {FINALISTS} best settings "
-                f"confirmed with {particles}"
+                f"SMCD: searched with {small} particles ({len(result.candidates)} runs), its {len(finalists)} best "
+                f"settings (at most {FINALISTS}, within {RACE_MARGIN:.0%} of the best) confirmed with {particles}"
             )
     search.time_best("smcd")
     return calibrations
@@ -320,24 +360,40 @@ def _unadapted_residual(search: Search) -> list[float]:
     return [max(float(v), 1e-6) for v in residual.square().mean(dim=(0, 1)).sqrt()]
 
 
-def tune_smcd_last_layer(search: Search) -> None:
+def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
     """SMCD with a Bayesian readout: the tuned SMCD's filter with the tuned last layer's readout,
     its prior scale a grid step below, at and above the last layer's best.
 
     The readout takes over part of what the masks explained, so a readout alone at its best may
     be too free beside the filter (or too tight); the three scales say which. The filter's
     settings are the tuned SMCD's: calibrating them again would cost as many runs as SMCD's own.
+    With ``shortcuts`` the scales run with SMCD's reduced particles first (as its calibration
+    does), and only those within :data:`~smcd_rl.tuning.defaults.RACE_MARGIN` of the best there
+    run at full size.
     """
     smcd, readout = search.best_of.get("smcd"), search.best_of.get("last_layer")
     if smcd is None or readout is None:
         search.notes.append("SMCD with a Bayesian readout: needs a tuned SMCD and last layer, so not tuned")
         return
     scale = readout.settings["prior_scale"]
-    for factor in SMCD_LAST_LAYER_SCALES:
-        search.score(
-            "smcd_last_layer",
-            {"smcd": smcd.settings, "last_layer": {**readout.settings, "prior_scale": scale * factor}},
-        )
+    settings = [
+        {"smcd": smcd.settings, "last_layer": {**readout.settings, "prior_scale": scale * factor}}
+        for factor in SMCD_LAST_LAYER_SCALES
+    ]
+    particles = smcd.settings.get("num_particles", SMCD().num_particles)
+    small = int(particles * SEARCH_PARTICLE_SHARE)
+    known = all(setting_key("smcd_last_layer", one) in search.known for one in settings)
+    if shortcuts and small >= MIN_SEARCH_PARTICLES and not known and search.scorer.criterion.name != "evidence":
+        reduced = [
+            search.scorer.score(
+                search.run("smcd_last_layer", {**one, "smcd": {**one["smcd"], "num_particles": small}})
+            )
+            for one in settings
+        ]
+        near = within(min(reduced), RACE_MARGIN)
+        settings = [one for one, score in zip(settings, reduced, strict=True) if score <= near] or settings
+    for one in settings:
+        search.score("smcd_last_layer", one)
     search.time_best("smcd_last_layer")
 
 

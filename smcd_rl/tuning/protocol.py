@@ -7,12 +7,12 @@ each requested strategy on them by the same criterion (:mod:`smcd_rl.tuning.crit
 ``criterion="lookahead", horizon=H`` the error of the open-loop predictions ``H`` steps ahead (what
 a planner's rollout or a look-ahead table scores); or a callable score of your own:
 
-* gradient descent over a grid of learning rate x steps x window x loss (squared error and
-  Huber, which bounds the pull of an outlier) that goes on past an edge of the learning rate,
-  steps or window, along that dimension through the best point, while the best point lies there
-  (the result says which edges it extended). The settings are raced: each runs first on a
-  quarter of the episodes, and only those within 10 % of the best there run on the rest
-  (:mod:`smcd_rl.tuning.search`); the others are listed as raced out;
+* gradient descent over a grid of learning rate x steps x window with the squared error, that
+  goes on past an edge of the learning rate, steps or window, along that dimension through the
+  best point, while the best point lies there (the result says which edges it extended); the
+  Huber loss, which bounds the pull of an outlier, then runs at the best setting. The settings
+  are raced: each runs first on a quarter of the episodes, and only those within 10 % of the
+  best there run on the rest (:mod:`smcd_rl.tuning.search`); the others are listed as raced out;
 * SMCD by :func:`smcd_rl.calibrate`: the noise's factor and shape across output dimensions and
   the flip probability, one search;
 * :class:`smcd_rl.BayesianLastLayer` over prior scale x drift x likelihood (Gaussian, or
@@ -124,9 +124,10 @@ def tune(
             call and machine to machine; pass ``reuse`` to take an earlier call's times and repeat
             its choice.
         progress: show a progress bar.
-        shortcuts: search SMCD's settings with a quarter of the particles and confirm the five
-            best at full size (:func:`~smcd_rl.tuning.kinds.tune_smcd`); ``False``: the full search,
-            every run at full size. Both choices repeat bit for bit for one seed.
+        shortcuts: search SMCD's settings (and SMCD with a Bayesian readout's) with a quarter of
+            the particles and confirm the best few at full size (:func:`~smcd_rl.tuning.kinds.tune_smcd`);
+            ``False``: the full search, every run at full size. Both choices repeat bit for bit
+            for one seed.
         reuse: an earlier result of this function on the same model, episodes, seed, flip
             probabilities and criterion (e.g. the unbudgeted one, before a call with ``budget_ms``): each setting
             it scored takes its score from there, and each setting it timed its time, instead of running again.
@@ -181,7 +182,7 @@ def tune(
                 tune_smcd(search, num_particles, tuple(flips), seed, progress, shortcuts)
             ),
             "last_layer": lambda: tune_last_layer(search),
-            "smcd_last_layer": lambda: tune_smcd_last_layer(search),
+            "smcd_last_layer": lambda: tune_smcd_last_layer(search, shortcuts),
             "combination": lambda: tune_combination(search, [k for k in ("none", *ADAPTING) if k in search.best_of]),
         }
         for kind in kinds:

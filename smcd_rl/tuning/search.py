@@ -48,7 +48,7 @@ from tqdm.auto import tqdm
 from smcd_rl.model import AdaptiveModel
 from smcd_rl.strategies.base import Adaptation
 from smcd_rl.strategies.registry import build
-from smcd_rl.tuning.defaults import RACE_MARGIN, RACE_SHARE
+from smcd_rl.tuning.defaults import RACE_MARGIN, RACE_SHARE, ROBUST_MARGIN
 from smcd_rl.tuning.diagnostics import Trace
 from smcd_rl.tuning.scoring import Scorer
 
@@ -302,9 +302,10 @@ class Search:
 
         Clean tuning episodes cannot show what a robust form (a Huber loss, a Student-t likelihood)
         is for: a corrupted reading. Where they cannot tell the two apart, the robust one costs
-        little there and bounds the damage of the reading they lack. The noise is that of the
-        paired per-episode scores: the robust form is kept unless its mean excess over the plain
-        form's is more than twice its standard error.
+        little there and bounds the damage of the reading they lack. The robust form is kept
+        where its score is within :data:`~smcd_rl.tuning.defaults.ROBUST_MARGIN` of the plain
+        form's, or where its mean excess over the plain form's, paired per episode, is at most
+        twice its standard error.
         """
         best = self.best_of.get(kind)
         if best is None or robust(best.settings):
@@ -324,13 +325,18 @@ class Search:
             return
         mean, spread = statistics.fmean(excess), statistics.stdev(excess)
         noise = 2 * spread / math.sqrt(len(excess))
-        if mean > noise:
+        close = rival.score <= within(best.score, ROBUST_MARGIN)
+        if mean > noise and not close:
             return
         self.best_of[kind] = rival
+        why = (
+            f"its excess per episode, {mean:.3g}, is within the episodes' noise ({noise:.3g})"
+            if mean <= noise
+            else f"within {ROBUST_MARGIN:.0%} of it"
+        )
         self.notes.append(
-            f"{kind.replace('_', ' ')}: kept the robust form ({form}), {rival.score:.4g} against the plain form's {best.score:.4g}: "
-            f"its excess per episode, {mean:.3g}, is within the episodes' noise ({noise:.3g}), and a robust "
-            "form bounds what one corrupted reading does"
+            f"{kind.replace('_', ' ')}: kept the robust form ({form}), {rival.score:.4g} against the plain form's "
+            f"{best.score:.4g}: {why}, and a robust form bounds what one corrupted reading does"
         )
 
     def time_best(self, kind: str) -> None:
