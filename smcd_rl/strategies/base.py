@@ -127,6 +127,19 @@ class Adaptation(ABC):
             )
         return extra
 
+    def _check_transition(self, inputs: Tensor, targets: Tensor) -> None:
+        """Refuse an :meth:`observe` whose ``inputs`` are not ``[*B, in]`` or ``targets`` not ``[*B, out]``
+        (a transposed or wrong-width tensor would otherwise be reshaped into nonsense)."""
+        net = self.net
+        for name, value, width in (("inputs", inputs, net.in_features), ("targets", targets, net.out_features)):
+            expected = (*self._batch_shape, width)
+            if not isinstance(value, Tensor) or tuple(value.shape) != expected:
+                shape = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
+                raise ValueError(
+                    f"{type(self).__name__}.observe: {name} of shape {shape}, expected {list(expected)} (the model's "
+                    f"batch shape, then {width} values); call model.reset(batch_shape=...) to change the batch shape"
+                )
+
     def _mask_view(self, value: Tensor, inputs: Tensor, trailing: int) -> Tensor:
         """View ``value [*B, *rest]`` with singleton dims for ``inputs``' extra batch dims."""
         extra = self._extra_dims(inputs)

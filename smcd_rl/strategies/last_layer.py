@@ -23,6 +23,13 @@ covariance in units of each output's noise variance) serves every output:
 It predicts with the posterior mean; :meth:`BayesianLastLayer.predictive` gives the predictive mean
 and variance. Everything is in the model's normalised units.
 
+The posterior is kept and updated in float64 whatever the network's precision, and predictions
+are cast to the network's dtype. In float32 the downdate ``P - u u^T`` cancels digits: with a
+wide prior (``prior_scale`` of 3e3 and more) or a large drift, ``P`` lost its positive
+definiteness within a few observations and the predictive variance went negative. In float64 the
+update holds over 5,000 observations at every setting allowed; the one combination that breaks
+it, a drift variance ``drift * prior_scale**2`` above :data:`MAX_DRIFT_VARIANCE`, is refused.
+
 Example:
     >>> import torch, smcd_rl
     >>> net = smcd_rl.MaskedMLP(2, 2, hidden=(16,))
@@ -49,7 +56,14 @@ from smcd_rl.checks import check_real
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.strategies.base import Adaptation, checked_likelihood, checked_noise
 
-__all__ = ["BayesianLastLayer"]
+__all__ = ["BayesianLastLayer", "MAX_DRIFT_VARIANCE"]
+
+#: The largest drift variance per observation, ``drift * prior_scale**2`` (in units of the noise
+#: variance), the float64 posterior follows: beyond it, one observation's information is below
+#: float64's resolution of the covariance, and 5,000 observations at ``1e18`` drove it indefinite.
+MAX_DRIFT_VARIANCE = 1e12
+#: The dtype of the posterior, whatever the network's.
+STATE_DTYPE = torch.float64
 
 
 class BayesianLastLayer(Adaptation):
@@ -87,6 +101,11 @@ class BayesianLastLayer(Adaptation):
         self._noise = checked_noise(noise_std, auto=False)
         self.noise_std = noise_std if isinstance(noise_std, (int, float)) else [float(v) for v in noise_std]
         self.drift = check_real(drift, "drift", low=0.0, high=1e6)
+        if self.drift * self.prior_scale**2 > MAX_DRIFT_VARIANCE:
+            raise ValueError(
+                f"drift * prior_scale**2 = {self.drift * self.prior_scale**2:.3g} is beyond {MAX_DRIFT_VARIANCE:g}, "
+                "where the posterior's covariance loses its precision; use a smaller drift or prior_scale"
+            )
         self.likelihood, self.dof = checked_likelihood(likelihood, dof)
         self._mean: Tensor | None = None  # [B, D, out]: the posterior mean of the readout per stream
         self._cov: Tensor | None = None  # [B, D, D]: its covariance, in units of each output's noise variance
@@ -98,19 +117,21 @@ class BayesianLastLayer(Adaptation):
         if self._noise.dim() == 1 and self._noise.shape[0] not in (1, net.out_features):
             raise ValueError(f"noise_std has {self._noise.shape[0]} values but the model predicts {net.out_features}")
         weight = net.readout_layer.weight
-        self._sigma = self._noise.to(device=weight.device, dtype=weight.dtype).expand(net.out_features)
+        self._sigma = self._noise.to(device=weight.device, dtype=STATE_DTYPE).expand(net.out_features)
 
     def reset(self, batch_shape: tuple[int, ...]) -> None:
         self._batch_shape = batch_shape
         streams = math.prod(batch_shape)
         output = self.net.readout_layer
-        prior = torch.cat([output.weight.detach().t(), output.bias.detach().unsqueeze(0)])  # [D, out]
+        prior = torch.cat([output.weight.detach().t(), output.bias.detach().unsqueeze(0)]).to(STATE_DTYPE)  # [D, out]
+        self._sigma = self._sigma.to(prior.device)
         self._mean = prior.expand(streams, *prior.shape).clone()
         eye = torch.eye(prior.shape[0], dtype=prior.dtype, device=prior.device)
         self._cov = (self.prior_scale**2 * eye).expand(streams, *eye.shape).clone()
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
         mean, _ = self._state()
+        self._check_transition(inputs, targets)
         self.update(self.net.features(inputs.reshape(mean.shape[0], -1)), targets)
 
     def update(self, features: Tensor, targets: Tensor) -> None:
@@ -127,8 +148,14 @@ class BayesianLastLayer(Adaptation):
     def updated(self, features: Tensor, targets: Tensor) -> tuple[Tensor, Tensor]:
         """The posterior mean and covariance :meth:`update` would set, without setting them."""
         mean, cov = self._state()
-        phi = self._augmented(features.reshape(mean.shape[0], -1))  # [B, D]
-        targets = targets.reshape(mean.shape[0], -1)
+        phi = self._augmented(features.reshape(mean.shape[0], -1).to(STATE_DTYPE))  # [B, D]
+        if targets.numel() != mean.shape[0] * mean.shape[2]:
+            raise ValueError(
+                f"targets of shape {list(targets.shape)} for {mean.shape[0]} streams of {mean.shape[2]} outputs; "
+                "pass one target per stream"
+            )
+        dtype = targets.dtype
+        targets = targets.reshape(mean.shape[0], -1).to(STATE_DTYPE)
         # With drift the prior of this step is P + q I: its product with phi, without forming it.
         q = self.drift * self.prior_scale**2
         spread = torch.einsum("bij,bj->bi", cov, phi) + q * phi  # P phi
@@ -147,7 +174,13 @@ class BayesianLastLayer(Adaptation):
         u = spread * c.sqrt().unsqueeze(-1)
         # P is finite, so P - u u^T is too where every |u_i u_j| is: checked on u, not on the D x D result.
         largest = math.sqrt(torch.finfo(u.dtype).max) / 2
-        if not (bool(torch.isfinite(new_mean).all()) and bool((u.abs() < largest).all())):
+        # The mean must also hold in the network's precision, which its predictions are cast to.
+        representable = torch.finfo(dtype).max / 2 if dtype.is_floating_point else largest
+        if not (
+            bool(torch.isfinite(targets).all())
+            and bool((new_mean.abs() < representable).all())
+            and bool((u.abs() < largest).all())
+        ):
             raise ValueError(
                 "the last layer's posterior became inf or NaN on this observation (a target of inf or of a far "
                 "larger scale than the model's); the adaptation state is unchanged"
@@ -170,6 +203,7 @@ class BayesianLastLayer(Adaptation):
     def readout_with(mean: Tensor, features: Tensor) -> Tensor:
         """:meth:`readout` with the readout ``mean [B, width + 1, out]`` given (one per stream)."""
         flat = features.reshape(mean.shape[0], -1, features.shape[-1])
+        mean = mean.to(flat.dtype)  # the posterior's float64 in the network's precision
         out = torch.baddbmm(mean[:, -1:, :], flat, mean[:, :-1, :])
         return out.reshape(*features.shape[:-1], out.shape[-1])
 
@@ -185,17 +219,33 @@ class BayesianLastLayer(Adaptation):
     def predictive_of(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """:meth:`predictive` for last hidden ``features [*B, ..., width]`` given."""
         mean, cov = self._state()
-        phi = self._augmented(features.reshape(mean.shape[0], -1, features.shape[-1]))  # [B, n, D]
+        phi = self._augmented(features.reshape(mean.shape[0], -1, features.shape[-1]).to(STATE_DTYPE))  # [B, n, D]
         spread = (torch.bmm(phi, cov) * phi).sum(-1)  # [B, n]
         variance = (1.0 + spread).unsqueeze(-1) * self._sigma.square()
-        return self.readout(features), variance.reshape(*features.shape[:-1], -1)
+        return self.readout(features), variance.reshape(*features.shape[:-1], -1).to(features.dtype)
 
     def state_dict(self) -> dict[str, Any]:
         mean, cov = self._state()
         return {"mean": mean.clone(), "cov": cov.clone()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self._mean, self._cov = state["mean"].clone(), state["cov"].clone()
+        mean, cov = self._state()
+        given = state.get("mean") if isinstance(state, Mapping) else None
+        given_cov = state.get("cov") if isinstance(state, Mapping) else None
+        if not (isinstance(given, Tensor) and isinstance(given_cov, Tensor)) or (
+            given.shape != mean.shape or given_cov.shape != cov.shape
+        ):
+            shapes = (
+                [list(v.shape) for v in (given, given_cov)]
+                if isinstance(given, Tensor) and isinstance(given_cov, Tensor)
+                else "not a {'mean', 'cov'} dict"
+            )
+            raise ValueError(
+                f"a last layer's state of shapes {shapes} does not fit this one's {[list(mean.shape), list(cov.shape)]} "
+                "(another batch size or network?); reset the model to the batch shape it was saved with"
+            )
+        self._mean = given.to(device=mean.device, dtype=STATE_DTYPE).clone()
+        self._cov = given_cov.to(device=cov.device, dtype=STATE_DTYPE).clone()
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         mean, cov = self._state()

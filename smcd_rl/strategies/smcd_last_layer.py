@@ -84,6 +84,7 @@ class SMCDLastLayer(Adaptation):
         self.last_layer.reset(batch_shape)
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        self._check_transition(inputs, targets)
         mask = self.smcd.mask.reshape(-1, self.net.mask_dim)
         features = self.net.features(inputs.reshape(mask.shape[0], -1), mask=mask)
         mean, cov = self.last_layer.updated(features, targets)  # nothing set yet: it may refuse
@@ -128,8 +129,16 @@ class SMCDLastLayer(Adaptation):
         return {"smcd": self.smcd.state_dict(), "last_layer": self.last_layer.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.smcd.load_state_dict(state["smcd"])
-        self.last_layer.load_state_dict(state["last_layer"])
+        if not isinstance(state, Mapping) or set(state) != {"smcd", "last_layer"}:
+            raise ValueError("an SMCDLastLayer's state is a dict of 'smcd' and 'last_layer' states (its state_dict())")
+        before = self.state_dict()
+        try:
+            self.last_layer.load_state_dict(state["last_layer"])  # checks its shapes against this batch
+            self.smcd.load_state_dict(state["smcd"])
+        except Exception:
+            self.smcd.load_state_dict(before["smcd"])  # a refused state leaves both parts as they were
+            self.last_layer.load_state_dict(before["last_layer"])
+            raise
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         self.smcd.restore_rows(state["smcd"], rows)

@@ -128,7 +128,7 @@ def test_drift_follows_a_switch_that_the_static_posterior_averages() -> None:
 
 @pytest.mark.parametrize("drift", [0.0, 1e-4])
 def test_float32_follows_float64_over_ten_thousand_observations(drift: float) -> None:
-    """The rank-one downdate keeps the float32 covariance symmetric positive definite and the mean on the float64 one.
+    """A float32 network's posterior (kept in float64) stays symmetric positive definite and on a float64 network's.
 
     Without drift the covariance shrinks like 1 / t, the regime where a covariance update loses
     positive definiteness first."""
@@ -154,6 +154,73 @@ def test_float32_follows_float64_over_ten_thousand_observations(drift: float) ->
     assert torch.equal(cov32, cov32.transpose(-1, -2))
     assert bool((torch.linalg.eigvalsh(cov32.double()) > 0).all())
     torch.testing.assert_close(cov32.double(), cov64, rtol=0, atol=1e-3 * cov64.abs().max().item())
+
+
+@pytest.mark.parametrize(
+    ("prior_scale", "drift", "likelihood"),
+    [(1e6, 0.0, "gaussian"), (1e6, 1.0, "student-t"), (1e3, 1e6, "gaussian"), (3e3, 0.0, "student-t")],
+)
+def test_a_float32_model_at_the_extreme_settings_holds_over_five_thousand_observations(
+    prior_scale: float, drift: float, likelihood: str
+) -> None:
+    """In float32 a prior scale of 3e3 and more, or a large drift, once drove the covariance
+    indefinite within a few observations: the predictive variance went negative and every later
+    reading was refused as "a target of inf". The posterior is now float64: at the widest prior
+    allowed and the largest drift variance allowed (``drift * prior_scale**2 = 1e12``), every one
+    of 5,000 readings is accepted, the predictive variance never falls below the noise's (its
+    exact floor: ``noise^2 (1 + phi^T P phi)`` with ``P`` positive semi-definite), and the readout
+    reaches the noiseless target."""
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(3, 2, hidden=(32, 32))
+    model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee")
+    model.fitted = True
+    layer = smcd_rl.BayesianLastLayer(prior_scale=prior_scale, noise_std=0.1, drift=drift, likelihood=likelihood)
+    model = model.with_adaptation(layer)
+    model.reset(batch_shape=(2,))
+    generator = torch.Generator().manual_seed(1)
+    lowest = float("inf")
+    for _ in range(5000):
+        x = torch.rand(2, 3, generator=generator)
+        layer.observe(x, x[:, :2].sin() + 0.3)
+        with torch.no_grad():
+            lowest = min(lowest, float(layer.predictive(x)[1].min()))
+    assert lowest >= 0.1**2 * (1 - 1e-5), lowest
+    with torch.no_grad():
+        assert float((layer.predict(x) - (x[:, :2].sin() + 0.3)).abs().max()) < 0.05
+
+
+def test_a_drift_beyond_what_the_posterior_resolves_is_refused() -> None:
+    with pytest.raises(ValueError, match=r"drift \* prior_scale\*\*2 = 1e\+18 is beyond 1e\+12"):
+        smcd_rl.BayesianLastLayer(prior_scale=1e6, drift=1e6)
+
+
+def test_observe_refuses_transposed_or_wrong_width_tensors_instead_of_reshaping_them() -> None:
+    """``observe`` once reshaped any tensor of the right size to ``(B, -1)``: a transposed batch ran as data."""
+    layer = _bound(smcd_rl.BayesianLastLayer(noise_std=0.1), _net(torch.float32), (3,))
+    before = layer.state_dict()
+    for inputs, targets, name in (
+        (torch.rand(2, 3), torch.rand(3, 2), r"inputs of shape \[2, 3\], expected \[3, 2\]"),  # transposed
+        (torch.rand(3, 3), torch.rand(3, 2), r"inputs of shape \[3, 3\], expected \[3, 2\]"),
+        (torch.rand(3, 2), torch.rand(2, 3), r"targets of shape \[2, 3\], expected \[3, 2\]"),
+        (torch.rand(3, 2), torch.rand(6), r"targets of shape \[6\], expected \[3, 2\]"),
+    ):
+        with pytest.raises(ValueError, match=name):
+            layer.observe(inputs, targets)
+    after = layer.state_dict()
+    assert torch.equal(before["mean"], after["mean"]) and torch.equal(before["cov"], after["cov"])
+
+
+def test_a_gaussian_last_layer_refuses_a_target_beyond_float32_and_never_predicts_inf() -> None:
+    """A target of 3e38 once moved the float32 readout's mean to inf: every later prediction was inf."""
+    net = _net(torch.float32)
+    layer = _bound(smcd_rl.BayesianLastLayer(noise_std=0.1, prior_scale=10.0), net)
+    layer.observe(torch.rand(3, 2), torch.rand(3, 2))
+    before = layer.state_dict()
+    with pytest.raises(ValueError, match="inf or NaN.*unchanged"):
+        layer.observe(torch.rand(3, 2), torch.full((3, 2), 3e38))
+    after = layer.state_dict()
+    assert torch.equal(before["mean"], after["mean"]) and torch.equal(before["cov"], after["cov"])
+    assert bool(torch.isfinite(layer.predict(torch.rand(3, 2))).all())
 
 
 def test_reset_returns_to_the_prior_and_the_network_output() -> None:
@@ -313,3 +380,29 @@ def test_smcd_last_layer_refuses_an_observation_without_touching_either_part(tmp
     path = tmp_path / "both.pt"
     smcd_rl.save(model, path)
     assert smcd_rl.load(path).adaptation.config() == model.adaptation.config()
+
+
+def test_smcd_last_layer_names_a_wrong_shape_a_new_dtype_or_a_foreign_state() -> None:
+    """Each once a raw RuntimeError: targets of the wrong shape, ``model.to(float64)`` mid-stream, and
+    a state saved at another batch size (which also left the filter loaded and the readout not)."""
+    both = smcd_rl.SMCDLastLayer(
+        smcd_rl.SMCD(num_particles=50, noise_std=0.1), smcd_rl.BayesianLastLayer(noise_std=0.1)
+    )
+    model = _adaptive(both)
+    model.reset(batch_shape=(3,))
+    for targets in (torch.rand(2, 3), torch.rand(6)):
+        with pytest.raises(ValueError, match=r"targets of shape .*, expected \[3, 2\]"):
+            both.observe(torch.rand(3, 2), targets)
+    both.observe(torch.rand(3, 2), torch.rand(3, 2))
+    model.to(torch.float64)  # mid-stream: the posterior is float64 already, the filter follows the network
+    step = TensorDict({"q": torch.rand(3, 2, dtype=torch.float64), "ee": torch.rand(3, 2, dtype=torch.float64)}, [3])
+    model.observe(step)
+    assert model(step.clone())["ee"].dtype == torch.float64
+    saved = both.state_dict()
+    model.reset(batch_shape=(5,))
+    before = both.state_dict()
+    with pytest.raises(ValueError, match=r"does not fit this one's \[\[5, "):
+        both.load_state_dict(saved)
+    after = both.state_dict()
+    assert torch.equal(after["smcd"]["particles"], before["smcd"]["particles"])
+    assert torch.equal(after["last_layer"]["mean"], before["last_layer"]["mean"])
