@@ -385,9 +385,7 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
     known = all(setting_key("smcd_last_layer", one) in search.known for one in settings)
     if shortcuts and small >= MIN_SEARCH_PARTICLES and not known and search.scorer.criterion.name != "evidence":
         reduced = [
-            search.scorer.score(
-                search.run("smcd_last_layer", {**one, "smcd": {**one["smcd"], "num_particles": small}})
-            )
+            search.scorer.score(search.run("smcd_last_layer", {**one, "smcd": {**one["smcd"], "num_particles": small}}))
             for one in settings
         ]
         near = within(min(reduced), RACE_MARGIN)
