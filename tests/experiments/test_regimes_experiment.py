@@ -58,7 +58,7 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
         assert (out / name).is_file(), name
     rows = list(csv.DictReader((out / "results.csv").open()))
     methods = ["N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL", "G@1000ms", "S@1000ms", "C@1000ms"]
-    task = ["T+N", "T+G", "T+S", "T+SL"]  # every family's task-mask network (the arm families share one)
+    task = ["T+N", "T+G", "T+S", "T+L", "T+SL"]  # every family's task-mask network (the arm families share one)
     cells = {(r["family"], r["regime"], r["method"]) for r in rows}
     expected = {(f, r, m) for f in FAMILIES for r in regime_names((1, 3), f) for m in (*methods, *task)}
     assert cells == expected | {("pendulum", r, "R+G") for r in regime_names((1, 3), "pendulum")}  # Reptile's
@@ -80,7 +80,7 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
     # T and R tune only what their methods need: no SMCD for R, no GD budget view for either.
     tuned = result["tuning"]
     assert set(tuned["pendulum-reptile"]["specs"]) == {"G"}
-    assert set(tuned["pendulum-task"]["specs"]) == set(tuned["arm-task"]["specs"]) == {"N", "G", "S", "SL"}
+    assert set(tuned["pendulum-task"]["specs"]) == set(tuned["arm-task"]["specs"]) == {"N", "G", "S", "L", "SL"}
     two_link_t3 = [e for e in result["scoreboard"] if e["task"] == "two-link T=3"][0]
     assert two_link_t3["estimates"]["SMCD (task masks)"]["method"] == "T+S"
     pendulum_t3 = [e for e in result["scoreboard"] if e["task"] == "pendulum T=3"][0]

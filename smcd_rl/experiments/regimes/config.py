@@ -41,9 +41,10 @@ SEQUENTIAL = ("pendulum",)
 METHODS = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 #: Methods on the families' other networks, trained on the same data: T, whose dropout masks were
 #: trained to identify the task (``fit(mask_training="task")``; one for the arm families, one for
-#: the pendulum), with no adaptation, gradient descent, SMCD or SMCD with a Bayesian readout, and
+#: the pendulum), with no adaptation, gradient descent, SMCD, the Bayesian last layer or SMCD with a
+#: Bayesian readout, and
 #: R, the pendulum's network trained by Reptile, with gradient descent.
-OTHER_NETWORK_METHODS = ("T+N", "T+G", "T+S", "T+SL", "R+G")
+OTHER_NETWORK_METHODS = ("T+N", "T+G", "T+S", "T+L", "T+SL", "R+G")
 #: The methods tuned again under ``--budget-ms`` per observation (the budgeted view).
 BUDGETED = ("G", "S", "C")
 #: The regimes besides ``T=<t>``: a switch to a new task, the switch back, one corrupted

@@ -4,7 +4,7 @@ Example:
     >>> TwoLinkConfig().burn_in, FULL["tasks"], "R+S" in DEFAULT_METHODS, "R+S" in FULL["methods"]
     ((1, 5, 10), 1000, False, True)
     >>> [m for m in DEFAULT_METHODS if m.startswith("T+")]
-    ['T+N', 'T+G', 'T+S', 'T+SL']
+    ['T+N', 'T+G', 'T+S', 'T+L', 'T+SL']
 """
 
 from __future__ import annotations
@@ -50,6 +50,7 @@ DEFAULT_METHODS = (
     "T+N",
     "T+G",
     "T+S",
+    "T+L",
     "T+SL",
     "LV+N",
 )

@@ -72,6 +72,7 @@ READOUT_PAIRS = (
     ("M+SL", "M+S"),
     ("M+SL", "M+L"),
     ("T+SL", "T+S"),
+    ("T+SL", "T+L"),
     ("T+SL", "M+SL"),
 )
 
