@@ -156,18 +156,11 @@ class BayesianLastLayer(Adaptation):
             )
         dtype = targets.dtype
         targets = targets.reshape(mean.shape[0], -1).to(STATE_DTYPE)
-        # With drift the prior of this step is P + q I: its product with phi, without forming it.
-        q = self.drift * self.prior_scale**2
-        spread = torch.einsum("bij,bj->bi", cov, phi) + q * phi  # P phi
+        spread = self.spread(phi.unsqueeze(1)).squeeze(1)  # (P + q I) phi
         variance = 1.0 + (phi * spread).sum(-1)  # the predictive variance, in units of each output's noise variance
         residual = targets - torch.einsum("bdo,bd->bo", mean, phi)
-        weight = torch.ones_like(variance)
-        if self.likelihood == "student-t":
-            squared = (residual / self._sigma).square().sum(-1) / variance
-            weight = (self.dof + residual.shape[-1]) / (self.dof + squared)
-        # An observation of weight w is one with noise variance 1 / w: its gain k = c P phi grows with w,
-        # and an outlier the Student-t weighs at w = 0 leaves the posterior exactly as it was.
-        c = weight / (1.0 + weight * (variance - 1.0))
+        c = self.gain(residual, variance)
+        q = self.drift * self.prior_scale**2
         new_mean = mean + (spread * c.unsqueeze(-1)).unsqueeze(-1) * residual.unsqueeze(-2)
         # P - c (P phi)(P phi)^T as the rank-one downdate P - u u^T, u = sqrt(c) P phi: one pass over P,
         # and u_i u_j = u_j u_i, so P stays exactly symmetric in any precision.
@@ -189,6 +182,27 @@ class BayesianLastLayer(Adaptation):
         if q > 0:
             new_cov.diagonal(dim1=-2, dim2=-1).add_(q)
         return new_mean, new_cov
+
+    def spread(self, phi: Tensor) -> Tensor:
+        """``(P + q I) phi`` for augmented features ``phi [B, n, width + 1]``, in ``phi``'s precision:
+        the covariance this observation meets (with drift ``q = drift * prior_scale**2``), times each."""
+        _, cov = self._state()
+        # With drift the prior of this step is P + q I: its product with phi, without forming it.
+        q = self.drift * self.prior_scale**2
+        return torch.bmm(phi, cov.to(phi.dtype)) + q * phi  # P is symmetric: phi P = (P phi)^T
+
+    def gain(self, residual: Tensor, variance: Tensor) -> Tensor:
+        """The scalar ``c`` of the update's gain ``k = c (P + q I) phi`` for ``residual [..., out]`` and the
+        predictive variance ``variance [...]`` (``1 + phi^T (P + q I) phi``, in units of the noise's).
+
+        An observation of weight ``w`` is one with noise variance ``1 / w``: its gain grows with ``w``,
+        and an outlier the Student-t weighs at ``w = 0`` leaves the posterior exactly as it was.
+        """
+        weight = torch.ones_like(variance)
+        if self.likelihood == "student-t":
+            squared = (residual / self._sigma.to(residual.dtype)).square().sum(-1) / variance
+            weight = (self.dof + residual.shape[-1]) / (self.dof + squared)
+        return weight / (1.0 + weight * (variance - 1.0))
 
     def predict(self, inputs: Tensor) -> Tensor:
         self._state()  # "call model.reset()" before any shape error

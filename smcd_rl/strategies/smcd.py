@@ -127,6 +127,10 @@ class SMCD(Adaptation):
         #: What turns last hidden activations ``[*B, ..., width]`` into outputs instead of the
         #: network's output layer: an adapted readout per stream (:class:`smcd_rl.SMCDLastLayer`).
         self.readout: Callable[[Tensor], Tensor] | None = None
+        #: With :attr:`readout`: each proposed particle's noise variance factor ``[*B, N]`` (at least 1)
+        #: for the predictions the readout just made, the readout's own uncertainty at the particle's
+        #: features (:class:`smcd_rl.SMCDLastLayer`); ``None``: the noise alone.
+        self.noise_scale: Callable[[], Tensor] | None = None
         self._sigma = noise
         self._log_norm = torch.tensor(0.0)
         #: Why the strategy cannot run (an ``"auto"`` setting on a model without calibration), else None.
@@ -238,9 +242,14 @@ class SMCD(Adaptation):
             lineage = Lineage(parents, ancestors, filt.last_flips)
             predictions = forward(inputs, masks, lineage, readout=self.readout)
             residual = (targets.unsqueeze(-2) - predictions) / sigma
+            norm: Tensor | float = log_norm
+            if self.noise_scale is not None:  # the noise's std times sqrt(scale), per particle
+                scale = self.noise_scale()
+                residual = residual / scale.sqrt().unsqueeze(-1)
+                norm = log_norm - 0.5 * residual.shape[-1] * scale.log()
             if student:
-                return log_norm - (dof + 1) / 2 * torch.log1p(residual.square() / dof).sum(-1)
-            return log_norm - 0.5 * residual.square().sum(-1)
+                return norm - (dof + 1) / 2 * torch.log1p(residual.square() / dof).sum(-1)
+            return norm - 0.5 * residual.square().sum(-1)
 
         self._filter.update(log_likelihood)
 

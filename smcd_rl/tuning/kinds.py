@@ -362,10 +362,11 @@ def _unadapted_residual(search: Search) -> list[float]:
 
 def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
     """SMCD with a Bayesian readout: the tuned SMCD's filter with the tuned last layer's readout,
-    its prior scale a grid step below, at and above the last layer's best.
+    its prior scale at :data:`~smcd_rl.tuning.defaults.SMCD_LAST_LAYER_SCALES` times the last layer's best.
 
-    The readout takes over part of what the masks explained, so a readout alone at its best may
-    be too free beside the filter (or too tight); the three scales say which. The filter's
+    Each particle's readout takes over part of what the masks explained, so a readout alone at
+    its best may be too free beside the filter (or too tight); the scales say which. The
+    readout's form (Gaussian or Student-t) is the tuned last layer's, chosen by the robust-form rule. The filter's
     settings are the tuned SMCD's: calibrating them again would cost as many runs as SMCD's own.
     With ``shortcuts`` the scales run with SMCD's reduced particles first (as its calibration
     does), and only those within :data:`~smcd_rl.tuning.defaults.RACE_MARGIN` of the best there

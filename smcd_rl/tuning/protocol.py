@@ -18,8 +18,8 @@ a planner's rollout or a look-ahead table scores); or a callable score of your o
 * :class:`smcd_rl.BayesianLastLayer` over prior scale x drift x likelihood (Gaussian, or
   Student-t at two noise scales), raced, the prior scale extended past an edge
   (:data:`~smcd_rl.tuning.defaults.LAST_LAYER_GRID`);
-* :class:`smcd_rl.SMCDLastLayer`: the tuned SMCD with the tuned last layer's readout at three
-  prior scales around its best (it tunes both first);
+* :class:`smcd_rl.SMCDLastLayer`: the tuned SMCD with the tuned last layer's readout at four
+  prior scales, from a tenth of its best to three times it (it tunes both first);
 * :class:`smcd_rl.Combination` of the best members, its ``eta`` and ``share`` chosen on the same
   episodes.
 

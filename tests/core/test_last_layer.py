@@ -401,8 +401,75 @@ def test_smcd_last_layer_names_a_wrong_shape_a_new_dtype_or_a_foreign_state() ->
     saved = both.state_dict()
     model.reset(batch_shape=(5,))
     before = both.state_dict()
-    with pytest.raises(ValueError, match=r"does not fit this one's \[\[5, "):
+    with pytest.raises(ValueError, match=r"do not fit this one's \[5, 50"):
         both.load_state_dict(saved)
     after = both.state_dict()
     assert torch.equal(after["smcd"]["particles"], before["smcd"]["particles"])
     assert torch.equal(after["last_layer"]["mean"], before["last_layer"]["mean"])
+
+
+def _masked_family(shift: float, streams: int = 40, steps: int = 30, seed: int = 3):
+    """A toy family built on a random network: each task is the network under one mask of its own
+    (what the filter can identify) plus an output shift of scale ``shift`` (what no mask expresses,
+    and the readout's bias does). Returns the model, its inputs and targets ``[streams, steps, 2]``."""
+    torch.manual_seed(0)
+    net = smcd_rl.MaskedMLP(2, 2, hidden=(16, 16), activation="tanh", dropout=0.5)
+    net.group_masks(4)  # 8 mask bits: 256 sub-networks, each within reach of 500 particles
+    model = smcd_rl.AdaptiveModel(net.eval(), in_keys=["q"], out_key="ee")
+    model.fitted = True
+    g = torch.Generator().manual_seed(seed)
+    masks = torch.rand(streams, net.mask_dim, generator=g) < 0.5
+    offsets = shift * torch.randn(streams, 1, 2, generator=g)
+    x = torch.rand(streams, steps, 2, generator=g) * 4 - 2
+    with torch.no_grad():
+        y = net(x, mask=masks.unsqueeze(1).expand(-1, steps, -1)) + offsets
+    return model, x, y + 0.01 * torch.randn(y.shape, generator=g)
+
+
+def _errors_after(model, x, y, adaptation, seen: int = 10) -> Tensor:
+    """Each stream's RMSE on its later steps after ``seen`` observations."""
+    adaptive = model.with_adaptation(adaptation)
+    adaptive.reset(batch_shape=(x.shape[0],))
+    for t in range(seen):
+        adaptive.observe(TensorDict({"q": x[:, t], "ee": y[:, t]}, [x.shape[0]]))
+    with torch.no_grad():
+        predicted = torch.stack([adaptation.predict(x[:, t]) for t in range(seen, x.shape[1])], 1)
+    return (predicted - y[:, seen:]).square().mean((1, 2)).sqrt()
+
+
+def _parts(prior_scale: float):
+    def smcd():
+        return smcd_rl.SMCD(
+            num_particles=500, noise_std=0.05, flip_prob=0.01, generator=torch.Generator().manual_seed(0)
+        )
+
+    def readout():
+        return smcd_rl.BayesianLastLayer(prior_scale=prior_scale, noise_std=0.05)
+
+    return {"S": smcd(), "L": readout(), "SL": smcd_rl.SMCDLastLayer(smcd(), readout())}
+
+
+def test_smcd_with_a_bayesian_readout_beats_both_parts_where_the_task_has_a_mask_and_a_shift(one_thread) -> None:
+    """Tasks of a masked sub-network plus an output shift: SMCD finds the mask but cannot express the
+    shift, the last layer learns the shift but cannot express a mask of the first layer. Each
+    particle's readout learns the shift from its own features, and the filter weighs the masks by
+    the readout's predictive, so SL has both. Measured (40 streams, 10 observations): SL 0.049,
+    the last layer 0.070, SMCD 0.172; the thresholds (15 % below the better part, and a paired
+    margin beyond twice its standard error) leave room for another CPU's filter paths, and a
+    strategy with only one of the two parts cannot pass them."""
+    model, x, y = _masked_family(shift=0.2)
+    errors = {name: _errors_after(model, x, y, one) for name, one in _parts(prior_scale=1.0).items()}
+    for part in ("S", "L"):
+        assert errors["SL"].mean() < 0.85 * errors[part].mean(), {k: float(v.mean()) for k, v in errors.items()}
+        gap = errors[part] - errors["SL"]
+        assert gap.mean() > 2 * gap.std() / len(gap) ** 0.5, part
+
+
+def test_smcd_with_a_bayesian_readout_ties_smcd_where_the_task_is_a_mask_alone(one_thread) -> None:
+    """Without a shift the readout has nothing to learn: with a tight readout prior SL's particles
+    are weighed as SMCD's are and it predicts within noise of SMCD (measured 0.0112 against 0.0103,
+    the last layer 0.154); the readout-first coupling it replaced measured 0.035 here."""
+    model, x, y = _masked_family(shift=0.0)
+    errors = {name: _errors_after(model, x, y, one) for name, one in _parts(prior_scale=0.3).items()}
+    assert errors["SL"].mean() < 1.3 * errors["S"].mean(), {k: float(v.mean()) for k, v in errors.items()}
+    assert errors["SL"].mean() < 0.25 * errors["L"].mean()
