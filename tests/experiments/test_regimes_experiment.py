@@ -181,3 +181,26 @@ def test_regime_errors_show_squared_error_descent_pulled_by_the_outlier_huber_le
     assert errors["N", 0.0] == errors["N", 20.0]
     assert errors["mse", 20.0] > 1.8 * errors["mse", 0.0]
     assert errors["huber", 20.0] < errors["mse", 20.0] - 0.3
+
+
+def test_the_readout_table_counts_rows_against_the_better_part_and_both() -> None:
+    """SL is held against the part of lower mean in each row: worse than it counts, worse than the
+    other part alone does not; better than both counts once."""
+    from smcd_rl.experiments.regimes.report import readout_table
+
+    def pair(difference: float, low: float, high: float) -> dict:
+        verdict = "better" if high < 0 else "worse" if low > 0 else "no significant difference"
+        return {"verdict": verdict, "difference": difference, "low": low, "high": high}
+
+    rows = [
+        {"family": "f", "regime": r, "method": m, "rmse_mean": v}
+        for r, means in (("T=1", {"S": 1.0, "L": 2.0, "SL": 1.5}), ("T=3", {"S": 1.0, "L": 0.9, "SL": 0.5}))
+        for m, v in means.items()
+    ]
+    pairs = {
+        ("f", "T=1"): {("SL", "S"): pair(0.5, 0.1, 0.9), ("SL", "L"): pair(-0.5, -0.9, -0.1)},  # worse than S, the better
+        ("f", "T=3"): {("SL", "S"): pair(-0.5, -0.9, -0.1), ("L", "SL"): pair(0.4, 0.1, 0.7)},  # better than both
+    }
+    table, summary = readout_table(pairs, rows, "f", ["T=1", "T=3"])
+    assert summary == "worse than the better part in 1 of 2 rows, better than both in 1"
+    assert "| SL vs S " in table and "T+SL" not in table

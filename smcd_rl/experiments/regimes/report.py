@@ -97,6 +97,12 @@ def tables(
                 "SL vs S",
             ],
         )
+        readout, summary = readout_table(pairs, rows, family, regime_names(config.burn_in, family))
+        if readout:
+            out[
+                f"{family}: SMCD with a Bayesian readout against its parts on the same network, paired over the "
+                f"same tasks, difference [95% CI]; {summary}"
+            ] = readout
         of_family = [c for c in comparisons if c["family"] == family]
         task = task_verdict_table(of_family, cell=("regime",), over="tasks", against=TASK_AGAINST)
         out |= {f"{family}: {caption}": text for caption, text in task.items()}
@@ -109,6 +115,41 @@ def tables(
     )
     out[caption] = format_table(timing, ["method", *networks])
     return out
+
+
+#: SMCD with a Bayesian readout and its parts, on each network that runs them: (SL, S, L).
+READOUT_PARTS = (("SL", "S", "L"), ("T+SL", "T+S", "T+L"))
+
+
+def readout_table(
+    pairs: Mapping[tuple[str, str], Mapping[tuple[str, str], Mapping[str, Any]]],
+    rows: Sequence[Mapping[str, Any]],
+    family: str,
+    regimes: Sequence[str],
+) -> tuple[str, str]:
+    """SL against S and against L per regime and network, and the count of rows where SL is
+    significantly worse than the better of its parts (the one of lower mean) or better than both.
+
+    Returns the Markdown table (empty where no network ran all three) and the counts in words.
+    """
+    means = {(r["regime"], r["method"]): r["rmse_mean"] for r in rows if r["family"] == family}
+    ran = [parts for parts in READOUT_PARTS if all((regimes[0], m) in means for m in parts)]
+    body, worse, better, cells = [], 0, 0, 0
+    for regime in regimes:
+        line = [regime]
+        for both, smcd, readout in ran:
+            verdicts = {part: _verdict(pairs, family, regime, both, part) for part in (smcd, readout)}
+            line += list(verdicts.values())
+            better_part = min((smcd, readout), key=lambda m: means[(regime, m)])
+            cells += 1
+            worse += verdicts[better_part].startswith("worse")
+            better += all(v.startswith("better") for v in verdicts.values())
+        body.append(line)
+    if not ran:
+        return "", ""
+    header = ["regime", *(f"{both} vs {part}" for both, smcd, readout in ran for part in (smcd, readout))]
+    summary = f"worse than the better part in {worse} of {cells} rows, better than both in {better}"
+    return format_table(body, header), summary
 
 
 def _ms_of(ms: Mapping[str, Mapping[str, float]], method: str, network: str) -> float | None:
