@@ -52,6 +52,7 @@ if TYPE_CHECKING:
     )
     from smcd_rl.training import fit, fit_dynamics, fit_reptile
     from smcd_rl.tuning import Calibration, TuneResult, calibrate, episodes, tune
+    from smcd_rl.wrapping import adaptive_model_from, masked_mlp_from
 
 _register_envs()
 
@@ -86,6 +87,8 @@ __all__ = [
     "tune",
     "TuneResult",
     "keep_freed_memory",
+    "masked_mlp_from",
+    "adaptive_model_from",
 ]
 
 #: Where each public name is defined: its module is imported on the name's first use.
@@ -113,6 +116,7 @@ _SOURCES: dict[str, str] = {
         "model",
     ),
     **dict.fromkeys(["fit", "fit_dynamics", "fit_reptile"], "training"),
+    **dict.fromkeys(["masked_mlp_from", "adaptive_model_from"], "wrapping"),
 }
 
 #: Modules that moved into the ``strategies``, ``tuning`` and ``training`` packages: the old path

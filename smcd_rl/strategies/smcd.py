@@ -169,6 +169,13 @@ class SMCD(Adaptation):
         return config
 
     def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
+        if net.dropout == 0.0:
+            raise ValueError(
+                "SMCD filters over dropout masks, and this network was trained without dropout (a wrapped module "
+                "with no nn.Dropout); it needs an nn.Dropout after the activation of each hidden layer it should "
+                f"mask (hidden widths {list(net.hidden)}), trained with it. The last layer and gradient descent run "
+                "without one"
+            )
         super().bind(net, output_scale, calibration=calibration)
         noise_std, flip_prob = self.noise_std, self.flip_prob
         auto = [name for name, value in (("noise_std", noise_std), ("flip_prob", flip_prob)) if is_auto(value)]

@@ -26,8 +26,10 @@ masks trained to identify the task, the filter's answer was lost. Updating the f
 through the readout as it stood, then the readout on the new MMSE mask, kept the filter's answer
 but let the masks chase an error only a readout can express (a shift), and lost to the last
 layer alone there. On a toy family built in the tests (a random network's masked sub-network
-plus an output shift) this coupling is better than both SMCD and the last layer where the task
-has both parts, and ties SMCD where it has masks alone. An exact per-particle covariance would
+plus an output shift, 40 tasks, RMSE after 10 observations), this coupling is better than both
+parts where the task has both (0.049 against the last layer's 0.070 and SMCD's 0.172), and ties
+SMCD where it has masks alone (0.0112 against 0.0103; the readout-first coupling 0.035, the last
+layer 0.154). An exact per-particle covariance would
 cost ``N`` times the memory of ``P``; the shared one costs each particle ``width^2``
 multiply-adds per observation (``phi_i^T P phi_i``), about what one hidden layer of the
 particle's forward pass costs. The filter's noise and flip probability and the readout's prior

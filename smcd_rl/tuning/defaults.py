@@ -21,6 +21,7 @@ from typing import Any
 __all__ = [
     "KINDS",
     "ADAPTING",
+    "MASKED_KINDS",
     "NEEDS",
     "kinds_needed",
     "GD_GRID",
@@ -46,6 +47,8 @@ __all__ = [
 #: in the order it tunes them: SMCD with a Bayesian readout starts from the tuned SMCD and last
 #: layer; a combination mixes the others.
 KINDS = ("none", "gradient_descent", "smcd", "last_layer", "smcd_last_layer", "combination")
+#: The kinds that filter over dropout masks: a network without dropout runs none of them.
+MASKED_KINDS = ("smcd", "smcd_last_layer")
 #: The kinds that adapt: what a combination mixes, with no adaptation.
 ADAPTING = ("gradient_descent", "smcd", "last_layer", "smcd_last_layer")
 #: What each kind built from others tunes first: a combination mixes no adaptation, gradient

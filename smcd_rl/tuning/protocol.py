@@ -56,7 +56,7 @@ from smcd_rl.model import AdaptiveModel
 from smcd_rl.strategies import SMCD, Adaptation
 from smcd_rl.tuning.calibration import Calibration, checked_flips
 from smcd_rl.tuning.criteria import Criterion, Score, checked_criterion
-from smcd_rl.tuning.defaults import ADAPTING, FLIP_PROBS, KINDS, kinds_needed
+from smcd_rl.tuning.defaults import ADAPTING, FLIP_PROBS, KINDS, MASKED_KINDS, kinds_needed
 from smcd_rl.tuning.held_out import checked_model, pairs, stacked
 from smcd_rl.tuning.kinds import (
     checked_gd_grid,
@@ -172,6 +172,15 @@ def tune(
         chosen_before=None if reuse is None else {kind: c.settings for kind, c in reuse.best_of.items()},
     )
     kinds = kinds_needed(strategies)
+    if model.net.dropout == 0.0:  # no masks to filter over: SMCD's kinds cannot run
+        asked = [s for s in strategies if s in MASKED_KINDS]
+        if asked and tuple(strategies) != KINDS:
+            raise ValueError(
+                f"strategies {asked} filter over dropout masks, and this network has no dropout; tune the others "
+                f"({[k for k in KINDS if k not in MASKED_KINDS]})"
+            )
+        kinds = [k for k in kinds if k not in MASKED_KINDS]
+        search.notes.append("SMCD and SMCD with a Bayesian readout: not tuned, the network has no dropout")
     calibrations: dict[str, Calibration] = {}
     kind_seconds: dict[str, float] = {}
     try:

@@ -198,7 +198,10 @@ def test_the_readout_table_counts_rows_against_the_better_part_and_both() -> Non
         for m, v in means.items()
     ]
     pairs = {
-        ("f", "T=1"): {("SL", "S"): pair(0.5, 0.1, 0.9), ("SL", "L"): pair(-0.5, -0.9, -0.1)},  # worse than S, the better
+        ("f", "T=1"): {
+            ("SL", "S"): pair(0.5, 0.1, 0.9),
+            ("SL", "L"): pair(-0.5, -0.9, -0.1),
+        },  # worse than S, the better
         ("f", "T=3"): {("SL", "S"): pair(-0.5, -0.9, -0.1), ("L", "SL"): pair(0.4, 0.1, 0.7)},  # better than both
     }
     table, summary = readout_table(pairs, rows, "f", ["T=1", "T=3"])
