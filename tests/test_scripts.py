@@ -232,3 +232,17 @@ def test_publish_report_replaces_a_reruns_scoreboard_rows_and_redraws_the_board(
     assert after[0]["entry"]["estimates"]["GD"]["mean"] == 0.0123
     assert [e["entry"] for e in after[1:]] == [e["entry"] for e in entries[1:]]
     assert "0.012" in (board.parent / "report.md").read_text() and (page / "report.md").is_file()
+
+
+@pytest.mark.slow  # trains a torchrl MLP and tunes it: seconds
+def test_adapt_own_network_tiny_writes_every_strategys_paired_error(tmp_path: Path) -> None:
+    """A torchrl MLP trained by its own loop, wrapped and tuned: every strategy has a row, each but
+    no adaptation with its paired difference from it."""
+    out = tmp_path / "own-network.md"
+    printed = run_script("adapt_own_network.py", out)
+    report = out.read_text()
+    assert report.startswith("Measured by `python scripts/adapt_own_network.py` on ")
+    for label in ("no adaptation", "gradient descent", "SMCD", "Bayesian last layer", "combination"):
+        assert f"| {label} | " in report and f"| {label} | " in printed
+    intervals = [line for line in report.splitlines() if line.endswith("] |") and ", " in line]
+    assert len(intervals) == 5  # the five adapting strategies' paired intervals

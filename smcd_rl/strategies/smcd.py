@@ -127,9 +127,10 @@ class SMCD(Adaptation):
         #: What turns last hidden activations ``[*B, ..., width]`` into outputs instead of the
         #: network's output layer: an adapted readout per stream (:class:`smcd_rl.SMCDLastLayer`).
         self.readout: Callable[[Tensor], Tensor] | None = None
-        #: With :attr:`readout`: each proposed particle's noise variance factor ``[*B, N]`` (at least 1)
-        #: for the predictions the readout just made, the readout's own uncertainty at the particle's
-        #: features (:class:`smcd_rl.SMCDLastLayer`); ``None``: the noise alone.
+        #: With :attr:`readout`: each proposed particle's noise variance factor, ``[*B, N]`` or per
+        #: output ``[*B, N, out]`` (at least 1), for the predictions the readout just made: the
+        #: readout's own uncertainty at the particle's features (:class:`smcd_rl.SMCDLastLayer`);
+        #: ``None``: the noise alone.
         self.noise_scale: Callable[[], Tensor] | None = None
         self._sigma = noise
         self._log_norm = torch.tensor(0.0)
@@ -250,10 +251,11 @@ class SMCD(Adaptation):
             predictions = forward(inputs, masks, lineage, readout=self.readout)
             residual = (targets.unsqueeze(-2) - predictions) / sigma
             norm: Tensor | float = log_norm
-            if self.noise_scale is not None:  # the noise's std times sqrt(scale), per particle
+            if self.noise_scale is not None:  # the noise's std times sqrt(scale), per particle (and output)
                 scale = self.noise_scale()
-                residual = residual / scale.sqrt().unsqueeze(-1)
-                norm = log_norm - 0.5 * residual.shape[-1] * scale.log()
+                scale = scale.unsqueeze(-1).expand_as(residual) if scale.dim() < residual.dim() else scale
+                residual = residual / scale.sqrt()
+                norm = log_norm - 0.5 * scale.log().sum(-1)
             if student:
                 return norm - (dof + 1) / 2 * torch.log1p(residual.square() / dof).sum(-1)
             return norm - 0.5 * residual.square().sum(-1)

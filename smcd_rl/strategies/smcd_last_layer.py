@@ -5,9 +5,10 @@
 particle filter: each mask particle carries its own readout mean, learnt from the features of
 its own masks, and every particle shares one readout covariance per stream. Per observation:
 
-1. **each particle's likelihood is the readout's predictive**: ``N(m_i^T phi_i, s^2 (1 + phi_i^T
-   P phi_i))`` with ``phi_i`` the particle's last hidden features, ``m_i`` its readout mean and
-   ``P`` the shared covariance. The readout's uncertainty, not a point estimate of it, meets the
+1. **each particle's likelihood is the readout's predictive**: ``N(m_i^T phi_i, s_S^2 + s_L^2
+   phi_i^T P phi_i)`` with ``phi_i`` the particle's last hidden features, ``m_i`` its readout mean,
+   ``P`` the shared covariance (in units of the readout's noise variance ``s_L^2``) and ``s_S`` the
+   filter's noise. The readout's uncertainty, not a point estimate of it, meets the
    masks: while ``P`` is wide an error any readout could explain (a shift) costs a particle
    little, and as ``P`` settles the masks are weighed by what the readout cannot absorb;
 2. **each particle's readout mean** takes its exact Kalman step on its own features and
@@ -151,14 +152,21 @@ class SMCDLastLayer(Adaptation):
         return out.reshape(*features.shape[:-1], out.shape[-1])
 
     def _particle_noise_scale(self) -> Tensor:
-        """``1 + phi_i^T P phi_i`` for the particles :meth:`_particle_readout` just read (drift included)."""
+        """Each particle's predictive variance over the filter's noise variance, per output ``[B, N, out]``:
+        ``1 + (s_L / s_S)^2 phi_i^T P phi_i`` for the particles :meth:`_particle_readout` just read.
+
+        ``P`` is in units of the readout's noise variance ``s_L^2`` (its prior is ``s_L^2
+        prior_scale^2 I``), so the readout's uncertainty at ``phi_i`` is ``s_L^2 phi_i^T P phi_i``,
+        added to the filter's own noise ``s_S^2``.
+        """
         if self._seen is None:
             raise RuntimeError("SMCDLastLayer: a particle's noise scale was asked for before its readout")
         phi = self._seen[0]
-        spread = self.last_layer.spread(phi)  # [B, N, D]: P phi, in the features' precision
-        scale = (1.0 + (phi * spread).sum(-1)).clamp_min(1.0)  # P is positive semi-definite: never below 1
-        self._seen = (phi, spread, scale)
-        return scale
+        spread = self.last_layer.spread(phi)  # [B, N, D]: (P + q I) phi, in the features' precision
+        quadratic = (phi * spread).sum(-1).clamp_min(0.0)  # P is positive semi-definite: never below 0
+        ratio = (self.last_layer._sigma / self.smcd._sigma.to(self.last_layer._sigma)).square().to(phi.dtype)
+        self._seen = (phi, spread, 1.0 + quadratic)  # the readout's own gain is in its own noise's units
+        return 1.0 + quadratic.unsqueeze(-1) * ratio
 
     def predict(self, inputs: Tensor) -> Tensor:
         if self.smcd.prediction == "predictive":

@@ -377,12 +377,13 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
         search.notes.append("SMCD with a Bayesian readout: needs a tuned SMCD and last layer, so not tuned")
         return
     scale = readout.settings["prior_scale"]
-    settings = [
-        {"smcd": smcd.settings, "last_layer": {**readout.settings, "prior_scale": scale * factor}}
-        for factor in SMCD_LAST_LAYER_SCALES
-    ]
     particles = smcd.settings.get("num_particles", SMCD().num_particles)
     small = int(particles * SEARCH_PARTICLE_SHARE)
+
+    def setting(factor: float) -> dict[str, Any]:
+        return {"smcd": smcd.settings, "last_layer": {**readout.settings, "prior_scale": scale * factor}}
+
+    settings = [setting(factor) for factor in SMCD_LAST_LAYER_SCALES]
     known = all(setting_key("smcd_last_layer", one) in search.known for one in settings)
     if shortcuts and small >= MIN_SEARCH_PARTICLES and not known and search.scorer.criterion.name != "evidence":
         reduced = [
@@ -393,6 +394,18 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
         settings = [one for one, score in zip(settings, reduced, strict=True) if score <= near] or settings
     for one in settings:
         search.score("smcd_last_layer", one)
+    # A best readout at the tightest scale: the filter wants the masks to explain more; go tighter.
+    factor = min(SMCD_LAST_LAYER_SCALES)
+    for _ in range(MAX_EXTENSIONS):
+        best = search.best_of.get("smcd_last_layer")
+        if best is None or best.settings["last_layer"]["prior_scale"] > scale * factor * (1 + 1e-9):
+            break
+        factor /= 3
+        search.score("smcd_last_layer", setting(factor))
+        search.notes.append(
+            f"SMCD with a Bayesian readout: best prior_scale {scale * factor * 3:g} on the grid's low edge; tried "
+            f"{scale * factor:g}"
+        )
     search.time_best("smcd_last_layer")
 
 

@@ -507,10 +507,12 @@ def test_smcd_with_a_bayesian_readout_starts_from_the_tuned_smcd_and_last_layer(
     result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["smcd_last_layer"], **FAST)
     assert {"smcd", "last_layer", "smcd_last_layer"} <= set(result.best_of)
     both = [c for c in result.candidates if c.kind == "smcd_last_layer"]
-    assert len(both) == 4 and all(c.settings["smcd"] == result.best_of["smcd"].settings for c in both)
-    scales = sorted(c.settings["last_layer"]["prior_scale"] for c in both)
-    assert scales[2] == result.best_of["last_layer"].settings["prior_scale"]
-    assert scales[:2] == pytest.approx([scales[2] / 10, scales[2] / 3]) and scales[3] == pytest.approx(scales[2] * 3)
+    assert all(c.settings["smcd"] == result.best_of["smcd"].settings for c in both)
+    readout = result.best_of["last_layer"].settings["prior_scale"]
+    factors = sorted(c.settings["last_layer"]["prior_scale"] / readout for c in both)
+    assert factors[-6:] == pytest.approx([1 / 100, 1 / 30, 1 / 10, 1 / 3, 1, 3])
+    # below the grid only while the best lies at its low edge, a third each time
+    assert factors[:-6] == pytest.approx([1 / 100 / 3**k for k in range(len(factors) - 6, 0, -1)])
     strategy = result.strategy("smcd_last_layer")
     assert isinstance(strategy, smcd_rl.SMCDLastLayer)
     # The tuned strategy repeats the scored run: its one-step error on the episodes is the candidate's.
