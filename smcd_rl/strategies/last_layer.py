@@ -143,10 +143,11 @@ class BayesianLastLayer(Adaptation):
         Raises:
             ValueError: the posterior would become inf or NaN; it is left as it was.
         """
-        self._mean, self._cov = self.updated(features, targets)
+        self._mean, self._cov, _ = self.updated(features, targets)
 
-    def updated(self, features: Tensor, targets: Tensor) -> tuple[Tensor, Tensor]:
-        """The posterior mean and covariance :meth:`update` would set, without setting them."""
+    def updated(self, features: Tensor, targets: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The posterior mean and covariance :meth:`update` would set, without setting them, and the
+        update's downdate ``u [B, width + 1]``: the new covariance is ``P + q I - u u^T``."""
         mean, cov = self._state()
         phi = self._augmented(features.reshape(mean.shape[0], -1).to(STATE_DTYPE))  # [B, D]
         if targets.numel() != mean.shape[0] * mean.shape[2]:
@@ -181,7 +182,7 @@ class BayesianLastLayer(Adaptation):
         new_cov = torch.baddbmm(cov, u.unsqueeze(-1), u.unsqueeze(-2), alpha=-1.0)
         if q > 0:
             new_cov.diagonal(dim1=-2, dim2=-1).add_(q)
-        return new_mean, new_cov
+        return new_mean, new_cov, u
 
     def spread(self, phi: Tensor) -> Tensor:
         """``(P + q I) phi`` for augmented features ``phi [B, n, width + 1]``, in ``phi``'s precision:

@@ -95,7 +95,12 @@ class SMCDLastLayer(Adaptation):
         self.smcd.readout = self._particle_readout  # each particle read out by its own readout mean
         self.smcd.noise_scale = self._particle_noise_scale
         self._means: Tensor | None = None  # [B, N, D, out]: each particle's readout mean
-        self._seen: tuple[Tensor, Tensor, Tensor] | None = None  # the last particle readout's phi, P phi, scale
+        # The last particle readout's phi and predictions, then (P + q I) phi and the scale of each particle.
+        self._seen: tuple[Tensor, ...] | None = None
+        # The shared covariance as the prior's diagonal less the updates' downdates: P_t = (s^2 + q t) I
+        # - U U^T exactly (float64), U [B, D, t]; None once t passes D, where the dense P is cheaper.
+        self._downdates: Tensor | None = None
+        self._steps: Tensor | None = None  # [B]: t, the observations each stream's P has taken
 
     def reset(self, batch_shape: tuple[int, ...]) -> None:
         self._batch_shape = batch_shape
@@ -106,6 +111,8 @@ class SMCDLastLayer(Adaptation):
         particles = self.smcd.particles.shape[-2]
         self._means = prior.to(dtype).unsqueeze(1).expand(-1, particles, -1, -1).clone()
         self._seen = None
+        self._downdates = prior.new_zeros(prior.shape[0], prior.shape[1], 0)
+        self._steps = prior.new_zeros(prior.shape[0])
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
         self._check_transition(inputs, targets)
@@ -113,33 +120,41 @@ class SMCDLastLayer(Adaptation):
         before = self.smcd.state_dict()
         self.smcd.observe(inputs, targets)  # weighs the proposed particles through _particle_readout
         try:
-            assert self._seen is not None
-            phi, spread, scale = self._seen  # [B, N, D], [B, N, D] (P phi, drift included), [B, N]
+            assert self._seen is not None and len(self._seen) == 4
+            phi, predicted, spread, scale = self._seen  # [B, N, D], [B, N, out], (P + q I) phi, [B, N]
             streams, means = phi.shape[0], means.to(phi.dtype)  # the network's precision (moved by model.to)
-            flat_targets = targets.reshape(streams, 1, -1).to(phi.dtype)
-            residual = flat_targets - torch.einsum("bnd,bndo->bno", phi, means)
+            residual = targets.reshape(streams, 1, -1).to(phi.dtype) - predicted
             gain = self.last_layer.gain(residual, scale)  # [B, N]: Kalman's 1 / (1 + phi^T P phi), weighted
-            updated = means + (spread * gain.unsqueeze(-1)).unsqueeze(-1) * residual.unsqueeze(-2)
-            ancestors = self.smcd._filter.ancestors
-            if ancestors is not None:  # each readout mean follows its particle through resampling
-                index = ancestors.reshape(streams, -1, 1, 1).expand(-1, -1, *updated.shape[-2:])
-                updated = torch.gather(updated, 1, index)
-                phi = torch.gather(phi, 1, ancestors.reshape(streams, -1, 1).expand(-1, -1, phi.shape[-1]))
-            weights = self.smcd._filter.weights.reshape(streams, -1, 1).to(phi.dtype)
-            mean_features = (weights * phi).sum(1)[:, :-1]  # the shared covariance's update: [B, width]
-            _, cov = self.last_layer.updated(mean_features, targets)
-            if not bool(torch.isfinite(updated).all()):
+            step = (gain.unsqueeze(-1) * residual).unsqueeze(-2)  # [B, N, 1, out]
+            if not bool(torch.isfinite(step).all()):
                 raise ValueError(
                     "a particle's readout became inf or NaN on this observation (a target of inf or of a far larger "
                     "scale than the model's); the adaptation state is unchanged"
                 )
+            updated = torch.addcmul(means, spread.unsqueeze(-1), step)
+            particles = phi.shape[1]
+            weights = self.smcd._filter.weights.reshape(streams, particles).to(phi.dtype)
+            ancestors = self.smcd._filter.ancestors
+            if ancestors is not None:  # each readout mean follows its particle through resampling
+                rows = particles * torch.arange(streams, device=phi.device).unsqueeze(1)
+                flat = (ancestors.reshape(streams, particles) + rows).reshape(-1)
+                updated = updated.reshape(streams * particles, -1).index_select(0, flat).reshape(updated.shape)
+                # the weights of each proposed particle's copies: its share of the weighted mean features
+                weights = torch.zeros_like(weights).reshape(-1).index_add_(0, flat, weights.reshape(-1))
+                weights = weights.reshape(streams, particles)
+            mean_features = torch.bmm(weights.unsqueeze(1), phi)[:, 0, :-1]  # the shared covariance's update
+            _, cov, downdate = self.last_layer.updated(mean_features, targets)
         except BaseException:
             self.smcd.load_state_dict(before)  # the readout refused it: the filter forgets it too
             raise
         finally:
             self._seen = None
         self._means = updated
-        mean = (weights.unsqueeze(-1) * updated).sum(1)  # the weighted mean readout, for predictions
+        self._steps = self._steps + 1 if self._steps is not None else None
+        if self._downdates is not None:
+            grown = torch.cat([self._downdates, downdate.unsqueeze(-1)], dim=-1)
+            self._downdates = grown if grown.shape[-1] < grown.shape[-2] else None
+        mean = (self.smcd._filter.weights.reshape(streams, -1, 1, 1).to(updated.dtype) * updated).sum(1)
         self.last_layer.load_state_dict({"mean": mean, "cov": cov})
 
     def _particle_readout(self, features: Tensor) -> Tensor:
@@ -147,8 +162,11 @@ class SMCDLastLayer(Adaptation):
         means = self._state()
         streams, particles = means.shape[:2]
         phi = BayesianLastLayer._augmented(features.reshape(streams, -1, particles, features.shape[-1]))
-        out = torch.einsum("bend,bndo->beno", phi, means.to(phi.dtype))
-        self._seen = (phi[:, 0], None, None) if phi.shape[1] == 1 else None  # type: ignore[assignment]
+        extra = phi.shape[1]
+        flat = phi.transpose(1, 2).reshape(streams * particles, extra, phi.shape[-1])  # [B N, e, D]
+        out = torch.bmm(flat, means.to(phi.dtype).reshape(streams * particles, *means.shape[2:]))  # [B N, e, out]
+        out = out.reshape(streams, particles, extra, -1).transpose(1, 2)  # [B, e, N, out]
+        self._seen = (phi[:, 0], out[:, 0]) if extra == 1 else None
         return out.reshape(*features.shape[:-1], out.shape[-1])
 
     def _particle_noise_scale(self) -> Tensor:
@@ -162,11 +180,34 @@ class SMCDLastLayer(Adaptation):
         if self._seen is None:
             raise RuntimeError("SMCDLastLayer: a particle's noise scale was asked for before its readout")
         phi = self._seen[0]
-        spread = self.last_layer.spread(phi)  # [B, N, D]: (P + q I) phi, in the features' precision
-        quadratic = (phi * spread).sum(-1).clamp_min(0.0)  # P is positive semi-definite: never below 0
+        spread, quadratic = self._spread(phi)  # (P + q I) phi [B, N, D] and phi^T (P + q I) phi [B, N]
+        quadratic = quadratic.clamp_min(0.0)  # P is positive semi-definite: never below 0
         ratio = (self.last_layer._sigma / self.smcd._sigma.to(self.last_layer._sigma)).square().to(phi.dtype)
-        self._seen = (phi, spread, 1.0 + quadratic)  # the readout's own gain is in its own noise's units
-        return 1.0 + quadratic.unsqueeze(-1) * ratio
+        self._seen = (phi, self._seen[1], spread, 1.0 + quadratic)  # the gains: in the readout's noise units
+        scale = 1.0 + quadratic.unsqueeze(-1) * ratio  # [B, N, out], the model's batch dims flattened
+        return scale.reshape(*self._batch_shape, *scale.shape[1:])
+
+    def _spread(self, phi: Tensor) -> tuple[Tensor, Tensor]:
+        """``(P + q I) phi [B, N, D]`` for each particle's features ``phi [B, N, D]``, in ``phi``'s
+        precision, and ``phi^T (P + q I) phi [B, N]``.
+
+        While a stream has taken fewer observations than ``D``, from ``P = (s^2 + q t) I - U U^T``:
+        ``N D t`` multiply-adds instead of the dense ``N D^2``. The quadratic form is taken in
+        float64, where its two terms cancel when the posterior is sure of a direction.
+        """
+        if self._downdates is None or self._steps is None:
+            spread = self.last_layer.spread(phi)
+            return spread, (phi * spread).sum(-1)
+        readout = self.last_layer
+        q = readout.drift * readout.prior_scale**2
+        diagonal = (readout.prior_scale**2 + q * (self._steps + 1)).reshape(-1, 1, 1)  # the drift of this step
+        wide = phi.to(torch.float64)
+        projected = torch.bmm(wide, self._downdates)  # [B, N, t]
+        quadratic = diagonal[..., 0] * wide.square().sum(-1) - projected.square().sum(-1)
+        downdates = self._downdates.to(phi.dtype).transpose(-1, -2)
+        spread = torch.baddbmm(phi, projected.to(phi.dtype), downdates, beta=1.0, alpha=-1.0)  # phi - U U^T phi
+        spread = spread + (diagonal.to(phi.dtype) - 1.0) * phi  # ... then the diagonal's (s^2 + q t) phi
+        return spread, quadratic.to(phi.dtype)
 
     def predict(self, inputs: Tensor) -> Tensor:
         if self.smcd.prediction == "predictive":
@@ -207,10 +248,12 @@ class SMCDLastLayer(Adaptation):
             "smcd": self.smcd.state_dict(),
             "last_layer": self.last_layer.state_dict(),
             "means": self._state().clone(),
+            "downdates": None if self._downdates is None else self._downdates.clone(),
+            "steps": None if self._steps is None else self._steps.clone(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if not isinstance(state, Mapping) or set(state) != {"smcd", "last_layer", "means"}:
+        if not isinstance(state, Mapping) or not {"smcd", "last_layer", "means"} <= set(state):
             raise ValueError(
                 "an SMCDLastLayer's state is a dict of 'smcd', 'last_layer' and 'means' states (its state_dict())"
             )
@@ -231,6 +274,11 @@ class SMCDLastLayer(Adaptation):
             self.last_layer.load_state_dict(before["last_layer"])
             raise
         self._means = given.to(device=means.device, dtype=means.dtype).clone()
+        downdates, steps = state.get("downdates"), state.get("steps")
+        fits = isinstance(downdates, Tensor) and isinstance(steps, Tensor) and downdates.shape[:2] == means.shape[::2]
+        # Without its downdates (or with another's) the shared covariance is read dense: always exact.
+        self._downdates = downdates.to(device=means.device, dtype=torch.float64).clone() if fits else None  # type: ignore[union-attr]
+        self._steps = steps.to(device=means.device, dtype=torch.float64).clone() if fits else None  # type: ignore[union-attr]
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         self.smcd.restore_rows(state["smcd"], rows)
@@ -238,6 +286,14 @@ class SMCDLastLayer(Adaptation):
         means = self._state()
         keep = rows.to(means.device).reshape(-1, 1, 1, 1)
         self._means = torch.where(keep, state["means"], means)
+        saved, steps = state.get("downdates"), state.get("steps")
+        if self._downdates is None or self._steps is None or saved is None or steps is None:
+            self._downdates = self._steps = None  # the dense covariance, restored by the last layer, is exact
+            return
+        width = max(saved.shape[-1], self._downdates.shape[-1])  # zero columns downdate nothing
+        pad = [torch.nn.functional.pad(u, (0, width - u.shape[-1])) for u in (saved, self._downdates)]
+        self._downdates = torch.where(keep[..., 0], pad[0], pad[1])
+        self._steps = torch.where(keep.reshape(-1), steps, self._steps)
 
     def _state(self) -> Tensor:
         if self._means is None:

@@ -473,3 +473,34 @@ def test_smcd_with_a_bayesian_readout_ties_smcd_where_the_task_is_a_mask_alone(o
     errors = {name: _errors_after(model, x, y, one) for name, one in _parts(prior_scale=0.3).items()}
     assert errors["SL"].mean() < 1.3 * errors["S"].mean(), {k: float(v.mean()) for k, v in errors.items()}
     assert errors["SL"].mean() < 0.25 * errors["L"].mean()
+
+
+def test_the_shared_covariance_from_its_downdates_is_the_dense_one() -> None:
+    """SL reads ``(P + q I) phi`` for every particle as ``(s^2 + q t) I - U U^T`` from the updates'
+    downdates while a stream has seen fewer observations than the readout has rows; a filter that
+    reads the dense ``P`` instead takes the same steps (float64: the same to rounding), drift included."""
+    inputs, targets, _ = _task(_net(), 12, 3, seed=2, noise=0.05)
+    predictions = []
+    for dense in (False, True):
+        net = _net()
+        smcd = smcd_rl.SMCD(num_particles=40, noise_std=0.1, generator=torch.Generator().manual_seed(0))
+        both = _bound(
+            smcd_rl.SMCDLastLayer(smcd, smcd_rl.BayesianLastLayer(noise_std=0.2, prior_scale=0.5, drift=0.01)), net
+        )
+        if dense:
+            both._downdates = None
+        for x, y in zip(inputs, targets, strict=True):
+            both.observe(x, y)
+        assert (both._downdates is None) == dense and (dense or both._downdates.shape[-1] == 12)
+        predictions.append(both.predict(inputs[0]).detach())
+    torch.testing.assert_close(predictions[0], predictions[1], rtol=0, atol=1e-9)
+
+
+def test_smcd_with_a_bayesian_readout_observes_an_unbatched_stream() -> None:
+    """With no batch dims the particles' noise scales once came back as ``[1, N]`` and the filter refused them."""
+    both = smcd_rl.SMCDLastLayer(smcd_rl.SMCD(num_particles=30, noise_std=0.1), smcd_rl.BayesianLastLayer(noise_std=0.1))
+    model = _adaptive(both)
+    model.reset()
+    for _ in range(3):
+        model.observe(TensorDict({"q": torch.rand(2), "ee": torch.rand(2)}, []))
+    assert both.state_dict()["steps"].tolist() == [3.0]
