@@ -498,7 +498,9 @@ def test_the_shared_covariance_from_its_downdates_is_the_dense_one() -> None:
 
 def test_smcd_with_a_bayesian_readout_observes_an_unbatched_stream() -> None:
     """With no batch dims the particles' noise scales once came back as ``[1, N]`` and the filter refused them."""
-    both = smcd_rl.SMCDLastLayer(smcd_rl.SMCD(num_particles=30, noise_std=0.1), smcd_rl.BayesianLastLayer(noise_std=0.1))
+    both = smcd_rl.SMCDLastLayer(
+        smcd_rl.SMCD(num_particles=30, noise_std=0.1), smcd_rl.BayesianLastLayer(noise_std=0.1)
+    )
     model = _adaptive(both)
     model.reset()
     for _ in range(3):
