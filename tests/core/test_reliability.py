@@ -527,7 +527,12 @@ def test_declaring_a_model_fitted_keeps_the_normalisation_unfitted_and_survives_
 
 # ---------------------------------------------------------------------------- Ctrl-C
 def test_ctrl_c_prints_one_line_and_exits_130(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A real SIGINT, 1.5 s into a two-link run that takes minutes."""
+    """A real SIGINT, 1.5 s into a two-link run that takes minutes.
+
+    The test gives SIGINT the handler a terminal's Ctrl-C meets, for its own duration: a suite
+    started as a background job (``nohup bash -c ... &``) inherits SIGINT ignored, and run so,
+    after the tests before it, the signal was dropped and the command ran for minutes."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     timer = threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGINT))
     timer.start()
     try:
@@ -536,6 +541,7 @@ def test_ctrl_c_prints_one_line_and_exits_130(tmp_path: Path, capsys: pytest.Cap
         pytest.fail("KeyboardInterrupt escaped cli.main")
     finally:
         timer.cancel()
+        signal.signal(signal.SIGINT, previous)
     assert status == 130
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if "interrupted" in line]
