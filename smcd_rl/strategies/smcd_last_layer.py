@@ -275,10 +275,11 @@ class SMCDLastLayer(Adaptation):
             raise
         self._means = given.to(device=means.device, dtype=means.dtype).clone()
         downdates, steps = state.get("downdates"), state.get("steps")
-        fits = isinstance(downdates, Tensor) and isinstance(steps, Tensor) and downdates.shape[:2] == means.shape[::2]
         # Without its downdates (or with another's) the shared covariance is read dense: always exact.
-        self._downdates = downdates.to(device=means.device, dtype=torch.float64).clone() if fits else None  # type: ignore[union-attr]
-        self._steps = steps.to(device=means.device, dtype=torch.float64).clone() if fits else None  # type: ignore[union-attr]
+        self._downdates = self._steps = None
+        if isinstance(downdates, Tensor) and isinstance(steps, Tensor) and downdates.shape[:2] == means.shape[::2]:
+            self._downdates = downdates.to(device=means.device, dtype=torch.float64).clone()
+            self._steps = steps.to(device=means.device, dtype=torch.float64).clone()
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         self.smcd.restore_rows(state["smcd"], rows)

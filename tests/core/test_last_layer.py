@@ -506,3 +506,23 @@ def test_smcd_with_a_bayesian_readout_observes_an_unbatched_stream() -> None:
     for _ in range(3):
         model.observe(TensorDict({"q": torch.rand(2), "ee": torch.rand(2)}, []))
     assert both.state_dict()["steps"].tolist() == [3.0]
+
+
+def test_smcd_with_a_bayesian_readout_restores_a_saved_state_exactly() -> None:
+    """Its state holds the particles' readout means and the covariance's downdates: loading it
+    after more observations predicts, and then observes, as if nothing had happened since."""
+    inputs, targets, _ = _task(_net(), 8, 3, seed=4, noise=0.05)
+    smcd = smcd_rl.SMCD(num_particles=40, noise_std=0.1, generator=torch.Generator().manual_seed(0))
+    both = _bound(smcd_rl.SMCDLastLayer(smcd, smcd_rl.BayesianLastLayer(noise_std=0.2, prior_scale=0.5)), _net())
+    for x, y in zip(inputs[:4], targets[:4], strict=True):
+        both.observe(x, y)
+    saved = both.state_dict()
+    continued = []
+    for x, y in zip(inputs[4:], targets[4:], strict=True):
+        both.observe(x, y)
+        continued.append(both.predict(inputs[0]).detach())
+    both.load_state_dict(saved)
+    assert both._downdates is not None and both._downdates.shape[-1] == 4
+    for (x, y), expected in zip(zip(inputs[4:], targets[4:], strict=True), continued, strict=True):
+        both.observe(x, y)
+        torch.testing.assert_close(both.predict(inputs[0]).detach(), expected, rtol=0, atol=1e-12)
