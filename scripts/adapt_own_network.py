@@ -26,7 +26,7 @@ from torchrl.modules import MLP
 
 import smcd_rl
 from smcd_rl.envs.two_link_arm import motor_babbling, sample_link_lengths, two_link_fk
-from smcd_rl.experiments.shared.runtime import machine_info
+from smcd_rl.experiments.shared.outputs import Transcript
 
 #: What each strategy is called in the report.
 LABELS = {
@@ -79,15 +79,8 @@ def main() -> None:
     torch.manual_seed(args.seed)
     generator = torch.Generator().manual_seed(args.seed)
     epochs, test_arms, particles = (2, 6, 50) if args.tiny else (40, 50, 1000)
-    info = {k: v for k, v in machine_info().items() if k in ("processor", "cpus", "torch_threads", "torch")}
-    lines = [
-        "Measured by `python scripts/adapt_own_network.py` on " + ", ".join(f"{k} {v}" for k, v in info.items()) + ".",
-        "",
-    ]
-
-    def say(line: str = "") -> None:
-        print(line, flush=True)
-        lines.append(line)
+    transcript = Transcript("python scripts/adapt_own_network.py")
+    say = transcript.say
 
     data = motor_babbling(100, 10 if args.tiny else 50, 10, measurement_noise=0.01, generator=generator)
     module = MLP(in_features=2, out_features=2, num_cells=[128, 128], dropout=0.1, activation_class=nn.ReLU)
@@ -115,9 +108,7 @@ def main() -> None:
     for kind, error in errors.items():
         versus = "" if kind == "none" else paired(error - errors["none"])
         say(f"| {LABELS[kind]} | {float(error.mean()):.4f} | {versus} |")
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text("\n".join(lines) + "\n")
+    transcript.write(args.out)
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
-from smcd_rl.experiments.shared.runtime import machine_info
+from smcd_rl.experiments.shared.outputs import Transcript
 from smcd_rl.tuning.criteria import checked_criterion
 from smcd_rl.tuning.diagnostics import trace
 from smcd_rl.tuning.scoring import Scorer
@@ -66,15 +66,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     if hasattr(smcd_rl, "keep_freed_memory"):  # as a script of its own should (older versions have none)
         smcd_rl.keep_freed_memory()
-    info = {k: v for k, v in machine_info().items() if k in ("processor", "cpus", "torch_threads", "torch")}
-    lines = [
-        "Measured by `python scripts/bench_tune.py` on " + ", ".join(f"{k} {v}" for k, v in info.items()) + ".",
-        "",
-    ]
-
-    def say(line: str = "") -> None:
-        print(line, flush=True)
-        lines.append(line)
+    transcript = Transcript("python scripts/bench_tune.py")
+    say = transcript.say
 
     generator = torch.Generator().manual_seed(args.seed)
     train = torch.cat([arms(100, 10, generator) for _ in range(20)], 1)  # 100 arms x 200 samples
@@ -144,9 +137,7 @@ def main() -> None:
         f"`calibrate` by look-ahead / the best single noise: {calibrated['search'] / best:.3f} "
         f"(the residual's proportions alone: {calibrated['proportional'] / best:.3f})."
     )
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text("\n".join(lines) + "\n")
+    transcript.write(args.out)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,46 @@ from typing import Any
 
 from smcd_rl.files import write_atomic, write_text
 
-__all__ = ["write_csv", "write_json", "write_text", "save_figure", "format_table", "ms_cell", "settings_fingerprint"]
+__all__ = [
+    "write_csv",
+    "write_json",
+    "write_text",
+    "save_figure",
+    "format_table",
+    "ms_cell",
+    "settings_fingerprint",
+    "Transcript",
+]
+
+
+class Transcript:
+    """What a benchmark script prints, kept to be written as a Markdown report: its first line names
+    the command and where it was measured (processor, cores, torch threads and version).
+
+    Example:
+        >>> transcript = Transcript("python scripts/bench.py")
+        >>> transcript.say("| a | b |")
+        | a | b |
+        >>> transcript.lines[0].startswith("Measured by `python scripts/bench.py` on processor ")
+        True
+    """
+
+    def __init__(self, command: str) -> None:
+        from smcd_rl.experiments.shared.runtime import machine_info  # imports torch: not for every user of outputs
+
+        info = {k: v for k, v in machine_info().items() if k in ("processor", "cpus", "torch_threads", "torch")}
+        self.lines = [f"Measured by `{command}` on " + ", ".join(f"{k} {v}" for k, v in info.items()) + ".", ""]
+
+    def say(self, line: str = "") -> None:
+        """Print ``line`` now and keep it for the report."""
+        print(line, flush=True)
+        self.lines.append(line)
+
+    def write(self, path: str | os.PathLike[str] | None) -> None:
+        """Write the report to ``path`` (its folder made if needed); nothing where ``path`` is ``None``."""
+        if path is not None:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            write_text(path, "\n".join(self.lines) + "\n", what="report")
 
 
 def settings_fingerprint(settings: Mapping[str, Any]) -> str:
