@@ -30,7 +30,12 @@ from torch import Tensor
 from smcd_rl.checks import check_real
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["Adaptation", "is_auto", "checked_noise", "checked_likelihood", "Likelihood"]
+__all__ = ["Adaptation", "is_auto", "checked_noise", "checked_likelihood", "Likelihood", "TUKEY_CUT"]
+
+#: Tukey's biweight (gradient descent's ``loss="tukey"``, the Bayesian last layer's
+#: ``likelihood="tukey"``) ignores a residual beyond this many units of its scale: the classic
+#: constant, at which the biweight keeps 95 % of least squares' efficiency on Gaussian residuals.
+TUKEY_CUT = 4.685
 
 #: The observation likelihoods of the strategies that weigh residuals (SMCD, the Bayesian last layer).
 Likelihood = Literal["gaussian", "student-t"]
@@ -173,9 +178,12 @@ def checked_noise(noise_std: Any, *, auto: bool = True) -> Tensor:
     return noise
 
 
-def checked_likelihood(likelihood: Any, dof: Any) -> tuple[Likelihood, float]:
+def checked_likelihood(likelihood: Any, dof: Any, *, also: tuple[str, ...] = ()) -> tuple[Likelihood, float]:
     """``likelihood`` and the Student-t's degrees of freedom ``dof``, checked (``dof`` is checked with either
-    likelihood, so that a bad value fails now and not when the likelihood is switched)."""
-    if likelihood not in ("gaussian", "student-t"):
-        raise ValueError(f"likelihood must be 'gaussian' or 'student-t', got {likelihood!r}")
-    return likelihood, check_real(dof, "dof", low=0.0, high=1e12, open_low=True)  # beyond, use likelihood="gaussian"
+    likelihood, so that a bad value fails now and not when the likelihood is switched). ``also``: the
+    caller's further likelihoods, named in the error (the caller handles them)."""
+    if not isinstance(likelihood, str) or likelihood not in ("gaussian", "student-t"):
+        choices = " or ".join(repr(c) for c in ("gaussian", "student-t", *also))
+        raise ValueError(f"likelihood must be {choices}, got {likelihood!r}")
+    checked: Likelihood = "gaussian" if likelihood == "gaussian" else "student-t"
+    return checked, check_real(dof, "dof", low=0.0, high=1e12, open_low=True)  # beyond, use likelihood="gaussian"

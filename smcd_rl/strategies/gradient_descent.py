@@ -40,15 +40,24 @@ class GradientDescent(Adaptation):
       bounded: one corrupted observation, which stays in the window for ``window`` steps, pulls
       the weights with at most the force of a residual of ``huber_delta`` instead of a force
       that grows with its error.
+    * ``"tukey"``: Tukey's biweight, ``rho(r) = (c**2 / 3) * (1 - (1 - (r / c)**2)**3)`` while
+      ``|r| <= c`` and ``c**2 / 3`` beyond, with ``c = TUKEY_CUT * huber_delta`` (equal to ``"mse"``
+      near zero, as the Huber loss). Its gradient redescends to zero: a reading more than ``c`` off
+      the current prediction does not pull at all. The Huber loss's bounded pull still adds up
+      over ``steps x window`` gradient steps and, once the other residuals have shrunk, outweighs
+      them; the biweight ignores such a reading. Where every residual lies beyond ``c`` (a task
+      far from the trained ones), it does not adapt: it falls back on the trained network.
 
     Args:
         lr: learning rate.
         steps: gradient steps per observation.
         window: how many recent transitions the loss uses.
-        loss: ``"mse"`` (squared error) or ``"huber"`` (squared, then linear beyond ``huber_delta``).
-        huber_delta: where the Huber loss turns linear, in normalised units: ``1.0`` is one
-            standard deviation of the training targets (of each output). Positive and finite;
-            unused with ``loss="mse"``.
+        loss: ``"mse"`` (squared error), ``"huber"`` (squared, then linear beyond ``huber_delta``)
+            or ``"tukey"`` (squared near zero, flat beyond ``TUKEY_CUT * huber_delta``).
+        huber_delta: the robust losses' scale, in normalised units (``1.0`` is one standard
+            deviation of the training targets, of each output): where the Huber loss turns
+            linear; Tukey's is flat beyond :data:`smcd_rl.strategies.base.TUKEY_CUT` times it. Positive and finite; unused
+            with ``loss="mse"``.
 
     Example:
         >>> import smcd_rl
@@ -62,7 +71,7 @@ class GradientDescent(Adaptation):
     name = "gradient_descent"
 
     #: The losses ``loss`` takes.
-    LOSSES: ClassVar[tuple[str, ...]] = ("mse", "huber")
+    LOSSES: ClassVar[tuple[str, ...]] = ("mse", "huber", "tukey")
 
     # Always every argument, so that type(s)(**s.config()) is the same strategy; configs saved
     # before ``loss`` existed lack it and rebuild with its default, "mse", which they used.
@@ -73,7 +82,7 @@ class GradientDescent(Adaptation):
         lr: float = 1e-2,
         steps: int = 1,
         window: int = 10,
-        loss: Literal["mse", "huber"] = "mse",
+        loss: Literal["mse", "huber", "tukey"] = "mse",
         huber_delta: float = 1.0,
     ) -> None:
         super().__init__()
@@ -82,7 +91,7 @@ class GradientDescent(Adaptation):
         self.window = check_count(window, "window")
         if not isinstance(loss, str) or loss not in self.LOSSES:
             raise ValueError(f"loss must be one of {list(self.LOSSES)}, got {loss!r}")
-        self.loss: Literal["mse", "huber"] = loss
+        self.loss: Literal["mse", "huber", "tukey"] = loss
         # Checked even with loss="mse": config() records it, and a bad value should fail here,
         # not when someone later switches the loss.
         try:

@@ -18,7 +18,15 @@ covariance in units of each output's noise variance) serves every output:
   drifts or switches (Kalman's process noise);
 * ``likelihood="student-t"`` weighs each observation by ``(dof + m) / (dof + r^2)``, ``r^2`` its
   squared residual over its predictive variance summed over the ``m`` outputs (one EM step of a
-  Student-t likelihood), so that one gross outlier barely moves the readout.
+  Student-t likelihood), so that one gross outlier barely moves the readout;
+* ``likelihood="tukey"`` weighs it by Tukey's biweight ``(1 - u^2 / c^2)^2``, zero beyond
+  ``c = TUKEY_CUT``, ``u^2`` its squared residual over the *noise* variance, averaged over the
+  outputs. The Student-t judges a residual against the predictive variance, which a wide prior
+  makes huge: at ``prior_scale = 9`` a reading 20 noise units off still counts nearly in full, and
+  with few observations the readout bends to it. The biweight judges it against what the noise
+  allows and leaves the posterior exactly as it was beyond ``c``. Where every residual lies beyond
+  ``c`` (a task far from the trained ones; ``noise_std`` too small), it does not adapt and
+  predicts as the trained network.
 
 It predicts with the posterior mean; :meth:`BayesianLastLayer.predictive` gives the predictive mean
 and variance. Everything is in the model's normalised units.
@@ -54,7 +62,7 @@ from torch import Tensor
 
 from smcd_rl.checks import check_real
 from smcd_rl.masked_mlp import MaskedMLP
-from smcd_rl.strategies.base import Adaptation, checked_likelihood, checked_noise
+from smcd_rl.strategies.base import TUKEY_CUT, Adaptation, checked_likelihood, checked_noise
 
 __all__ = ["BayesianLastLayer", "MAX_DRIFT_VARIANCE"]
 
@@ -77,7 +85,8 @@ class BayesianLastLayer(Adaptation):
         drift: the random walk of the readout per observation, as a share of the prior variance
             (``0``: a task that stays put; ``0.01`` forgets an observation's information over about a
             hundred).
-        likelihood: ``"gaussian"`` or ``"student-t"`` (robust: an outlier is down-weighted).
+        likelihood: ``"gaussian"``, ``"student-t"`` (robust: an outlier is down-weighted) or
+            ``"tukey"`` (robust: a reading beyond :data:`~smcd_rl.strategies.base.TUKEY_CUT` noise units is ignored).
         dof: the Student-t's degrees of freedom.
 
     Example:
@@ -93,7 +102,7 @@ class BayesianLastLayer(Adaptation):
         prior_scale: float = 1.0,
         noise_std: float | Sequence[float] = 0.1,
         drift: float = 0.0,
-        likelihood: Literal["gaussian", "student-t"] = "gaussian",
+        likelihood: Literal["gaussian", "student-t", "tukey"] = "gaussian",
         dof: float = 4.0,
     ) -> None:
         super().__init__()
@@ -106,7 +115,9 @@ class BayesianLastLayer(Adaptation):
                 f"drift * prior_scale**2 = {self.drift * self.prior_scale**2:.3g} is beyond {MAX_DRIFT_VARIANCE:g}, "
                 "where the posterior's covariance loses its precision; use a smaller drift or prior_scale"
             )
-        self.likelihood, self.dof = checked_likelihood(likelihood, dof)
+        tukey = isinstance(likelihood, str) and likelihood == "tukey"
+        checked, self.dof = checked_likelihood("gaussian" if tukey else likelihood, dof, also=("tukey",))
+        self.likelihood: Literal["gaussian", "student-t", "tukey"] = "tukey" if tukey else checked
         self._mean: Tensor | None = None  # [B, D, out]: the posterior mean of the readout per stream
         self._cov: Tensor | None = None  # [B, D, D]: its covariance, in units of each output's noise variance
         self._sigma = torch.ones(1)
@@ -203,6 +214,9 @@ class BayesianLastLayer(Adaptation):
         if self.likelihood == "student-t":
             squared = (residual / self._sigma.to(residual.dtype)).square().sum(-1) / variance
             weight = (self.dof + residual.shape[-1]) / (self.dof + squared)
+        elif self.likelihood == "tukey":
+            squared = (residual / self._sigma.to(residual.dtype)).square().mean(-1)
+            weight = (1 - squared / TUKEY_CUT**2).clamp(min=0.0).square()
         return weight / (1.0 + weight * (variance - 1.0))
 
     def predict(self, inputs: Tensor) -> Tensor:

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from smcd_rl.masked_mlp import MaskedMLP
+from smcd_rl.strategies.base import TUKEY_CUT
 
 __all__ = ["stream_copies", "stream_chunks", "forward", "sgd_step", "all_finite", "CACHE_BYTES"]
 
@@ -90,7 +91,7 @@ def sgd_step(
 
     Each stream's loss is ``sum_n weight[b, n] * mean_o rho(r[b, n, o]) / sum_n weight[b, n]``,
     the residual ``r = net(x) - targets`` and ``rho`` the squared error (``loss="mse"``) or
-    twice the Huber loss of ``delta`` (``"huber"``), as :class:`smcd_rl.GradientDescent` defines
+    twice the Huber loss of ``delta`` (``"huber"``) or Tukey's biweight of ``TUKEY_CUT * delta`` (``"tukey"``), as :class:`smcd_rl.GradientDescent` defines
     them.
 
     Args:
@@ -100,8 +101,8 @@ def sgd_step(
         targets: ``[B, n, out]``.
         weight: ``[B, n]``, each stream's weights of its ``n`` samples (a stream's sum must be > 0).
         lr: learning rate.
-        loss: ``"mse"`` or ``"huber"``.
-        delta: the Huber loss's threshold (unused with ``"mse"``).
+        loss: ``"mse"``, ``"huber"`` or ``"tukey"``.
+        delta: the robust losses' scale (unused with ``"mse"``).
         in_place: update ``params``' tensors where they lie (their owner no longer needs the
             values before the step); otherwise the result holds new tensors.
         out: tensors of ``params``' shapes to write the result into (``params`` itself, or views of
@@ -113,6 +114,9 @@ def sgd_step(
     residual = prediction - targets
     if loss == "huber":
         slope = torch.where(residual.abs() <= delta, 2 * residual, 2 * delta * residual.sign())
+    elif loss == "tukey":
+        inside = (1 - (residual / (TUKEY_CUT * delta)).square()).clamp(min=0.0)
+        slope = 2 * residual * inside.square()
     else:
         slope = 2 * residual
     # d loss / d output, per stream: the weight of each sample over the stream's total, per output.

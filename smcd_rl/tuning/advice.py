@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from smcd_rl.tuning.defaults import ROBUST_FORMS
 from smcd_rl.tuning.diagnostics import Trace
 from smcd_rl.tuning.search import usable, within
 
@@ -63,14 +64,12 @@ def advice(result: Any) -> list[str]:
             f"{best.ms_per_step / c.ms_per_step:.0f}x less time per observation ({c.ms_per_step:.3g} ms)"
         )
     robust = [
-        kind
-        for kind, c in scored.items()
-        if c.settings.get("loss") == "huber" or c.settings.get("likelihood") == "student-t"
+        f"{kind} ({form})" for kind, c in scored.items() for form, has in ROBUST_FORMS.get(kind, ()) if has(c.settings)
     ]
     if robust:
         lines.append(
-            f"- robust forms: {', '.join(robust)} (Huber loss or Student-t), which bound what one corrupted reading "
-            "does; the plain forms break on one"
+            f"- robust forms: {', '.join(robust)}, which bound what one corrupted reading does; the plain "
+            "forms break on one"
         )
     return lines
 

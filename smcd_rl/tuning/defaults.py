@@ -11,11 +11,13 @@ Example:
     ['smcd', 'last_layer', 'smcd_last_layer']
     >>> {**GD_GRID, "loss": ("huber",)}  # a gd_grid for smcd_rl.tune that tries the Huber loss only
     {'lr': (0.001, 0.01, 0.1), 'steps': (1, 5), 'window': (1, 10), 'loss': ('huber',)}
+    >>> [form for form, _ in ROBUST_FORMS["gradient_descent"]]  # the strongest protection first
+    ["Tukey's biweight loss", 'Huber loss']
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 __all__ = [
@@ -25,7 +27,8 @@ __all__ = [
     "NEEDS",
     "kinds_needed",
     "GD_GRID",
-    "HUBER_DELTA_FACTOR",
+    "ROBUST_SCALE_FACTOR",
+    "ROBUST_FORMS",
     "MAX_EXTENSIONS",
     "EXTENSIBLE",
     "COMBINATION_GRID",
@@ -76,26 +79,30 @@ GD_GRID: dict[str, tuple[Any, ...]] = {
     "lr": (1e-3, 1e-2, 1e-1),
     "steps": (1, 5),
     "window": (1, 10),
-    "loss": ("mse", "huber"),
+    "loss": ("mse", "huber", "tukey"),
 }
-#: The Huber loss gradient descent is tuned with turns linear at this multiple of the unadapted
-#: network's root-mean-square residual on the episodes (normalised units).
-HUBER_DELTA_FACTOR = 1.0
+#: Gradient descent's robust losses are tuned at this multiple of the unadapted network's
+#: root-mean-square residual on the episodes (normalised units): where the Huber loss turns linear,
+#: and Tukey's biweight is flat beyond ``TUKEY_CUT`` (4.685) times it. A reading far beyond what the
+#: network gets wrong across training tasks is then a corrupted one.
+ROBUST_SCALE_FACTOR = 1.0
 #: At most this many extensions past each edge of the GD grid (and the last layer's prior scale).
 MAX_EXTENSIONS = 3
 #: The dimensions of the GD grid that extend past their edges.
 EXTENSIBLE = ("lr", "steps", "window")
 #: The combination's grid: the weights' learning rate and the fixed share.
 COMBINATION_GRID: dict[str, tuple[float, ...]] = {"eta": (0.1, 1.0, 10.0, 100.0), "share": (0.0, 0.02)}
-#: The Bayesian last layer's grid: prior scale x drift x likelihood; the Student-t form also
-#: tries its noise at these multiples of the unadapted network's residual (the Gaussian form's
-#: posterior mean does not depend on its noise: it takes the residual itself, for its predictive
-#: variance). The prior scale extends past an edge as gradient descent's learning rate does.
+#: The Bayesian last layer's grid: prior scale x drift x likelihood; a robust form (Tukey's
+#: biweight; Student-t where named) also tries its noise at these multiples of the unadapted
+#: network's residual, since its down-weighting of a reading depends on it (the Gaussian form's
+#: posterior mean does not: it takes the residual itself, for its predictive variance). Tukey's
+#: biweight at one residual ignores a reading more than 4.685 residuals off. The prior scale
+#: extends past an edge as gradient descent's learning rate does.
 LAST_LAYER_GRID: dict[str, tuple[Any, ...]] = {
     "prior_scale": (0.1, 0.3, 1.0, 3.0),
     "drift": (0.0, 0.01),
-    "likelihood": ("gaussian", "student-t"),
-    "noise_factor": (0.3, 1.0),
+    "likelihood": ("gaussian", "tukey"),
+    "noise_factor": (1.0,),
 }
 #: SMCD with a Bayesian readout: the tuned last layer's prior scale times each of these (and a
 #: third of the smallest, while the best is there). A tight readout leaves the masks to explain the
@@ -122,10 +129,26 @@ RACE_SHARE = 0.25
 #: (paired, on the same episodes), and far below what a learning rate or step count off by a grid
 #: step costs.
 RACE_MARGIN = 0.1
-#: A robust form (a Huber loss, a Student-t likelihood) is kept where its score on the tuning
+#: A robust form (:data:`ROBUST_FORMS`) is kept where its score on the tuning
 #: episodes is within this share of the plain form's, or within their paired noise: clean
 #: episodes cannot show what it is for, a corrupted reading (:meth:`~smcd_rl.tuning.search.Search.prefer_robust`).
 ROBUST_MARGIN = 0.05
+#: Each kind's robust forms, the strongest protection against one corrupted reading first: Tukey's
+#: biweight ignores a reading far off, a Huber loss bounds its pull (which still adds up over
+#: gradient steps), a Student-t likelihood down-weights it (SMCD: its heavy tails keep the particles
+#: from collapsing onto the masks that explain the reading; the last layer: against the predictive
+#: variance, which a wide prior makes large). Each is a name and which settings have that form.
+ROBUST_FORMS: dict[str, tuple[tuple[str, Callable[[dict[str, Any]], bool]], ...]] = {
+    "gradient_descent": (
+        ("Tukey's biweight loss", lambda s: s.get("loss") == "tukey"),
+        ("Huber loss", lambda s: s.get("loss") == "huber"),
+    ),
+    "smcd": (("Student-t likelihood", lambda s: s.get("likelihood") == "student-t"),),
+    "last_layer": (
+        ("Tukey's biweight", lambda s: s.get("likelihood") == "tukey"),
+        ("Student-t likelihood", lambda s: s.get("likelihood") == "student-t"),
+    ),
+}
 #: What :func:`smcd_rl.tune` searches of each kind: a tuning table always shows it.
 SEARCHED: dict[str, tuple[str, ...]] = {
     "smcd": ("num_particles", "flip_prob", "noise_std"),

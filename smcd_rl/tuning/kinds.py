@@ -41,12 +41,13 @@ from smcd_rl.tuning.defaults import (
     EXTENSIBLE,
     FINALISTS,
     GD_GRID,
-    HUBER_DELTA_FACTOR,
     LAST_LAYER_GRID,
     MAX_EXTENSIONS,
     MIN_PARTICLES,
     MIN_SEARCH_PARTICLES,
     RACE_MARGIN,
+    ROBUST_FORMS,
+    ROBUST_SCALE_FACTOR,
     SEARCH_PARTICLE_SHARE,
     SMCD_LAST_LAYER_SCALES,
 )
@@ -122,10 +123,10 @@ def tune_gd(search: Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, 
     the learning rate, steps and window, never past ``limits``.
 
     The loss has no edge and is not crossed with the grid: the first loss (the squared error,
-    where given) is searched, and every other loss runs at its best setting. A Huber loss equals
-    the squared one on residuals within its delta, so on the episodes the two share their best
-    setting up to the noise, which :meth:`~smcd_rl.tuning.search.Search.prefer_robust` then
-    weighs; searching the grid once halves gradient descent's runs. Where every setting of a
+    where given) is searched, and every other loss runs at its best setting. The robust losses
+    equal the squared one on residuals well within their scale, so on clean episodes they share
+    its best setting up to the noise, which :meth:`~smcd_rl.tuning.search.Search.prefer_robust`
+    then weighs; searching the grid once halves gradient descent's runs. Where every setting of a
     loss diverges, the next loss is searched on the whole grid instead.
     """
     # The losses keep GradientDescent.LOSSES' order, so that the squared one is searched.
@@ -133,11 +134,12 @@ def tune_gd(search: Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, 
     grid = {k: tuple(sorted(v)) for k, v in grid.items() if k != "loss"}
     scored: dict[tuple[Any, ...], float] = {}
 
-    # The Huber loss turns linear at the unadapted network's residual: a reading far beyond what
-    # the network gets wrong pulls no harder than one it merely mispredicts. At the default delta
-    # (one standard deviation of the targets) a corrupted reading tens of residuals off still
-    # pulls with tens of residuals' force where the network predicts well.
-    delta = math.sqrt(statistics.fmean(r * r for r in _unadapted_residual(search))) * HUBER_DELTA_FACTOR
+    # The robust losses' scale is the unadapted network's residual: a reading far beyond what the
+    # network gets wrong is a corrupted one. At the default scale (one standard deviation of the
+    # targets) a reading tens of residuals off pulls with tens of residuals' force under the Huber
+    # loss, and even where it is bounded, that pull adds up over steps x window gradient steps and
+    # outweighs the other readings once they fit: Tukey's biweight, tuned by default, ignores it.
+    delta = math.sqrt(statistics.fmean(r * r for r in _unadapted_residual(search))) * ROBUST_SCALE_FACTOR
 
     def race(points: list[tuple[Any, ...]]) -> None:
         points = [p for p in points if p not in scored]
@@ -158,7 +160,7 @@ def tune_gd(search: Search, grid: dict[str, tuple[Any, ...]], limits: dict[str, 
             "is kept; try smaller learning rates (gd_grid['lr'])"
         )
         return
-    search.prefer_robust("gradient_descent", lambda s: s["loss"] == "huber", "Huber loss")
+    search.prefer_robust("gradient_descent", ROBUST_FORMS["gradient_descent"])
     search.time_best("gradient_descent")
 
 
@@ -306,6 +308,13 @@ def tune_smcd(
                 f"SMCD: searched with {small} particles ({len(result.candidates)} runs), its {len(finalists)} best "
                 f"settings (at most {FINALISTS}, within {RACE_MARGIN:.0%} of the best) confirmed with {particles}"
             )
+        best = search.best_of.get("smcd")
+        if best is not None and search.scorer.criterion.name != "evidence":
+            # The robust form at the best setting: a Student-t likelihood of the same scale, whose
+            # heavy tails keep one corrupted reading from collapsing the particles onto whichever
+            # masks explain it. (Under the evidence criterion the likelihood is what is scored.)
+            search.score("smcd", {**best.settings, "likelihood": "student-t"}, ms=None if math.isnan(ms) else ms)
+    search.prefer_robust("smcd", ROBUST_FORMS["smcd"])
     search.time_best("smcd")
     return calibrations
 
@@ -321,8 +330,11 @@ def tune_last_layer(search: Search) -> None:
     """
     residual = _unadapted_residual(search)
     grid = LAST_LAYER_GRID
-    forms: list[tuple[Any, list[float]]] = [("gaussian", residual)]
-    forms += [("student-t", [f * r for r in residual]) for f in grid["noise_factor"]]
+    forms: list[tuple[Any, list[float]]] = [
+        (likelihood, [f * r for r in residual])
+        for likelihood in grid["likelihood"]
+        for f in ((1.0,) if likelihood == "gaussian" else grid["noise_factor"])
+    ]
     scales = list(grid["prior_scale"])
 
     def race(points: list[tuple[Any, Any, tuple[Any, list[float]]]]) -> None:
@@ -349,7 +361,7 @@ def tune_last_layer(search: Search) -> None:
         form = (best.settings["likelihood"], best.settings["noise_std"])
         race([(new, best.settings["drift"], form)])
         search.notes.append(f"last layer: best prior_scale {scale:g} on the grid's edge; tried {new:g}")
-    search.prefer_robust("last_layer", lambda s: s["likelihood"] == "student-t", "Student-t likelihood")
+    search.prefer_robust("last_layer", ROBUST_FORMS["last_layer"])
     search.time_best("last_layer")
 
 

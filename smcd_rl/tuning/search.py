@@ -296,48 +296,55 @@ class Search:
                 scores.append(self._add(kind, settings, joined.rmse, self.scorer.score(joined)))
         return scores
 
-    def prefer_robust(self, kind: str, robust: Callable[[dict[str, Any]], bool], form: str) -> None:
-        """Where the best of ``kind`` is a plain form and its best robust form (``robust(settings)``)
-        is not worse beyond the episodes' noise, keep the robust one, and say so in :attr:`notes`.
+    def prefer_robust(self, kind: str, forms: Sequence[tuple[str, Callable[[dict[str, Any]], bool]]]) -> None:
+        """Where a stronger robust form of ``kind`` than its best's is not worse beyond the episodes'
+        noise, keep it, and say so in :attr:`notes`.
 
-        Clean tuning episodes cannot show what a robust form (a Huber loss, a Student-t likelihood)
-        is for: a corrupted reading. Where they cannot tell the two apart, the robust one costs
-        little there and bounds the damage of the reading they lack. The robust form is kept
-        where its score is within :data:`~smcd_rl.tuning.defaults.ROBUST_MARGIN` of the plain
-        form's, or where its mean excess over the plain form's, paired per episode, is at most
-        twice its standard error.
+        Clean tuning episodes cannot show what a robust form (Tukey's biweight, a Huber loss, a
+        Student-t likelihood) is for: a corrupted reading. Where they cannot tell it from the best,
+        it costs little there and bounds the damage of the reading they lack. ``forms`` are
+        ``(name, has_form)`` pairs, the strongest protection first; the first form stronger than the
+        best's whose best setting passes is kept. A form passes where its score is within
+        :data:`~smcd_rl.tuning.defaults.ROBUST_MARGIN` of the best's, or where its mean excess over
+        the best's, paired per episode, is at most twice its standard error.
         """
         best = self.best_of.get(kind)
-        if best is None or robust(best.settings):
+        if best is None:
             return
-        rivals = [c for c in self.candidates if c.kind == kind and robust(c.settings) and usable(c.score)]
-        if not rivals:
+        rank = next((i for i, (_, has) in enumerate(forms) if has(best.settings)), len(forms))
+        for form, has in forms[:rank]:
+            rivals = [c for c in self.candidates if c.kind == kind and has(c.settings) and usable(c.score)]
+            if not rivals:
+                continue
+            rival = min(rivals, key=lambda c: c.score)
+            if any(setting_key(kind, c.settings) not in self.traces for c in (best, rival)):
+                # Scores reused from an earlier call, without their runs: its choice stands.
+                if self.chosen_before.get(kind) == rival.settings:
+                    self.best_of[kind] = rival
+                    return
+                continue
+            plain, tough = (
+                self.scorer.episode_scores(self.traces[setting_key(kind, c.settings)]) for c in (best, rival)
+            )
+            excess = [a - b for a, b in zip(tough, plain, strict=True)]
+            if len(excess) < 2 or not all(math.isfinite(e) for e in excess):
+                continue
+            mean, spread = statistics.fmean(excess), statistics.stdev(excess)
+            noise = 2 * spread / math.sqrt(len(excess))
+            close = rival.score <= within(best.score, ROBUST_MARGIN)
+            if mean > noise and not close:
+                continue
+            self.best_of[kind] = rival
+            why = (
+                f"its excess per episode, {mean:.3g}, is within the episodes' noise ({noise:.3g})"
+                if mean <= noise
+                else f"within {ROBUST_MARGIN:.0%} of it"
+            )
+            self.notes.append(
+                f"{kind.replace('_', ' ')}: kept the robust form ({form}), {rival.score:.4g} against the best "
+                f"form's {best.score:.4g}: {why}, and it bounds what one corrupted reading does"
+            )
             return
-        rival = min(rivals, key=lambda c: c.score)
-        if any(setting_key(kind, c.settings) not in self.traces for c in (best, rival)):
-            # Scores reused from an earlier call, without their runs: its choice stands.
-            if self.chosen_before.get(kind) == rival.settings:
-                self.best_of[kind] = rival
-            return
-        plain, tough = (self.scorer.episode_scores(self.traces[setting_key(kind, c.settings)]) for c in (best, rival))
-        excess = [a - b for a, b in zip(tough, plain, strict=True)]
-        if len(excess) < 2 or not all(math.isfinite(e) for e in excess):
-            return
-        mean, spread = statistics.fmean(excess), statistics.stdev(excess)
-        noise = 2 * spread / math.sqrt(len(excess))
-        close = rival.score <= within(best.score, ROBUST_MARGIN)
-        if mean > noise and not close:
-            return
-        self.best_of[kind] = rival
-        why = (
-            f"its excess per episode, {mean:.3g}, is within the episodes' noise ({noise:.3g})"
-            if mean <= noise
-            else f"within {ROBUST_MARGIN:.0%} of it"
-        )
-        self.notes.append(
-            f"{kind.replace('_', ' ')}: kept the robust form ({form}), {rival.score:.4g} against the plain form's "
-            f"{best.score:.4g}: {why}, and a robust form bounds what one corrupted reading does"
-        )
 
     def time_best(self, kind: str) -> None:
         """Measure the time of ``kind``'s best setting, where it has none yet (no budget measured it)."""

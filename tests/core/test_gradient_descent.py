@@ -12,6 +12,7 @@ from torch.func import functional_call
 
 import smcd_rl
 import smcd_rl.strategies.stream_weights as stream_weights
+from smcd_rl.strategies.base import TUKEY_CUT
 
 
 @pytest.fixture(scope="module")
@@ -100,12 +101,39 @@ def test_huber_recovers_from_an_outlier_that_pulls_mse_away(model) -> None:
     assert errors["mse", "clean"] < 0.2, errors  # both adapt: unadapted, the error is the shift, 0.5
 
 
+def test_tukey_ignores_a_reading_beyond_its_cut_and_learns_from_one_within(model) -> None:
+    """Tukey's biweight does not pull at all beyond ``TUKEY_CUT * huber_delta``: a reading 20 deltas off
+    leaves every weight exactly as trained, where the Huber loss moves them; one within the cut moves
+    the prediction towards it as the squared error does, a little less."""
+    q = shifted_task(1)[0]
+    with torch.no_grad():
+        predicted = model.output_norm.inverse(model.net(model.input_norm(q)))  # the trained network's
+    delta = 0.3
+    scale = model.output_norm.std  # the offsets are in normalised units, the targets in the model's
+
+    def step(loss: str, offset: float) -> torch.Tensor:
+        strategy = smcd_rl.GradientDescent(lr=0.1, steps=1, window=1, loss=loss, huber_delta=delta)
+        with torch.no_grad():
+            return adapted(model, strategy, q, predicted + offset * scale).predict(q) - predicted
+
+    far = smcd_rl.GradientDescent(lr=0.1, steps=1, window=1, loss="tukey", huber_delta=delta)
+    weights = adapted(model, far, q, predicted + 20 * delta * scale).adaptation.state_dict()["params"]
+    for key, value in model.net.named_parameters():
+        assert torch.equal(weights[key][0], value), key
+    assert step("tukey", 20 * delta).abs().max() < 1e-6  # the stream's forward pass, as rounded
+    assert step("huber", 20 * delta).abs().max() > 0
+    ratio = (step("tukey", 0.5 * delta) / step("mse", 0.5 * delta)).flatten()
+    # At half a delta the biweight's weight is (1 - 0.25 / TUKEY_CUT**2)**2 = 0.98, and the step is
+    # small enough that the network is near linear in it.
+    assert torch.allclose(ratio, torch.full_like(ratio, (1 - 0.25 / TUKEY_CUT**2) ** 2), rtol=0.02), ratio
+
+
 @pytest.mark.parametrize(
     ("options", "error", "message"),
     [
-        ({"loss": "l1"}, ValueError, r"loss must be one of \['mse', 'huber'\], got 'l1'"),
-        ({"loss": "MSE"}, ValueError, r"loss must be one of \['mse', 'huber'\]"),
-        ({"loss": None}, ValueError, r"loss must be one of \['mse', 'huber'\], got None"),
+        ({"loss": "l1"}, ValueError, r"loss must be one of \['mse', 'huber', 'tukey'\], got 'l1'"),
+        ({"loss": "MSE"}, ValueError, r"loss must be one of \['mse', 'huber', 'tukey'\]"),
+        ({"loss": None}, ValueError, r"loss must be one of \['mse', 'huber', 'tukey'\], got None"),
         ({"loss": "huber", "huber_delta": 0.0}, ValueError, "huber_delta must be positive and finite .*, got 0.0"),
         ({"loss": "huber", "huber_delta": -1.0}, ValueError, "huber_delta must be positive and finite"),
         ({"loss": "huber", "huber_delta": math.nan}, ValueError, "huber_delta must be positive and finite"),
@@ -153,10 +181,10 @@ def test_a_model_saved_before_the_loss_existed_loads_with_the_squared_error(mode
 
 
 @pytest.mark.parametrize("activation", ["relu", "tanh", "elu", "silu"])
-@pytest.mark.parametrize("loss", ["mse", "huber"])
+@pytest.mark.parametrize("loss", ["mse", "huber", "tukey"])
 def test_the_batched_step_equals_autograd_per_stream(activation: str, loss: str) -> None:
     """Each stream's step written out with batched products is SGD on that stream's weighted loss,
-    as autograd computes it: every activation, both losses, streams with different weights (one
+    as autograd computes it: every activation, every loss (Tukey's cut, 1.4, splits the residuals), streams with different weights (one
     with an empty slot) and three steps, the later ones in place."""
     torch.manual_seed(0)
     net = smcd_rl.MaskedMLP(3, 2, hidden=(16, 8), activation=activation).double().eval()
@@ -174,6 +202,10 @@ def test_the_batched_step_equals_autograd_per_stream(activation: str, loss: str)
             if loss == "huber":
                 size = residual.abs()
                 error = torch.where(size <= delta, residual.square(), 2 * delta * size - delta**2).mean(-1)
+            elif loss == "tukey":
+                cut = TUKEY_CUT * delta
+                inside = (1 - (residual / cut).square()).clamp(min=0.0)
+                error = (cut**2 / 3 * (1 - inside**3)).mean(-1)
             else:
                 error = residual.square().mean(-1)
             grads = torch.autograd.grad((error * weight[b]).sum() / weight[b].sum(), list(mine.values()))

@@ -105,6 +105,38 @@ def test_the_robust_form_barely_moves_under_one_gross_outlier() -> None:
     assert moved["student-t"] < 0.01, moved
 
 
+def test_tukeys_biweight_ignores_an_outlier_that_a_wide_prior_lets_the_student_t_take() -> None:
+    """Two clean readings under a wide prior (scale 9), then one 20 noise units off.
+
+    The Student-t judges the residual against the predictive variance, here still 22 noise
+    variances (81 |phi|^2 before any reading; a wide network's features keep it in the hundreds
+    for longer): 20 noise units look plausible there, its weight stays near one and the
+    prediction at the outlier's input moves most of the way to it. The biweight judges it against
+    the noise: beyond 4.685 units its weight is exactly zero and the posterior is untouched. A
+    reading within the cut still counts, at the biweight's weight."""
+    net = _net()
+    inputs, targets, _ = _task(net, 4, 3, seed=5, noise=0.05)
+    corrupted = targets[2] + 20 * 0.05
+    moved = {}
+    for likelihood in ("student-t", "tukey"):
+        layer = _bound(smcd_rl.BayesianLastLayer(prior_scale=9.0, noise_std=0.05, likelihood=likelihood), net)
+        for x, y in zip(inputs[:2], targets[:2], strict=True):
+            layer.observe(x, y)
+        before = layer.state_dict()
+        predicted = layer.predict(inputs[2])
+        layer.observe(inputs[2], corrupted)
+        moved[likelihood] = ((layer.predict(inputs[2]) - predicted) / (corrupted - predicted)).mean().item()
+        if likelihood == "tukey":
+            after = layer.state_dict()
+            assert torch.equal(before["mean"], after["mean"]) and torch.equal(before["cov"], after["cov"])
+    assert moved["student-t"] > 0.5 and moved["tukey"] == 0.0, moved
+    # Within the cut the reading counts: one 1 noise unit off moves the prediction towards it.
+    layer = _bound(smcd_rl.BayesianLastLayer(prior_scale=9.0, noise_std=0.05, likelihood="tukey"), net)
+    predicted = layer.predict(inputs[0])
+    layer.observe(inputs[0], predicted + 0.05)
+    assert ((layer.predict(inputs[0]) - predicted) / 0.05).min().item() > 0.5
+
+
 def test_drift_follows_a_switch_that_the_static_posterior_averages() -> None:
     """200 readings of one readout, then 200 of another: with drift the posterior ends at the second."""
     net = _net()
@@ -246,7 +278,7 @@ def test_reset_returns_to_the_prior_and_the_network_output() -> None:
         ({"prior_scale": float("nan")}, "prior_scale"),
         ({"noise_std": -0.1}, "noise_std"),
         ({"drift": -1.0}, "drift"),
-        ({"likelihood": "laplace"}, "likelihood must be 'gaussian' or 'student-t'"),
+        ({"likelihood": "laplace"}, "likelihood must be 'gaussian' or 'student-t' or 'tukey'"),
         ({"dof": 0.0}, "dof"),
     ],
 )

@@ -13,7 +13,7 @@ The adaptations (``--adaptations``), labelled as in every experiment:
 
 * ``M+N``: no adaptation;
 * ``M+G``: online gradient descent tuned by one-step error on the tuning episodes
-  (:func:`smcd_rl.tune`: the ``--gd-lr x --gd-steps x --gd-window`` grid, squared error or Huber);
+  (:func:`smcd_rl.tune`: the ``--gd-lr x --gd-steps x --gd-window`` grid, squared error or a robust loss);
 * ``M+S``: SMCD tuned by one-step error on the tuning episodes (:func:`smcd_rl.tune`);
 * ``M+S(evidence)``: SMCD calibrated by its evidence (:func:`smcd_rl.calibrate`) on the tuning episodes;
 * ``M+S(paper)``: SMCD at the paper's settings: likelihood noise per observation dimension

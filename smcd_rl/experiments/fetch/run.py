@@ -24,7 +24,7 @@ The adaptations (``--adaptations``), labelled as in every experiment:
 * ``M+N``: no adaptation;
 * ``M+G``: online gradient descent tuned on the tuning episodes by the learnt model's 5-step
   rollout error on the logged actions (``--tuning-horizon``, the planning horizon: the proxy of
-  success) (:func:`smcd_rl.tune`: the ``--gd-lr x --gd-steps x --gd-window`` grid, squared error or Huber);
+  success) (:func:`smcd_rl.tune`: the ``--gd-lr x --gd-steps x --gd-window`` grid, squared error or a robust loss);
 * ``M+S``: SMCD tuned the same way (:func:`smcd_rl.tune`);
 * ``M+S(evidence)``: SMCD calibrated by its evidence (:func:`smcd_rl.calibrate`) on the tuning episodes;
 * ``M+S(paper)``: SMCD at fixed settings. The paper has no Fetch task, so the fixed setting is

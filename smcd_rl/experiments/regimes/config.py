@@ -34,10 +34,10 @@ FAMILIES = ("two-link", "telescoping", "pendulum")
 #: them would be the same as fewer observations).
 SEQUENTIAL = ("pendulum",)
 #: The methods, each with settings from ``smcd_rl.tune`` on held-out training-task episodes:
-#: N none; G gradient descent (MSE or Huber loss); S SMCD calibrated by one-step error;
+#: N none; G gradient descent (squared, Huber or Tukey loss); S SMCD calibrated by one-step error;
 #: S(evidence) SMCD calibrated by the filter's evidence; S(paper) SMCD at the paper's noise and
 #: flips; C the combination of N and the tuned ones; L the Bayesian last layer (Gaussian or
-#: Student-t); SL SMCD with a Bayesian readout.
+#: Tukey); SL SMCD with a Bayesian readout.
 METHODS = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 #: Methods on the families' other networks, trained on the same data: T, whose dropout masks were
 #: trained to identify the task (``fit(mask_training="task")``; one for the arm families, one for

@@ -1,7 +1,7 @@
 """Every method's settings from :func:`smcd_rl.tune` on one network's held-out training-task episodes.
 
-One call of :func:`smcd_rl.tune` per network chooses gradient descent (its grid, MSE or Huber
-loss), SMCD (noise and flips by one-step error) and their combination by the same criterion;
+One call of :func:`smcd_rl.tune` per network chooses gradient descent (its grid, its robust
+losses), SMCD (noise and flips by one-step error) and their combination by the same criterion;
 a second call under ``--budget-ms`` per observation, reusing the first call's scores, gives the
 budgeted view; SMCD calibrated by
 evidence and SMCD at the paper's settings are the two references every other experiment reports.

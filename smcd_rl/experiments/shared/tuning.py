@@ -5,8 +5,9 @@ Before any test task is seen, each experiment draws ``--tuning-episodes`` episod
 one criterion: the error its table reports where that is a look-ahead (``--tuning-horizon``:
 ``smcd-rl two-link`` tunes by the 10-step look-ahead error), else the one-step prediction error:
 
-- **gradient descent (``G``)** over the grid ``--gd-lr`` x ``--gd-steps`` x ``--gd-window`` x
-  {squared error, Huber}, extended past an edge while the best point lies there;
+- **gradient descent (``G``)** over the grid ``--gd-lr`` x ``--gd-steps`` x ``--gd-window`` with
+  the squared error, extended past an edge while the best point lies there, and its robust losses
+  (Huber, Tukey's biweight) at the best point;
 - **SMCD (``S``)**: the noise (its factor and shape across dimensions) and flip probability (``--calibrate-flips``);
 - **the Bayesian last layer (``L``)** over prior scale x drift x likelihood, and **SMCD with a
   Bayesian readout (``SL``)**: the tuned S with L's readout (:class:`smcd_rl.SMCDLastLayer`);
@@ -14,6 +15,8 @@ one criterion: the error its table reports where that is a look-ahead (``--tunin
   run), its ``eta`` and fixed share;
 - **SMCD calibrated by its evidence (``S(evidence)``)** and **SMCD at the paper's settings
   (``S(paper)``)**, the two references: what the filter's own criterion and no tuning give.
+  ``S(evidence)`` takes the likelihood's form (Gaussian or Student-t) that ``tune`` kept for S by
+  its robust-form rule on the same episodes, at the noise its evidence chose.
 
 A second call under ``--budget-ms`` per observation (reusing the first call's scores) gives the
 budgeted view: what each kind would be within a 100 Hz control step. Each method's median time
@@ -146,9 +149,15 @@ def tuned_specs(
             reuse=searched if searched and searched.num_particles == config.particles else None,
         )
         settings = {**evidence.strategy.config(), "seed": seed, "device": device}
-        specs["S(evidence)"] = {"name": "smcd", "settings": settings}
-        if evidence.best.trace is not None:
+        # The likelihood's form follows tune's robust-form rule for SMCD on the same episodes: the
+        # evidence chooses the noise of the Gaussian it scores, and the clean episodes cannot show
+        # what a Student-t form is for, a corrupted reading.
+        likelihood = free.best_of["smcd"].settings.get("likelihood", "gaussian") if "smcd" in free.best_of else None
+        if likelihood is not None and likelihood != settings["likelihood"]:
+            settings["likelihood"] = likelihood
+        elif evidence.best.trace is not None:
             runs["S(evidence)"] = evidence.best.trace
+        specs["S(evidence)"] = {"name": "smcd", "settings": settings}
     if "S(paper)" in variants:
         noise = list(paper_noise) if isinstance(paper_noise, (tuple, list)) else float(paper_noise)
         paper = {"num_particles": config.particles, "noise_std": noise, "flip_prob": config.flip_prob}
