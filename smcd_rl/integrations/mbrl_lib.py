@@ -24,6 +24,12 @@ Propagation (how each of the ``B = candidates x particles`` rows of a planning b
   mean with ``SMCD(prediction="predictive")``); ``num_particles=1`` suffices then. This is the only
   mode for strategies without particles (``NoAdaptation``, ``GradientDescent``).
 
+An **ensemble** (a list of models, e.g. the members of an mbrl-lib ``GaussianMLP`` that
+:func:`smcd_rl.integrations.mbrl_models.dynamics_models_from_mbrl` wraps) propagates over its
+members as PETS does, each member predicting with its own adapted state: ``"fixed_model"`` gives
+each row one member for the horizon (a random permutation of the rows, split evenly),
+``"random_model"`` a fresh member per row at every step, ``"expectation"`` the members' mean.
+
 ``None`` (all ensemble members' outputs, mbrl-lib's training mode) is refused: this model is not
 trained through mbrl-lib's ``ModelTrainer``, but with :func:`smcd_rl.fit_dynamics`. The network has no
 output noise, so ``sample``'s ``deterministic`` flag changes nothing; the propagation alone says
@@ -59,7 +65,7 @@ from __future__ import annotations
 import importlib
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any, Literal
@@ -121,7 +127,8 @@ class MbrlLibModel:
     each planning call sees the posterior at its start.
 
     Args:
-        model: the dynamics model, reset with ``batch_shape=()`` (one env) before planning.
+        model: the dynamics model, reset with ``batch_shape=()`` (one env) before planning; or a
+            list of them, an ensemble of one observation and action size (module docstring).
         propagation: ``"fixed_model"``, ``"random_model"`` or ``"expectation"`` (module docstring).
         reward_fn: batched torch reward ``(obs [B, O], action [B, A], next_obs [B, O]) -> [B]``
             (or ``[B, 1]``); :meth:`sample` returns it as the predicted reward, which ``ModelEnv``
@@ -129,30 +136,42 @@ class MbrlLibModel:
             mbrl-lib's ``reward_fn(act, next_obs)`` to ``ModelEnv`` instead).
 
     Raises:
-        TypeError: ``model`` is not an :class:`~smcd_rl.AdaptiveDynamicsModel`.
-        ValueError: an unknown ``propagation``, or a sampling one for a strategy without particles.
+        TypeError: ``model`` is not an :class:`~smcd_rl.AdaptiveDynamicsModel` (or a non-empty list of them).
+        ValueError: an unknown ``propagation``; a sampling one for one model whose strategy keeps no
+            particles; an ensemble whose members differ in sizes.
     """
 
     def __init__(
         self,
-        model: AdaptiveDynamicsModel,
+        model: AdaptiveDynamicsModel | Sequence[AdaptiveDynamicsModel],
         *,
         propagation: Propagation = "fixed_model",
         reward_fn: RewardFn | None = None,
     ) -> None:
-        if not isinstance(model, AdaptiveDynamicsModel):
-            raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel, got {type(model).__name__}")
+        given: list[Any] = list(model) if isinstance(model, (list, tuple)) else [model]
+        if not given or not all(isinstance(m, AdaptiveDynamicsModel) for m in given):
+            got = type(model).__name__ if not given else sorted({type(m).__name__ for m in given})
+            raise TypeError(f"model must be a smcd_rl.AdaptiveDynamicsModel or a non-empty list of them, got {got}")
+        members: list[AdaptiveDynamicsModel] = given
+        sizes = {(m.observation_dim, m.action_dim) for m in members}
+        if len(sizes) > 1:
+            raise ValueError(
+                f"the ensemble's members differ in (observation, action) sizes {sorted(sizes)}; they must model one env"
+            )
+        first = members[0]
         if propagation not in PROPAGATIONS:
             raise ValueError(
                 f"propagation must be one of {PROPAGATIONS}, got {propagation!r}; mbrl-lib's None (every member's "
                 "output, for its ModelTrainer) does not apply: fit the model with smcd_rl.fit_dynamics"
             )
-        if propagation != "expectation" and not isinstance(model.adaptation, SMCD):
+        if len(members) == 1 and propagation != "expectation" and not isinstance(first.adaptation, SMCD):
             raise ValueError(
                 f"propagation={propagation!r} draws masks from the SMCD posterior, but the model adapts with "
-                f"{type(model.adaptation).__name__}, which keeps no particles; use propagation='expectation'"
+                f"{type(first.adaptation).__name__}, which keeps no particles; use propagation='expectation'"
             )
-        self.model = model
+        self.model: AdaptiveDynamicsModel = first
+        #: The ensemble's members (``[model]`` for one model).
+        self.members = members
         self.propagation: Propagation = propagation
         self.reward_fn = reward_fn
 
@@ -169,7 +188,8 @@ class MbrlLibModel:
             rng: where the masks are drawn from (``ModelEnv`` passes its own generator).
 
         Returns:
-            ``{"obs": [B, O]}``, plus ``"masks" [B, mask_dim]`` for ``"fixed_model"``.
+            ``{"obs": [B, O]}``, plus for ``"fixed_model"`` ``"masks" [B, mask_dim]`` (one model) or
+            ``"members" [B]`` (an ensemble: the member each row follows).
         """
         observation = self._tensor(obs)
         if observation.dim() != 2 or observation.shape[-1] != self.model.observation_dim:
@@ -177,9 +197,18 @@ class MbrlLibModel:
                 f"reset needs observations [B, {self.model.observation_dim}], got {list(observation.shape)}"
             )
         state = {"obs": observation}
-        if self.propagation == "fixed_model":
+        if self.propagation == "fixed_model" and self.ensemble:
+            # PETS's TS-infinity: a random permutation of the rows, split evenly over the members.
+            rows = observation.shape[0]
+            state["members"] = torch.randperm(rows, generator=self._cpu(rng)).to(observation.device) % len(self.members)
+        elif self.propagation == "fixed_model":
             state["masks"] = self._draw_masks(observation.shape[0], rng)
         return state
+
+    @property
+    def ensemble(self) -> bool:
+        """Whether this adapter plans with several members."""
+        return len(self.members) > 1
 
     def sample(
         self,
@@ -201,6 +230,9 @@ class MbrlLibModel:
             raise ValueError(
                 f"sample needs actions [{obs.shape[0]}, {self.model.action_dim}], got {list(action.shape)}"
             )
+        if self.ensemble:
+            next_obs = self._ensemble_step(obs, action, model_state, rng)
+            return next_obs, self._reward(obs, action, next_obs), None, {**model_state, "obs": next_obs}
         if self.propagation == "fixed_model":
             masks: Tensor | None = fixed_masks
         elif self.propagation == "random_model":
@@ -209,20 +241,48 @@ class MbrlLibModel:
             masks = None
         with torch.no_grad():
             next_obs = self.model.step(obs, action, mask=masks)
-            reward = None
-            if self.reward_fn is not None:
-                reward = self.reward_fn(obs, action, next_obs)
-                if reward.shape not in ((obs.shape[0],), (obs.shape[0], 1)):
-                    raise ValueError(
-                        f"reward_fn returned shape {list(reward.shape)} for {obs.shape[0]} rows; it must return [B] or [B, 1]"
-                    )
-                reward = reward.reshape(-1, 1).to(torch.float32)
-        return next_obs, reward, None, {**model_state, "obs": next_obs}
+        return next_obs, self._reward(obs, action, next_obs), None, {**model_state, "obs": next_obs}
+
+    def _ensemble_step(
+        self, obs: Tensor, action: Tensor, model_state: dict[str, Tensor], rng: torch.Generator | None
+    ) -> Tensor:
+        """Each row's next observation from its member (``"expectation"``: the members' mean)."""
+        with torch.no_grad():
+            if self.propagation == "expectation":
+                return torch.stack([m.step(obs, action) for m in self.members]).mean(0)
+            if self.propagation == "fixed_model":
+                rows = model_state["members"]
+            else:
+                drawn = torch.randint(len(self.members), (obs.shape[0],), generator=self._cpu(rng))
+                rows = drawn.to(obs.device)
+            next_obs = torch.empty_like(obs)
+            for index, member in enumerate(self.members):
+                mine = rows == index
+                if bool(mine.any()):
+                    next_obs[mine] = member.step(obs[mine], action[mine])
+            return next_obs
+
+    def _reward(self, obs: Tensor, action: Tensor, next_obs: Tensor) -> Tensor | None:
+        if self.reward_fn is None:
+            return None
+        with torch.no_grad():
+            reward = self.reward_fn(obs, action, next_obs)
+        if reward.shape not in ((obs.shape[0],), (obs.shape[0], 1)):
+            raise ValueError(
+                f"reward_fn returned shape {list(reward.shape)} for {obs.shape[0]} rows; it must return [B] or [B, 1]"
+            )
+        return reward.reshape(-1, 1).to(torch.float32)
+
+    @staticmethod
+    def _cpu(rng: torch.Generator | None) -> torch.Generator | None:
+        """``rng`` where it draws on the CPU (member indices are drawn there), else none."""
+        return rng if rng is not None and rng.device.type == "cpu" else None
 
     def _checked_state(self, model_state: Any) -> tuple[Tensor, Tensor | None]:
         """The rows' observations and (``"fixed_model"``) masks, after checking the state is one :meth:`reset` made."""
         fix = f"pass the state that this adapter's reset (propagation={self.propagation!r}) returned, as ModelEnv does"
-        expected = ["obs", "masks"] if self.propagation == "fixed_model" else ["obs"]
+        fixed = "members" if self.ensemble else "masks"
+        expected = ["obs", fixed] if self.propagation == "fixed_model" else ["obs"]
         if not isinstance(model_state, dict) or any(key not in model_state for key in expected):
             got = sorted(model_state) if isinstance(model_state, dict) else type(model_state).__name__
             raise ValueError(
@@ -236,6 +296,19 @@ class MbrlLibModel:
                 f"the state is not from this model's reset; {fix}"
             )
         if self.propagation != "fixed_model":
+            return obs, None
+        if self.ensemble:
+            members = model_state["members"]
+            if (
+                not isinstance(members, Tensor)
+                or members.shape != (obs.shape[0],)
+                or members.dtype != torch.long
+                or bool(((members < 0) | (members >= len(self.members))).any())
+            ):
+                raise ValueError(
+                    f"the model state's members must be a long tensor [{obs.shape[0]}] of indices in "
+                    f"[0, {len(self.members)}) (one member per row of obs); {fix}"
+                )
             return obs, None
         masks = model_state["masks"]
         mask_dim = self.model.net.mask_dim
@@ -305,7 +378,7 @@ def termination_for_mbrl(termination_fn: TerminationFn | None) -> Callable[[Tens
 
 def make_model_env(
     env: gymnasium.Env[Any, Any],
-    model: AdaptiveDynamicsModel,
+    model: AdaptiveDynamicsModel | Sequence[AdaptiveDynamicsModel],
     reward_fn: RewardFn,
     termination_fn: TerminationFn | None = None,
     *,
@@ -316,7 +389,7 @@ def make_model_env(
 
     Args:
         env: the real env (``ModelEnv`` reads its observation and action spaces).
-        model: the dynamics model (see :class:`MbrlLibModel`).
+        model: the dynamics model, or an ensemble of them (see :class:`MbrlLibModel`).
         reward_fn: batched torch reward ``(obs, action, next_obs) -> [B]``, e.g.
             :func:`smcd_rl.envs.crippled_ant.ant_reward`.
         termination_fn: batched torch termination ``next_obs -> bool [B]``; ``None``: never.
@@ -332,7 +405,7 @@ def make_model_env(
     """
     models = _mbrl("models")
     adapter = MbrlLibModel(model, propagation=propagation, reward_fn=reward_fn)
-    _check_spaces(env, model)
+    _check_spaces(env, adapter.model)
     generator = torch.Generator(device=adapter.device)
     if seed is not None:
         generator.manual_seed(int(seed))
