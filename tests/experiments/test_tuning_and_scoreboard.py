@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 from dataclasses import dataclass
 
 import pytest
@@ -297,3 +298,29 @@ def test_scoreboard_never_overwrites_a_run_and_checks_every_entry(tmp_path, caps
     (tmp_path / "other" / "results.json").write_text(json.dumps({"experiment": "two-link look-ahead"}))
     assert cli.main(["scoreboard", str(tmp_path / "a"), "--out", str(tmp_path / "other")]) == 2
     assert "holds the results of another command" in capsys.readouterr().err
+
+
+def test_the_scoreboard_refuses_bad_entries_by_file_and_entry_and_keeps_out_as_it_was(tmp_path, capsys) -> None:
+    """Each entry once failed only after --out was written (an empty min(), a negative error bar) or
+    was dropped without a word (a misspelt column); now each is refused first, by name."""
+    fake_run(tmp_path / "a", "task a", better=True)
+    good = json.loads((tmp_path / "a" / "results.json").read_text())["scoreboard"]
+    out = tmp_path / "board"
+    assert cli.main(["scoreboard", str(tmp_path / "a"), "--out", str(out)]) == 0
+    before = {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()}
+    none = good["estimates"]["none"]
+    for name, change, message in [
+        ("nan", {"estimates": {c: {**e, "mean": math.nan} for c, e in good["estimates"].items()}}, "is not finite"),
+        ("no estimates", {"estimates": {}}, "has no estimates"),
+        ("swapped", {"estimates": {"none": {**none, "low": none["high"], "high": none["low"]}}}, "low .* above high"),
+        ("misspelt", {"estimates": {**good["estimates"], "last-layer": none}}, "unknown estimate column 'last-layer'"),
+        ("verdict", {"verdicts": {"GD vs SMCD": "better"}}, "unknown verdict 'GD vs SMCD'"),
+        ("ms", {"ms_per_observation": {"GD": -1.0}}, "milliseconds"),
+    ]:
+        run = tmp_path / name.replace(" ", "-")
+        run.mkdir()
+        (run / "results.json").write_text(json.dumps({"scoreboard": {**good, **change}}))
+        assert cli.main(["scoreboard", str(tmp_path / "a"), str(run), "--out", str(out)]) == 2, name
+        err = capsys.readouterr().err
+        assert re.search(message, err) and f"{run}/results.json: scoreboard entry 0" in err, (name, err)
+        assert {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()} == before, name

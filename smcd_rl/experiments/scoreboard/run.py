@@ -117,22 +117,10 @@ def _write(
     ``note``: where the entries came from, kept in ``scoreboard.json`` when they were not read from runs.
     """
     rows = _rows(entries)
+    # Every table is made before anything is written: a row that cannot be drawn fails here, and
+    # --out keeps what it had.
+    tables = _tables(rows)
     with Experiment(config, progress=progress) as ex:
-        tasks = [
-            [row["task"], row["metric"] + ("" if row["lower_is_better"] else ", higher is better"), row["cell"]]
-            for row in rows
-        ]
-        means = [[row["task"], *(row[f"{c} text"] for c in CORE_COLUMNS)] for row in rows]
-        verdicts = [[row["task"], *(row[f"{m} vs {a}"] for m, a in CORE_VERDICTS)] for row in rows]
-        # Experiments tuned by smcd_rl.tune add SMCD by one-step error, the combination and the
-        # time per observation: tables of their own, of the tasks that have them.
-        extra_columns = ["SMCD (one-step)", "combination"]
-        tuned = [row for row in rows if any(math.isfinite(row[c]) for c in extra_columns)]
-        extra_verdicts = [v for v in VERDICTS if v[0] in extra_columns]
-        task_verdicts = [v for v in VERDICTS if v[0] == TASK_MASKS]
-        task_rows = [row for row in rows if math.isfinite(row[TASK_MASKS])]
-        timed = [row for row in rows if row["ms"]]
-        timed_columns = [c for c in TIMED if any(c in row["ms"] for row in timed)]
         write_json(
             ex.out / "scoreboard.json",
             {
@@ -144,71 +132,91 @@ def _write(
         )
         ex.write(
             experiment="scoreboard: every task, none / GD / SMCD (paper, calibrated, one-step) / combination",
-            # Narrow tables, not one wide one: each fits the width of a docs page.
-            tables={
-                "In short: each task's best mean; SMCD tuned like GD (by each task's criterion), SMCD on task-trained masks (T+S) "
-                "and the combination against tuned GD (paired verdicts over the same trials; tie: no significant "
-                "difference); median ms per observation": summary_table(rows),
-                "Each task's headline metric and cell (every number of the tables below: results.csv)": format_table(
-                    tasks, ["task", "metric", "cell"]
-                ),
-                "Mean [95% CI]": format_table(means, ["task", *CORE_COLUMNS]),
-                "Paired verdicts, over the same trials (difference [95% CI], method minus against)": format_table(
-                    verdicts, ["task", *(VERDICT_LABELS[v] for v in CORE_VERDICTS)]
-                ),
-                "SMCD calibrated by one-step error and the combination, where they ran: mean [95% CI] and "
-                "paired verdict against GD": format_table(
-                    [
-                        [
-                            row["task"],
-                            *(row[f"{c} text"] for c in extra_columns),
-                            *(row[f"{m} vs {a}"] for m, a in extra_verdicts),
-                        ]
-                        for row in tuned
-                    ],
-                    ["task", *extra_columns, *(VERDICT_LABELS[v] for v in extra_verdicts)],
-                )
-                if tuned
-                else "",
-                **{
-                    f"{READOUT_CAPTIONS[column]}, where it ran: mean [95% CI], paired verdicts and median ms per "
-                    "observation": _readout_table(rows, column)
-                    for column in READOUT_COLUMNS
-                },
-                "SMCD on a network whose masks were trained to identify the task (T+S), where it ran: mean [95% CI], "
-                "paired verdicts and median ms per observation": format_table(
-                    [
-                        [
-                            row["task"],
-                            row[f"{TASK_MASKS} text"],
-                            *(row[f"{m} vs {a}"] for m, a in task_verdicts),
-                            _ms(row["ms"].get(TASK_MASKS)),
-                        ]
-                        for row in task_rows
-                    ],
-                    ["task", TASK_MASKS, *(VERDICT_LABELS[v] for v in task_verdicts), "ms / observation"],
-                )
-                if task_rows
-                else "",
-                "Notes: what to know before comparing a task's strategies": format_table(
-                    [[row["task"], row["note"]] for row in rows if row["note"]], ["task", "note"]
-                )
-                if any(row["note"] for row in rows)
-                else "",
-                # Not "none": a forward pass, a fraction of a millisecond everywhere (results.csv has it).
-                "Median time per observation (ms; one stream, one thread), where the experiment measured it": format_table(
-                    [[row["task"], *(_ms(row["ms"].get(c)) for c in timed_columns)] for row in timed],
-                    ["task", *timed_columns],
-                )
-                if timed
-                else "",
-            },
+            tables=tables,
             rows=[_csv_row(row) for row in rows],
             payload={"runs": list(config.runs)},
             plots={"scoreboard.png": lambda path: draw(rows, path)},
             files=["scoreboard.json"],
         )
     return ex.result
+
+
+def _tables(rows: Sequence[Mapping[str, Any]]) -> dict[str, str]:
+    """The report's tables of the scoreboard ``rows``, caption -> Markdown (an empty table: not shown)."""
+    tasks = [
+        [row["task"], row["metric"] + ("" if row["lower_is_better"] else ", higher is better"), row["cell"]]
+        for row in rows
+    ]
+    means = [[row["task"], *(row[f"{c} text"] for c in CORE_COLUMNS)] for row in rows]
+    verdicts = [[row["task"], *(row[f"{m} vs {a}"] for m, a in CORE_VERDICTS)] for row in rows]
+    # Experiments tuned by smcd_rl.tune add SMCD by one-step error, the combination and the
+    # time per observation: tables of their own, of the tasks that have them.
+    extra_columns = ["SMCD (one-step)", "combination"]
+    tuned = [row for row in rows if any(math.isfinite(row[c]) for c in extra_columns)]
+    extra_verdicts = [v for v in VERDICTS if v[0] in extra_columns]
+    task_verdicts = [v for v in VERDICTS if v[0] == TASK_MASKS]
+    task_rows = [row for row in rows if math.isfinite(row[TASK_MASKS])]
+    timed = [row for row in rows if row["ms"]]
+    timed_columns = [c for c in TIMED if any(c in row["ms"] for row in timed)]
+    # Narrow tables, not one wide one: each fits the width of a docs page.
+    return {
+        "In short: each task's best mean; SMCD tuned like GD (by each task's criterion), SMCD on task-trained masks (T+S) "
+        "and the combination against tuned GD (paired verdicts over the same trials; tie: no significant "
+        "difference); median ms per observation": summary_table(rows),
+        "Each task's headline metric and cell (every number of the tables below: results.csv)": format_table(
+            tasks, ["task", "metric", "cell"]
+        ),
+        "Mean [95% CI]": format_table(means, ["task", *CORE_COLUMNS]),
+        "Paired verdicts, over the same trials (difference [95% CI], method minus against)": format_table(
+            verdicts, ["task", *(VERDICT_LABELS[v] for v in CORE_VERDICTS)]
+        ),
+        "SMCD calibrated by one-step error and the combination, where they ran: mean [95% CI] and "
+        "paired verdict against GD": format_table(
+            [
+                [
+                    row["task"],
+                    *(row[f"{c} text"] for c in extra_columns),
+                    *(row[f"{m} vs {a}"] for m, a in extra_verdicts),
+                ]
+                for row in tuned
+            ],
+            ["task", *extra_columns, *(VERDICT_LABELS[v] for v in extra_verdicts)],
+        )
+        if tuned
+        else "",
+        **{
+            f"{READOUT_CAPTIONS[column]}, where it ran: mean [95% CI], paired verdicts and median ms per "
+            "observation": _readout_table(rows, column)
+            for column in READOUT_COLUMNS
+        },
+        "SMCD on a network whose masks were trained to identify the task (T+S), where it ran: mean [95% CI], "
+        "paired verdicts and median ms per observation": format_table(
+            [
+                [
+                    row["task"],
+                    row[f"{TASK_MASKS} text"],
+                    *(row[f"{m} vs {a}"] for m, a in task_verdicts),
+                    _ms(row["ms"].get(TASK_MASKS)),
+                ]
+                for row in task_rows
+            ],
+            ["task", TASK_MASKS, *(VERDICT_LABELS[v] for v in task_verdicts), "ms / observation"],
+        )
+        if task_rows
+        else "",
+        "Notes: what to know before comparing a task's strategies": format_table(
+            [[row["task"], row["note"]] for row in rows if row["note"]], ["task", "note"]
+        )
+        if any(row["note"] for row in rows)
+        else "",
+        # Not "none": a forward pass, a fraction of a millisecond everywhere (results.csv has it).
+        "Median time per observation (ms; one stream, one thread), where the experiment measured it": format_table(
+            [[row["task"], *(_ms(row["ms"].get(c)) for c in timed_columns)] for row in timed],
+            ["task", *timed_columns],
+        )
+        if timed
+        else "",
+    }
 
 
 #: The readouts' columns, each in a table of its own where it ran, with its verdicts against GD and SMCD.
@@ -328,15 +336,33 @@ def _check_entry(entry: Any, where: str) -> None:
     for key, kind in _ENTRY.items():
         if not isinstance(entry.get(key), kind):
             raise ValueError(f"{where} has no {kind.__name__} {key!r}; {fix}")
+    known = f"the scoreboard's columns are {list(COLUMNS)}"
+    if not entry["estimates"]:
+        raise ValueError(f"{where} has no estimates: a row needs at least one strategy's mean; {fix}")
     for column, estimate in entry["estimates"].items():
+        if column not in COLUMNS:
+            raise ValueError(f"{where}: unknown estimate column {column!r} ({known}); {fix}")
         numbers = [estimate.get(k) if isinstance(estimate, dict) else None for k in ("mean", "low", "high")]
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
             raise ValueError(f"{where}: the estimate of {column!r} needs numbers mean, low and high; {fix}")
+        mean, low, high = numbers
+        if not all(math.isfinite(v) for v in (mean, low, high)):
+            raise ValueError(f"{where}: the estimate of {column!r} is not finite ({mean}, [{low}, {high}]); {fix}")
+        if low > high:
+            raise ValueError(f"{where}: the estimate of {column!r} has low {low} above high {high}; {fix}")
+    pairs = {f"{method} vs {against}" for method, against in VERDICTS}
+    for key, verdict in entry["verdicts"].items():
+        if key not in pairs or not isinstance(verdict, str):
+            what = f"unknown verdict {key!r}" if key not in pairs else f"verdict {key!r} is not a string"
+            raise ValueError(f"{where}: {what} (the verdicts are {sorted(pairs)}); {fix}")
     ms = entry.get("ms_per_observation", {})
     if not isinstance(ms, dict) or not all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) for v in ms.values()
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in ms.values()
     ):
-        raise ValueError(f"{where}: 'ms_per_observation' is not a mapping of strategy -> milliseconds; {fix}")
+        raise ValueError(f"{where}: 'ms_per_observation' is not a mapping of strategy -> milliseconds (> 0); {fix}")
+    unknown = [column for column in ms if column not in COLUMNS]
+    if unknown:
+        raise ValueError(f"{where}: 'ms_per_observation' has unknown columns {unknown} ({known}); {fix}")
 
 
 def _row(entry: Mapping[str, Any]) -> dict[str, Any]:
