@@ -345,7 +345,7 @@ def _check_entry(entry: Any, where: str) -> None:
         numbers = [estimate.get(k) if isinstance(estimate, dict) else None for k in ("mean", "low", "high")]
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
             raise ValueError(f"{where}: the estimate of {column!r} needs numbers mean, low and high; {fix}")
-        mean, low, high = numbers
+        mean, low, high = (float(v) for v in numbers)  # type: ignore[arg-type]  # checked numbers above
         if not all(math.isfinite(v) for v in (mean, low, high)):
             raise ValueError(f"{where}: the estimate of {column!r} is not finite ({mean}, [{low}, {high}]); {fix}")
         if low > high:
