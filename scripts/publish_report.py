@@ -64,9 +64,10 @@ def main() -> None:
 def _replace_entries(parser: argparse.ArgumentParser, run: Path, path: Path) -> None:
     """Put the run's scoreboard entries in place of those of the same tasks in ``path``, then redraw it there."""
     from smcd_rl.experiments.scoreboard import run as scoreboard
+    from smcd_rl.experiments.scoreboard.entries import run_entries
 
     try:
-        fresh = scoreboard._entries(run)  # checked as the scoreboard checks them
+        fresh = run_entries(run)  # checked as the scoreboard checks them
         data = json.loads(path.read_text())
         scoreboard.read_entries(path)  # the committed file is a scoreboard's
     except (ValueError, OSError) as err:

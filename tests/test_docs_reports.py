@@ -95,3 +95,10 @@ def test_the_readme_scoreboard_quotes_the_committed_report() -> None:
     readme = _table((DOCS.parents[1] / "README.md").read_text(), "task")
     report = _table((DOCS / "scoreboard" / "report.md").read_text(), "task")
     assert readme == report and "best mean" in readme[0]
+
+
+def test_the_readme_decision_table_is_the_one_the_scoreboard_computed() -> None:
+    """The README's "what to use when" is the scoreboard report's computed table, row for row."""
+    readme = _table((DOCS.parents[1] / "README.md").read_text(), "your situation")
+    report = _table((DOCS / "scoreboard" / "report.md").read_text(), "your situation")
+    assert readme == report and len(report) >= 5

@@ -14,7 +14,7 @@ import torch
 import smcd_rl
 from smcd_rl import cli
 from smcd_rl.experiments.scoreboard import run as scoreboard
-from smcd_rl.experiments.shared import tuned_methods, tuning
+from smcd_rl.experiments.shared import references, tuned_methods, tuning
 from smcd_rl.experiments.shared.adaptations import AdaptationConfig
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
@@ -80,7 +80,7 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     def refuse(*args, **kwargs):
         raise AssertionError("tuning ran again")
 
-    monkeypatch.setattr(tuning, "calibrate", refuse)
+    monkeypatch.setattr(references, "calibrate", refuse)
     monkeypatch.setattr(smcd_rl, "tune", refuse)
     with Experiment(config, progress=False) as ex:
         again = tuning.tune(ex, model, episodes, config)
@@ -90,7 +90,7 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     # Without the options the same choice is made (from a tuning of its own, not the stored one):
     # besides smcd_rl.tune only the evidence calibration runs, Gaussian, and the table lists the variants.
     calls = []
-    monkeypatch.setattr(tuning, "calibrate", lambda *a, **k: calls.append(k["base"].likelihood) or calibrate(*a, **k))
+    monkeypatch.setattr(references, "calibrate", lambda *a, **k: calls.append(k["base"].likelihood) or calibrate(*a, **k))
     with Experiment(config, progress=False) as ex:
         lean = tuning.tune(ex, model, episodes, config, options=False)
     assert calls == ["gaussian"] and lean.options == {}
@@ -106,7 +106,7 @@ def test_a_network_that_runs_only_gd_is_tuned_for_gd_only(tmp_path, monkeypatch)
     def refuse(*args, **kwargs):
         raise AssertionError("SMCD was calibrated for a network that runs only G")
 
-    monkeypatch.setattr(tuning, "calibrate", refuse)
+    monkeypatch.setattr(references, "calibrate", refuse)
     monkeypatch.setattr("smcd_rl.experiments.shared.tuning_options.calibrate", refuse)
     with Experiment(config, progress=False) as ex:
         result = tuning.tune(ex, model, episodes, config, variants=("G",))
@@ -185,13 +185,16 @@ def test_scoreboard_tables_every_run_with_its_verdicts(tmp_path, capsys) -> None
 def printed_tables(printed: str) -> tuple[dict[str, list[str]], dict[str, list[str]]]:
     """The scoreboard's printed tables, task -> the row's other cells: metric and cell joined to the means, verdicts."""
     tables: list[dict[str, list[str]]] = []
+    current: dict[str, list[str]] | None = None
     lines = printed.splitlines() + [""]
     for line, below in itertools.pairwise(lines):
-        if line.startswith("| task ") and below.startswith("|-"):  # a header
-            tables.append({})
-        elif line.startswith("| ") and tables:
+        if below.startswith("|-"):  # a header: a table of tasks, or another (the decision table)
+            current = {} if line.startswith("| task ") else None
+            if current is not None:
+                tables.append(current)
+        elif line.startswith("| ") and not line.startswith("|-") and current is not None:
             cells = [c.strip() for c in line.strip().strip("|").split("|")]
-            tables[-1][cells[0]] = cells[1:]
+            current[cells[0]] = cells[1:]
     summary, tasks, means, verdicts = tables[:4]  # the compact table first, then the scoreboard's
     assert list(summary) == list(tasks)
     return {task: [*tasks[task], *cells] for task, cells in means.items()}, verdicts

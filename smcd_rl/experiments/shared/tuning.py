@@ -47,12 +47,12 @@ import smcd_rl
 from smcd_rl.digests import content_digest, model_digest
 from smcd_rl.experiments.shared.adaptation_config import VARIANTS
 from smcd_rl.experiments.shared.harness import Experiment
+from smcd_rl.experiments.shared.references import reference_specs
 from smcd_rl.experiments.shared.tuning_options import OPTIONS, STUDENT, trace_options
 from smcd_rl.experiments.shared.tuning_record import TUNED, Tuning, reseeded
 from smcd_rl.experiments.shared.workers import computed, map_jobs
 from smcd_rl.strategies.registry import build
 from smcd_rl.tuning import ms_per_observation
-from smcd_rl.tuning.calibration import calibrate
 from smcd_rl.tuning.defaults import kinds_needed
 from smcd_rl.tuning.diagnostics import Trace, trace
 
@@ -136,32 +136,19 @@ def tuned_specs(
             # The same strategy: one time, not two noisy ones.
             same = variant in specs and specs[label] == specs[variant]
             ms[label] = ms[variant] if same else budget.best_of[kind].ms_per_step
-    if "S(evidence)" in variants:
-        searched = free.calibrations.get("search")  # its runs at these particles are not run again
-        evidence = calibrate(
-            model,
-            episodes,
-            base=smcd_rl.SMCD(num_particles=config.particles),
-            flip_probs=config.calibrate_flips,
-            criterion="evidence",
-            seed=seed,
-            progress=progress,
-            reuse=searched if searched and searched.num_particles == config.particles else None,
-        )
-        settings = {**evidence.strategy.config(), "seed": seed, "device": device}
-        # The likelihood's form follows tune's robust-form rule for SMCD on the same episodes: the
-        # evidence chooses the noise of the Gaussian it scores, and the clean episodes cannot show
-        # what a Student-t form is for, a corrupted reading.
-        likelihood = free.best_of["smcd"].settings.get("likelihood", "gaussian") if "smcd" in free.best_of else None
-        if likelihood is not None and likelihood != settings["likelihood"]:
-            settings["likelihood"] = likelihood
-        elif evidence.best.trace is not None:
-            runs["S(evidence)"] = evidence.best.trace
-        specs["S(evidence)"] = {"name": "smcd", "settings": settings}
-    if "S(paper)" in variants:
-        noise = list(paper_noise) if isinstance(paper_noise, (tuple, list)) else float(paper_noise)
-        paper = {"num_particles": config.particles, "noise_std": noise, "flip_prob": config.flip_prob}
-        specs["S(paper)"] = {"name": "smcd", "settings": {**paper, "seed": seed, "device": device}}
+    references, reference_runs = reference_specs(
+        model,
+        episodes,
+        config,
+        free,
+        variants=variants,
+        paper_noise=paper_noise,
+        seed=seed,
+        device=device,
+        progress=progress,
+    )
+    specs.update(references)
+    runs.update(reference_runs)
     for variant in ("S(evidence)", "S(paper)"):
         if variant not in specs:
             continue
