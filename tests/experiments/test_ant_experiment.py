@@ -160,7 +160,7 @@ def test_results_json_has_the_tuning_and_two_scoreboard_entries(tmp_path) -> Non
     tuning = payload["tuning"]["M"]
     assert list(tuning["specs"]) == [*VARIANTS, "L", "SL"] and tuning["episodes"] == 4
     gd = tuning["specs"]["G"]["settings"]  # the grid's point, or one past its edge
-    assert gd["lr"] > 0 and gd["steps"] >= 1 and gd["window"] >= 5 and gd["loss"] in ("mse", "huber")
+    assert gd["lr"] > 0 and gd["steps"] >= 1 and gd["window"] >= 5 and gd["loss"] in ("mse", "huber", "tukey")
     members = [m["name"] for m in tuning["specs"]["C"]["settings"]["members"]]
     assert members == ["none", "gradient_descent", "smcd", "last_layer", "smcd_last_layer"]
     assert len(tuning["specs"]["S(paper)"]["settings"]["noise_std"]) == 41  # 3 x the held-out RMSE per dim

@@ -177,7 +177,7 @@ def test_results_json_has_the_tuning_and_the_scoreboard_entry(tmp_path, capsys) 
     ran = {m.partition("+")[2] for m in panda.PandaConfig().methods if m.startswith("M+")}  # each variant that runs
     assert set(entry["specs"]) == set(entry["traces"]) == set(entry["ms_per_observation"]) == ran
     gd = entry["specs"]["G"]
-    assert gd["name"] == "gradient_descent" and gd["settings"]["loss"] in ("mse", "huber")
+    assert gd["name"] == "gradient_descent" and gd["settings"]["loss"] in ("mse", "huber", "tukey")
     # The grid, extended past an edge by its own ratio (lr x10) or by doubling (steps, window).
     assert math.log10(gd["settings"]["lr"] / 0.01) == pytest.approx(round(math.log10(gd["settings"]["lr"] / 0.01)))
     assert gd["settings"]["steps"] in (1, 2, 4, 8) and gd["settings"]["window"] in (3, 6, 12, 24, 48)

@@ -1,0 +1,92 @@
+"""No hand-typed result on a results page: every decimal figure in its prose is in one of its reports.
+
+A page describes and its report states: an experiment page includes its ``report.md`` and may
+quote it, and the README's results section quotes the scoreboard. A figure typed by hand drifts
+from the report the next time the command runs. This test finds every decimal figure in each
+page's prose (not in code, links or the included report) and looks for it among the numbers of
+the page's reports and data files, as printed or rounded to the figure's digits. A number that
+is not a result (a family's parameter range) is on :data:`NOT_RESULTS` with its reason.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXPERIMENTS = ROOT / "docs" / "experiments"
+
+#: page -> {figure: why it is not a result}. Short on purpose: a result belongs in a report.
+NOT_RESULTS: dict[str, dict[str, str]] = {
+    "docs/experiments/regimes/index.md": {"1.5": "the pendulum family's length prior, U(0.5, 1.5)"},
+}
+
+#: A decimal figure of prose: digits, a point, digits (not part of a version, a path or a longer number).
+FIGURE = re.compile(r"(?<![\w.\-/])(\d+\.\d+)(?![\w.]*\d)")
+NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:e[-+]?\d+)?")
+
+
+def prose(text: str) -> str:
+    """The page's own words: without code blocks, inline code, link targets, comments and includes."""
+    kept, fenced = [], False
+    for line in text.splitlines():
+        if line.strip().startswith("```"):
+            fenced = not fenced
+            continue
+        if fenced or "--8<--" in line:
+            continue
+        line = re.sub(r"`[^`]*`", "", line)
+        line = re.sub(r"\]\([^)]*\)", "]", line)
+        kept.append(re.sub(r"<!--.*?-->", "", line))
+    return "\n".join(kept)
+
+
+def unquoted(page_text: str, sources: list[str], allowed: dict[str, str] | None = None) -> list[str]:
+    """The page's decimal figures found in none of ``sources``, as printed or rounded to the figure's digits."""
+    values = {float(n) for text in sources for n in NUMBER.findall(text)}
+    missing = []
+    for figure in FIGURE.findall(prose(page_text)):
+        digits = len(figure.split(".")[1])
+        if figure in (allowed or {}):
+            continue
+        if not any(abs(v) == float(figure) or f"{abs(v):.{digits}f}" == figure for v in values):
+            missing.append(figure)
+    return missing
+
+
+def _pages() -> dict[str, list[Path]]:
+    """Each results page -> the reports and data files it may quote."""
+    pages = {}
+    for page in sorted(EXPERIMENTS.rglob("index.md")):
+        sources = sorted(page.parent.rglob("report.md")) + sorted(page.parent.glob("*.json"))
+        pages[page.relative_to(ROOT).as_posix()] = sources
+    board = EXPERIMENTS / "scoreboard"
+    pages["README.md#results"] = [board / "report.md", board / "scoreboard.json"]
+    return pages
+
+
+def _text(name: str) -> str:
+    if name == "README.md#results":
+        readme = (ROOT / "README.md").read_text()
+        return readme[readme.index("## Results") : readme.index("## Citing")]
+    return (ROOT / name).read_text()
+
+
+@pytest.mark.parametrize("name", sorted(_pages()))
+def test_every_figure_on_a_results_page_is_in_its_reports(name: str) -> None:
+    sources = [path.read_text() for path in _pages()[name]]
+    missing = unquoted(_text(name), sources, NOT_RESULTS.get(name))
+    assert not missing, (
+        f"{name} types figures that none of its reports holds: {missing}; quote the report (or include it), "
+        "or, for a number that is not a result, add it to NOT_RESULTS with its reason"
+    )
+
+
+def test_the_check_catches_a_hand_typed_figure_and_a_stale_one() -> None:
+    report = "| M+G | 0.1446 [0.13, 0.16] |\nWall time 6 min 41 s"
+    assert unquoted("GD reaches 0.145 m (0.14 rounded).", [report]) == []
+    assert unquoted("GD reaches 0.152 m.", [report]) == ["0.152"]  # a figure from an older run
+    assert unquoted("`--gd-lr 0.003` and [a link](x/0.5.md)\n```text\n0.9\n```\n", [report]) == []
+    assert unquoted("a prior U(0.5, 1.5)", [report], {"0.5": "prior", "1.5": "prior"}) == []
