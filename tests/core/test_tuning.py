@@ -109,7 +109,10 @@ def test_tune_leaves_the_calibration_and_the_network_as_they_were(model) -> None
         ({"budget_ms": 0.0}, "budget_ms"),
         ({"gd_grid": {"lr": ()}}, "gd_grid"),
         ({"gd_grid": {"loss": ()}}, "gd_grid"),
-        ({"gd_grid": {"loss": ("l1",)}}, r"gd_grid\['loss'\] takes losses from \['mse', 'huber', 'tukey'\], got \['l1'\]"),
+        (
+            {"gd_grid": {"loss": ("l1",)}},
+            r"gd_grid\['loss'\] takes losses from \['mse', 'huber', 'tukey'\], got \['l1'\]",
+        ),
         ({"gd_grid": {"loss": "huber"}}, "non-empty sequences"),  # a bare string, not the losses h, u, b, ...
         ({"gd_grid": {"momentum": (0.9,)}}, "gd_grid"),
         ({"flip_probs": (0.01, 2.0)}, r"flip_probs\[1\]"),

@@ -90,7 +90,9 @@ def test_tune_chooses_from_the_held_out_episodes_and_keeps_the_paper_setting(tmp
     # Without the options the same choice is made (from a tuning of its own, not the stored one):
     # besides smcd_rl.tune only the evidence calibration runs, Gaussian, and the table lists the variants.
     calls = []
-    monkeypatch.setattr(references, "calibrate", lambda *a, **k: calls.append(k["base"].likelihood) or calibrate(*a, **k))
+    monkeypatch.setattr(
+        references, "calibrate", lambda *a, **k: calls.append(k["base"].likelihood) or calibrate(*a, **k)
+    )
     with Experiment(config, progress=False) as ex:
         lean = tuning.tune(ex, model, episodes, config, options=False)
     assert calls == ["gaussian"] and lean.options == {}

@@ -57,7 +57,9 @@ def trained() -> object:
     )
     torch.manual_seed(0)
     gaussian = mbrl.models.GaussianMLP(4, 3, "cpu", num_layers=2, ensemble_size=MEMBERS, hid_size=64)
-    wrapper = mbrl.models.OneDTransitionRewardModel(gaussian, target_is_delta=True, normalize=True, learned_rewards=False)
+    wrapper = mbrl.models.OneDTransitionRewardModel(
+        gaussian, target_is_delta=True, normalize=True, learned_rewards=False
+    )
     wrapper.update_normalizer(buffer.get_all())
     train, val = mbrl.util.common.get_basic_buffer_iterators(buffer, 64, 0.1, ensemble_size=MEMBERS)
     mbrl.models.ModelTrainer(wrapper, optim_lr=1e-3).train(train, val, num_epochs=20, silent=True)
@@ -187,7 +189,9 @@ def test_refusals_name_the_problem(trained) -> None:
 
 
 def test_a_wrapped_member_saves_and_loads_with_its_weights_and_normaliser(trained, tmp_path) -> None:
-    (model, *_) = dynamics_models_from_mbrl(trained, adaptation=smcd_rl.BayesianLastLayer(prior_scale=1.0, noise_std=0.05))
+    (model, *_) = dynamics_models_from_mbrl(
+        trained, adaptation=smcd_rl.BayesianLastLayer(prior_scale=1.0, noise_std=0.05)
+    )
     poles = _poles(1, 6, seed=4)
     smcd_rl.save(model, tmp_path / "member.pt")
     loaded = smcd_rl.load(tmp_path / "member.pt")
