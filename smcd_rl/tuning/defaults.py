@@ -38,6 +38,7 @@ __all__ = [
     "CALIBRATION_REFINE",
     "SEARCH_PARTICLE_SHARE",
     "FINALISTS",
+    "SMCD_LAST_LAYER_FINALISTS",
     "MIN_SEARCH_PARTICLES",
     "MIN_PARTICLES",
     "RACE_SHARE",
@@ -108,6 +109,8 @@ LAST_LAYER_GRID: dict[str, tuple[Any, ...]] = {
 #: third of the smallest, while the best is there). A tight readout leaves the masks to explain the
 #: task (SL is then SMCD); a wide one lets each particle's readout take a shift no mask expresses.
 SMCD_LAST_LAYER_SCALES = (1.0, 1 / 100, 1 / 30, 1 / 10, 1 / 3, 3.0)
+#: With tune's shortcuts, SMCD with a Bayesian readout confirms at most this many scales at full size.
+SMCD_LAST_LAYER_FINALISTS = 2
 #: The flip probabilities SMCD's calibration tries.
 FLIP_PROBS = (0.001, 0.003, 0.01, 0.03)
 #: Golden-section runs at the end of SMCD's calibration (:func:`smcd_rl.calibrate`'s ``refine``).

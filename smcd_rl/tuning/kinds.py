@@ -49,6 +49,7 @@ from smcd_rl.tuning.defaults import (
     ROBUST_FORMS,
     ROBUST_SCALE_FACTOR,
     SEARCH_PARTICLE_SHARE,
+    SMCD_LAST_LAYER_FINALISTS,
     SMCD_LAST_LAYER_SCALES,
 )
 from smcd_rl.tuning.diagnostics import Trace
@@ -381,8 +382,8 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
     readout's form (Gaussian or Student-t) is the tuned last layer's, chosen by the robust-form rule. The filter's
     settings are the tuned SMCD's: calibrating them again would cost as many runs as SMCD's own.
     With ``shortcuts`` the scales run with SMCD's reduced particles first (as its calibration
-    does), and only those within :data:`~smcd_rl.tuning.defaults.RACE_MARGIN` of the best there
-    run at full size.
+    does), and only the best :data:`~smcd_rl.tuning.defaults.SMCD_LAST_LAYER_FINALISTS` of those
+    within :data:`~smcd_rl.tuning.defaults.RACE_MARGIN` of the best there run at full size.
     """
     smcd, readout = search.best_of.get("smcd"), search.best_of.get("last_layer")
     if smcd is None or readout is None:
@@ -402,8 +403,11 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
             search.scorer.score(search.run("smcd_last_layer", {**one, "smcd": {**one["smcd"], "num_particles": small}}))
             for one in settings
         ]
+        # The readout's scales score close together: confirming every one within the margin at full
+        # size cost more than the full search. The best few of them are confirmed.
         near = within(min(reduced), RACE_MARGIN)
-        settings = [one for one, score in zip(settings, reduced, strict=True) if score <= near] or settings
+        ranked = sorted((score, i) for i, score in enumerate(reduced) if score <= near)
+        settings = [settings[i] for _, i in ranked[:SMCD_LAST_LAYER_FINALISTS]] or settings
     for one in settings:
         search.score("smcd_last_layer", one)
     # A best readout at the tightest scale: the filter wants the masks to explain more; go tighter.

@@ -329,3 +329,37 @@ def test_the_scoreboard_refuses_bad_entries_by_file_and_entry_and_keeps_out_as_i
         err = capsys.readouterr().err
         assert re.search(message, err) and f"{run}/results.json: scoreboard entry 0" in err, (name, err)
         assert {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()} == before, name
+
+
+def test_the_summary_answers_both_questions_by_network_from_the_entrys_pairs(tmp_path, capsys) -> None:
+    """Known scores per trial: on M, SMCD (0.3 below none) is better than the best of GD and the last
+    layer (0.25 below); on T, T+S (0.4 below) is worse than T+L (0.5 below); across both networks
+    the best SMCD-family strategy is T+S and the best other T+L. Each verdict is read from the
+    entry's pairs, over the same trials."""
+    torch.manual_seed(0)
+    base = torch.rand(40) + 1.0
+    scores = {
+        (10,): {
+            "M+N": base,
+            "M+G": base - 0.2,
+            "M+L": base - 0.25,
+            "M+S": base - 0.3,
+            "T+N": base + 0.1,
+            "T+G": base - 0.35,
+            "T+L": base - 0.5,
+            "T+S": base - 0.4,
+        }
+    }
+    adaptive = ("T+S", "M+S", "M+G", "M+L", "T+N", "T+G", "T+L")
+    rows, comparisons = cell_statistics(scores, cell=("T",), baseline="M+N", adaptive=adaptive, metric="rmse")
+    entry = scoreboard_entry("by network", rows, comparisons, cell={"T": 10}, metric="rmse", unit="m")
+    assert {"T+N", "T+G", "T+L", "SMCD (task masks)"} <= set(entry["estimates"])
+    assert entry["pairs"]["SMCD (task masks) vs T+L"].startswith("worse 0.100")
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "results.json").write_text(json.dumps({"scoreboard": entry}))
+    assert cli.main(["scoreboard", str(tmp_path / "run"), "--out", str(tmp_path / "board")]) == 0
+    report = (tmp_path / "board" / "report.md").read_text()
+    summary = next(line for line in report.splitlines() if line.startswith("| by network "))
+    cells = [c.strip() for c in summary.strip("|").split("|")]
+    assert cells[1].startswith("T+L 0.") and cells[2] == "better · worse" and cells[3] == "T+S worse vs T+L"
+    assert "| T+N " in report and "T+L" in report.split("The task-mask network's other strategies")[1]

@@ -18,6 +18,7 @@ from smcd_rl.experiments.regimes.protocol import budgeted_label
 from smcd_rl.experiments.shared.outputs import format_table, save_figure
 from smcd_rl.experiments.shared.scoreboard_entry import (
     HEADLINE,
+    T_COLUMNS,
     TASK_MASKS,
     TASK_MASKS_METHOD,
     paired_verdict,
@@ -203,7 +204,7 @@ def scoreboard_entries(
             )
             entry["ms_per_observation"] = {
                 column: row["ms_per_observation"]
-                for column, method in {**HEADLINE, TASK_MASKS: TASK_MASKS_METHOD}.items()
+                for column, method in {**HEADLINE, TASK_MASKS: TASK_MASKS_METHOD, **{c: c for c in T_COLUMNS}}.items()
                 for row in rows
                 if row["family"] == family
                 and row["regime"] == regime

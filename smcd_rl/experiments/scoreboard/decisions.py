@@ -32,7 +32,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from smcd_rl.experiments.scoreboard.summary import SHORT, verdict_word
+from smcd_rl.experiments.scoreboard.summary import SHORT, pair_word
 from smcd_rl.experiments.shared.outputs import format_table
 from smcd_rl.experiments.shared.scoreboard_entry import TASK_MASKS
 
@@ -42,8 +42,8 @@ Row = Mapping[str, Any]
 
 #: The strategies on a network trained as usual (M), in the order a tie is listed.
 USUAL = ("SMCD (one-step)", "SMCD + last layer", "GD", "last layer", "combination")
-#: ... and with the task-mask network (T+S) for a user who can train it.
-EITHER = (TASK_MASKS, *USUAL)
+#: ... and with the task-mask network's strategies for a user who can train it.
+EITHER = (TASK_MASKS, "T+SL", "T+G", "T+L", *USUAL)
 
 
 @dataclass(frozen=True)
@@ -193,13 +193,10 @@ def _timed(row: Row, situation: Situation) -> bool:
 
 def _compare(row: Row, strategy: str, other: str) -> str:
     """``strategy`` against ``other`` on ``row``: ``better``, ``worse`` or ``tie``, by their paired
-    verdict where the row holds one, else by whether their intervals overlap."""
-    for key, flip in ((f"{strategy} vs {other}", False), (f"{other} vs {strategy}", True)):
-        word = verdict_word(str(row.get(key, "")))
-        if word in ("better", "worse"):
-            return {"better": "worse", "worse": "better"}[word] if flip else word
-        if word == "tie":
-            return "tie"
+    verdict where the row holds one (its pairs, or its verdicts), else by whether their intervals overlap."""
+    word = pair_word(row, strategy, other)
+    if word != "-":
+        return word
     low, high = row.get(f"{strategy} low", row[strategy]), row.get(f"{strategy} high", row[strategy])
     other_low, other_high = row.get(f"{other} low", row[other]), row.get(f"{other} high", row[other])
     if low <= other_high and other_low <= high:

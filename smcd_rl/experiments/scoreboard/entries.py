@@ -117,6 +117,15 @@ def check_entry(entry: Any, where: str) -> None:
         if key not in pairs or not isinstance(verdict, str):
             what = f"unknown verdict {key!r}" if key not in pairs else f"verdict {key!r} is not a string"
             raise ValueError(f"{where}: {what} (the verdicts are {sorted(pairs)}); {fix}")
+    pairs = entry.get("pairs", {})
+    if not isinstance(pairs, dict):
+        raise ValueError(f"{where}: 'pairs' is not a mapping of 'A vs B' -> paired verdict; {fix}")
+    for key, verdict in pairs.items():
+        a, sep, b = str(key).partition(" vs ")
+        if not sep or a not in COLUMNS or b not in COLUMNS or not isinstance(verdict, str):
+            raise ValueError(
+                f"{where}: pair {key!r} is not 'A vs B' of two known columns with a verdict ({known}); {fix}"
+            )
     ms = entry.get("ms_per_observation", {})
     if not isinstance(ms, dict) or not all(
         isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in ms.values()

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from smcd_rl.experiments.shared.outputs import save_figure
-from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, TASK_MASKS
+from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, T_COLUMNS, TASK_MASKS
 
 __all__ = ["draw", "BAR_LABELS"]
 
@@ -27,7 +27,8 @@ BAR_LABELS = {
     "combination": "combi-\nnation",
     "last layer": "last\nlayer",
     "SMCD + last layer": "SMCD +\nlast layer",
-    TASK_MASKS: "SMCD\n(task masks)",
+    TASK_MASKS: "T+S",
+    **{column: column for column in T_COLUMNS},
 }
 
 
@@ -52,8 +53,15 @@ def draw(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
         for j, column in enumerate(present):
             mean = row[column]
             error = [[mean - row[f"{column} low"]], [row[f"{column} high"] - mean]]
-            ax.bar(j, mean, 0.7, yerr=error, capsize=3, color=f"C{COLUMNS.index(column)}")
-        ax.set_xticks(range(len(present)), [BAR_LABELS[c] for c in present], fontsize=10 if len(present) <= 4 else 8)
+            ax.bar(j, mean, 0.7, yerr=error, capsize=3, color=f"C{COLUMNS.index(column) % 10}")
+        # Both networks' strategies do not fit side by side at a page's width: upright names then.
+        crowded = len(present) > 8
+        ax.set_xticks(
+            range(len(present)),
+            [BAR_LABELS[c].replace("\n", " ") if crowded else BAR_LABELS[c] for c in present],
+            fontsize=10 if len(present) <= 4 else 8,
+            rotation=90 if crowded else 0,
+        )
         ax.set_xlim(-0.6, max(len(present), 1) - 0.4)
         ax.set_title("\n".join(textwrap.wrap(row["task"], 40)), fontsize=12)
         better = "lower" if row["lower_is_better"] else "higher"

@@ -35,6 +35,7 @@ from smcd_rl.experiments.shared.scoreboard_entry import (
     COLUMNS,
     CORE_COLUMNS,
     CORE_VERDICTS,
+    T_COLUMNS,
     TASK_MASKS,
     VERDICT_LABELS,
     VERDICTS,
@@ -126,6 +127,7 @@ def _tables(rows: Sequence[Mapping[str, Any]]) -> dict[str, str]:
     extra_verdicts = [v for v in VERDICTS if v[0] in extra_columns]
     task_verdicts = [v for v in VERDICTS if v[0] == TASK_MASKS]
     task_rows = [row for row in rows if math.isfinite(row[TASK_MASKS])]
+    t_rows = [row for row in rows if any(math.isfinite(row[c]) for c in T_COLUMNS)]
     timed = [row for row in rows if row["ms"]]
     timed_columns = [c for c in TIMED if any(c in row["ms"] for row in timed)]
     # Narrow tables, not one wide one: each fits the width of a docs page.
@@ -175,6 +177,11 @@ def _tables(rows: Sequence[Mapping[str, Any]]) -> dict[str, str]:
             ["task", TASK_MASKS, *(VERDICT_LABELS[v] for v in task_verdicts), "ms / observation"],
         )
         if task_rows
+        else "",
+        "The task-mask network's other strategies, where they ran: mean [95% CI] (T+N: no adaptation)": format_table(
+            [[row["task"], *(row[f"{c} text"] for c in T_COLUMNS)] for row in t_rows], ["task", *T_COLUMNS]
+        )
+        if t_rows
         else "",
         "Notes: what to know before comparing a task's strategies": format_table(
             [[row["task"], row["note"]] for row in rows if row["note"]], ["task", "note"]
@@ -280,6 +287,7 @@ def _row(entry: Mapping[str, Any]) -> dict[str, Any]:
         row[f"{column} text"] = str(Estimate(mean, low, high, 0)) if e else "not run"
     for method, against in VERDICTS:
         row[f"{method} vs {against}"] = entry["verdicts"].get(f"{method} vs {against}", "not compared")
+    row["pairs"] = dict(entry.get("pairs", {}))
     row["ms"] = dict(entry.get("ms_per_observation", {}))
     row["note"] = str(entry.get("note", ""))
     return row
@@ -287,9 +295,9 @@ def _row(entry: Mapping[str, Any]) -> dict[str, Any]:
 
 def _csv_row(row: Mapping[str, Any]) -> dict[str, Any]:
     """A row of results.csv: the numbers and verdicts, each time per observation a column of its own."""
-    flat = {k: v for k, v in row.items() if not k.endswith(" text") and k != "ms"}
+    flat = {k: v for k, v in row.items() if not k.endswith(" text") and k not in ("ms", "pairs")}
     return {**flat, **{f"{column} ms": row["ms"].get(column) for column in COLUMNS}}
 
 
 #: The strategies whose times the report's table shows (SMCD on task masks and the readouts: in their own tables).
-TIMED = tuple(c for c in COLUMNS if c not in ("none", TASK_MASKS, *READOUT_COLUMNS))
+TIMED = tuple(c for c in COLUMNS if c not in ("none", TASK_MASKS, *READOUT_COLUMNS, *T_COLUMNS))

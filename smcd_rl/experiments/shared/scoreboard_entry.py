@@ -30,13 +30,15 @@ __all__ = [
     "CORE_VERDICTS",
     "VERDICT_LABELS",
     "paired_verdict",
+    "T_COLUMNS",
 ]
 
 #: The scoreboard's strategies, in order: "SMCD (calibrated)" is SMCD calibrated by its evidence,
 #: "SMCD (one-step)" SMCD tuned like GD, by the same criterion (:func:`smcd_rl.tune`), "combination"
 #: the tuned combination of the others, "last layer" the Bayesian last layer, "SMCD + last layer"
 #: SMCD with a Bayesian readout, "SMCD (task masks)" one-step SMCD on a network whose masks were
-#: trained to identify the task; an experiment that did not run one reads "not run".
+#: trained to identify the task, and "T+N", "T+G", "T+L", "T+SL" the other strategies on that
+#: network; an experiment that did not run one reads "not run".
 COLUMNS = (
     "none",
     "GD",
@@ -47,7 +49,13 @@ COLUMNS = (
     "last layer",
     "SMCD + last layer",
     "SMCD (task masks)",
+    "T+N",
+    "T+G",
+    "T+L",
+    "T+SL",
 )
+#: The task-mask network's strategies besides T+S: each column is its method's label.
+T_COLUMNS = ("T+N", "T+G", "T+L", "T+SL")
 #: The column of SMCD on the task-mask network (``fit(mask_training="task")``), and its method label.
 TASK_MASKS, TASK_MASKS_METHOD = "SMCD (task masks)", "T+S"
 #: The columns every experiment's entry has.
@@ -124,8 +132,9 @@ def scoreboard_entry(
         chosen = {k: rows[0][k] for k in chosen}
     labels = {column: prefix + suffix for column, suffix in (HEADLINE if methods is None else methods).items()}
     found = {r["method"]: r for r in rows if _in_cell(r, chosen)}
-    if TASK_MASKS_METHOD in found:  # the task-mask network's SMCD, where the experiment ran it
+    if TASK_MASKS_METHOD in found:  # the task-mask network's strategies, where the experiment ran them
         labels[TASK_MASKS] = TASK_MASKS_METHOD
+        labels.update({column: column for column in T_COLUMNS})
     estimates = {
         column: {
             "method": label,
@@ -143,6 +152,7 @@ def scoreboard_entry(
         for method, against in VERDICTS
         if (method, against) in CORE_VERDICTS or (method in labels and against in labels)
     }
+    ran = [column for column in COLUMNS if column in estimates]
     entry = {
         "task": task,
         "cell": chosen,
@@ -151,6 +161,14 @@ def scoreboard_entry(
         "lower_is_better": lower_is_better,
         "estimates": estimates,
         "verdicts": verdicts,
+        # Every pair of the strategies that ran, paired over the same trials: what the scoreboard's
+        # verdicts by network choose from.
+        "pairs": {
+            f"{a} vs {b}": verdict
+            for i, a in enumerate(ran)
+            for b in ran[i + 1 :]
+            if (verdict := paired_verdict(pairs, labels[a], labels[b])) != "not compared"
+        },
     }
     if ms:
         timed = {column: ms[e["method"]] for column, e in estimates.items() if e["method"] in ms}
