@@ -85,19 +85,18 @@ def members_from_gaussian_mlp(
     width = means if outputs is None else outputs
     if isinstance(width, bool) or not isinstance(width, int) or not 1 <= width <= means:
         raise ValueError(f"outputs must be an int in [1, {means}] (the mean head's size), got {outputs!r}")
-    linears: list[torch.Tensor] = [linear.weight for linear, _ in hidden]  # type: ignore[misc]  # checked 3-d
+    weights: list[torch.Tensor] = [linear.weight for linear, _ in hidden]  # type: ignore[misc]  # checked 3-d
     activation = _activation_name({type(act) for _, act in hidden})
-    weight = head_weight
     nets = []
     for member in chosen:
         net = MaskedMLP(
-            int(linears[0].shape[1]),
+            int(weights[0].shape[1]),  # an ensemble layer's weight is [members, in, out]
             width,
-            hidden=tuple(int(linear.shape[2]) for linear in linears),
+            hidden=tuple(int(weight.shape[2]) for weight in weights),
             dropout=0.0,
             activation=activation,  # type: ignore[arg-type]  # a key of _ACTIVATIONS
-            device=weight.device,
-            dtype=weight.dtype,
+            device=head_weight.device,
+            dtype=head_weight.dtype,
         )
         with torch.no_grad():
             for mine, (theirs, _) in zip(net.linears[:-1], hidden, strict=True):

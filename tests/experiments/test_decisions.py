@@ -66,6 +66,12 @@ def test_the_committed_readme_table_holds_and_a_tampered_scoreboard_contradicts_
     worst = max(values) + 1.0 if entry["lower_is_better"] else min(values) - 1.0  # beyond every other's interval
     estimate = entry["estimates"][strategy]
     estimate["mean"], estimate["low"], estimate["high"] = worst, worst - 0.1, worst + 0.1
+    for verdicts in (entry["verdicts"], entry.get("pairs", {})):  # and every paired verdict says so
+        for key in verdicts:
+            if key.startswith(f"{strategy} vs "):
+                verdicts[key] = "worse 1.000 [0.900, 1.100]"
+            elif key.endswith(f" vs {strategy}"):
+                verdicts[key] = "better -1.000 [-1.100, -0.900]"
     path = tmp_path / "scoreboard.json"
     path.write_text(json.dumps(tampered))
     found = contradictions(table, _rows(read_entries(path)[1]))

@@ -361,5 +361,5 @@ def test_the_summary_answers_both_questions_by_network_from_the_entrys_pairs(tmp
     report = (tmp_path / "board" / "report.md").read_text()
     summary = next(line for line in report.splitlines() if line.startswith("| by network "))
     cells = [c.strip() for c in summary.strip("|").split("|")]
-    assert cells[1].startswith("T+L 0.") and cells[2] == "better · worse" and cells[3] == "T+S worse vs T+L"
+    assert cells[1].startswith("T+L 0.") and cells[2] == "better · worse" and cells[3] == "T+S vs T+L: worse"
     assert "| T+N " in report and "T+L" in report.split("The task-mask network's other strategies")[1]

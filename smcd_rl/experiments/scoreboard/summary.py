@@ -95,7 +95,7 @@ def _side_verdict(row: Mapping[str, Any], family: Sequence[str], others: Sequenc
     if ours is None or theirs is None:
         return "-"
     word = pair_word(row, ours, theirs)
-    return f"{SHORT[ours]} {word} vs {SHORT[theirs]}" if named else word
+    return f"{SHORT[ours]} vs {SHORT[theirs]}: {word}" if named else word
 
 
 def summary_table(rows: Sequence[Mapping[str, Any]]) -> str:
