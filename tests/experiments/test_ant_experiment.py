@@ -170,7 +170,9 @@ def test_results_json_has_the_tuning_and_two_scoreboard_entries(tmp_path) -> Non
     for entry, condition in zip(board, ("healthy", "crippled"), strict=True):
         assert entry["cell"] == {"condition": condition, "prediction": "one-step"} and entry["metric"] == "rmse"
         assert entry["unit"] == "observation units" and entry["lower_is_better"] is True
-        ran = set(COLUMNS) - {"T+L"}  # every strategy of both networks but the last layer on T, which the Ant does not run
+        ran = set(COLUMNS) - {
+            "T+L"
+        }  # every strategy of both networks but the last layer on T, which the Ant does not run
         assert set(entry["estimates"]) == ran and entry["estimates"]["combination"]["method"] == "M+C"
         assert entry["note"] == ant.TASK_NOTE  # T+S's network saw the crippled legs, M's did not
         assert all(e["trials"] == 6 for e in entry["estimates"].values())
