@@ -90,7 +90,7 @@ def test_tiny_run_writes_every_cell_with_time_per_step_and_a_scoreboard_reads_it
     board = scoreboard(ScoreboardConfig(runs=(str(out),), out=str(tmp_path / "board")), progress=False)
     assert len(board["results"]) == 9
     report = (tmp_path / "board" / "report.md").read_text()
-    assert "one-step vs GD" in report and "Median time per observation" in report
+    assert "tuned vs GD" in report and "Median time per observation" in report
 
 
 def test_the_other_networks_leave_every_other_row_unchanged(tmp_path, capsys) -> None:
