@@ -178,12 +178,11 @@ def checked_noise(noise_std: Any, *, auto: bool = True) -> Tensor:
     return noise
 
 
-def checked_likelihood(likelihood: Any, dof: Any, *, also: tuple[str, ...] = ()) -> tuple[Likelihood, float]:
-    """``likelihood`` and the Student-t's degrees of freedom ``dof``, checked (``dof`` is checked with either
+def checked_likelihood(likelihood: Any, dof: Any, *, also: tuple[str, ...] = ()) -> tuple[str, float]:
+    """``likelihood`` and the Student-t's degrees of freedom ``dof``, checked (``dof`` is checked with any
     likelihood, so that a bad value fails now and not when the likelihood is switched). ``also``: the
-    caller's further likelihoods, named in the error (the caller handles them)."""
-    if not isinstance(likelihood, str) or likelihood not in ("gaussian", "student-t"):
-        choices = " or ".join(repr(c) for c in ("gaussian", "student-t", *also))
-        raise ValueError(f"likelihood must be {choices}, got {likelihood!r}")
-    checked: Likelihood = "gaussian" if likelihood == "gaussian" else "student-t"
-    return checked, check_real(dof, "dof", low=0.0, high=1e12, open_low=True)  # beyond, use likelihood="gaussian"
+    caller's further likelihoods (the Bayesian last layer's ``"tukey"``)."""
+    choices = ("gaussian", "student-t", *also)
+    if not isinstance(likelihood, str) or likelihood not in choices:
+        raise ValueError(f"likelihood must be {' or '.join(repr(c) for c in choices)}, got {likelihood!r}")
+    return likelihood, check_real(dof, "dof", low=0.0, high=1e12, open_low=True)  # beyond, use likelihood="gaussian"

@@ -115,9 +115,7 @@ class BayesianLastLayer(Adaptation):
                 f"drift * prior_scale**2 = {self.drift * self.prior_scale**2:.3g} is beyond {MAX_DRIFT_VARIANCE:g}, "
                 "where the posterior's covariance loses its precision; use a smaller drift or prior_scale"
             )
-        tukey = isinstance(likelihood, str) and likelihood == "tukey"
-        checked, self.dof = checked_likelihood("gaussian" if tukey else likelihood, dof, also=("tukey",))
-        self.likelihood: Literal["gaussian", "student-t", "tukey"] = "tukey" if tukey else checked
+        self.likelihood, self.dof = checked_likelihood(likelihood, dof, also=("tukey",))
         self._mean: Tensor | None = None  # [B, D, out]: the posterior mean of the readout per stream
         self._cov: Tensor | None = None  # [B, D, D]: its covariance, in units of each output's noise variance
         self._sigma = torch.ones(1)

@@ -314,7 +314,7 @@ def tune_smcd(
             # The robust form at the best setting: a Student-t likelihood of the same scale, whose
             # heavy tails keep one corrupted reading from collapsing the particles onto whichever
             # masks explain it. (Under the evidence criterion the likelihood is what is scored.)
-            search.score("smcd", {**best.settings, "likelihood": "student-t"}, ms=None if math.isnan(ms) else ms)
+            search.score("smcd", {**best.settings, "likelihood": "student-t"}, ms=measured)
     search.prefer_robust("smcd", ROBUST_FORMS["smcd"])
     search.time_best("smcd")
     return calibrations
