@@ -16,14 +16,7 @@ from smcd_rl.experiments.regimes.config import RegimesConfig, regime_names
 from smcd_rl.experiments.regimes.families import FAMILIES, OTHER_NETWORKS, network_of, split_method, split_network
 from smcd_rl.experiments.regimes.protocol import budgeted_label
 from smcd_rl.experiments.shared.outputs import format_table, save_figure
-from smcd_rl.experiments.shared.scoreboard_entry import (
-    HEADLINE,
-    T_COLUMNS,
-    TASK_MASKS,
-    TASK_MASKS_METHOD,
-    paired_verdict,
-    scoreboard_entry,
-)
+from smcd_rl.experiments.shared.scoreboard_entry import paired_verdict, scoreboard_entry
 from smcd_rl.experiments.shared.task_family import task_verdict_table
 
 __all__ = ["tables", "plot", "scoreboard_entries", "best_single", "SCOREBOARD_REGIMES"]
@@ -193,6 +186,7 @@ def scoreboard_entries(
         for regime in SCOREBOARD_REGIMES:
             if not any(r["family"] == family and r["regime"] == regime for r in rows):
                 continue
+            cell = [r for r in rows if r["family"] == family and r["regime"] == regime]
             entry = scoreboard_entry(
                 f"{family} {regime}",
                 rows,
@@ -201,16 +195,8 @@ def scoreboard_entries(
                 metric="rmse",
                 unit=FAMILIES[family].unit,
                 prefix="",  # the regimes' methods carry no network prefix
+                ms={r["method"]: r["ms_per_observation"] for r in cell if r.get("ms_per_observation") is not None},
             )
-            entry["ms_per_observation"] = {
-                column: row["ms_per_observation"]
-                for column, method in {**HEADLINE, TASK_MASKS: TASK_MASKS_METHOD, **{c: c for c in T_COLUMNS}}.items()
-                for row in rows
-                if row["family"] == family
-                and row["regime"] == regime
-                and row["method"] == method
-                and row.get("ms_per_observation") is not None
-            }
             entries.append(entry)
     return entries
 

@@ -32,7 +32,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from smcd_rl.experiments.scoreboard.summary import SHORT, pair_word
+from smcd_rl.experiments.scoreboard.summary import SHORT, best_of, pair_word
 from smcd_rl.experiments.shared.outputs import format_table
 from smcd_rl.experiments.shared.scoreboard_entry import TASK_MASKS
 
@@ -100,10 +100,11 @@ SITUATIONS: tuple[Situation, ...] = (
 def holds(row: Row, strategy: str, strategies: Sequence[str], max_ms: float | None = None) -> bool:
     """Whether ``strategy`` is best or tied with the best of ``strategies`` on ``row``, and never
     significantly worse than one of them (the module's rule)."""
-    ran = [s for s in strategies if _ran(row, s) and _in_budget(row, s, max_ms)]
+    ran = _open(row, strategies, max_ms)
     if strategy not in ran:
         return False
-    best = (min if row["lower_is_better"] else max)(ran, key=lambda s: row[s])
+    best = best_of(row, ran)
+    assert best is not None  # ``strategy`` ran
     if strategy != best and _compare(row, strategy, best) != "tie":
         return False
     return all(_compare(row, strategy, other) != "worse" for other in ran if other != strategy)
@@ -206,8 +207,10 @@ def _compare(row: Row, strategy: str, other: str) -> str:
 
 
 def _best(row: Row, situation: Situation) -> str:
-    ran = [s for s in situation.strategies if _ran(row, s) and _in_budget(row, s, situation.max_ms)]
-    if not ran:
-        return "none ran"
-    best = (min if row["lower_is_better"] else max)(ran, key=lambda s: row[s])
-    return f"{SHORT[best]} {row[best]:.3g}"
+    best = best_of(row, _open(row, situation.strategies, situation.max_ms))
+    return "none ran" if best is None else f"{SHORT[best]} {row[best]:.3g}"
+
+
+def _open(row: Row, strategies: Sequence[str], max_ms: float | None) -> list[str]:
+    """The ``strategies`` that ran on ``row``, within the budget where there is one."""
+    return [s for s in strategies if _ran(row, s) and _in_budget(row, s, max_ms)]

@@ -29,7 +29,17 @@ from typing import Any
 from smcd_rl.experiments.shared.outputs import format_table
 from smcd_rl.experiments.shared.scoreboard_entry import COLUMNS, T_COLUMNS, TASK_MASKS
 
-__all__ = ["FAMILY", "SHORT", "NETWORKS", "EITHER", "summary_table", "verdict_word", "pair_word", "milliseconds"]
+__all__ = [
+    "FAMILY",
+    "SHORT",
+    "NETWORKS",
+    "EITHER",
+    "best_of",
+    "summary_table",
+    "verdict_word",
+    "pair_word",
+    "milliseconds",
+]
 
 #: The SMCD family and the Bayesian last layer, in the order the table lists them.
 FAMILY = ("SMCD (one-step)", TASK_MASKS, "combination", "SMCD + last layer", "last layer")
@@ -82,7 +92,8 @@ def pair_word(row: Mapping[str, Any], a: str, b: str) -> str:
     return "-"
 
 
-def _best(row: Mapping[str, Any], columns: Sequence[str]) -> str | None:
+def best_of(row: Mapping[str, Any], columns: Sequence[str]) -> str | None:
+    """The column of ``columns`` with the best mean on ``row`` (``None`` where none ran)."""
     present = [c for c in columns if math.isfinite(row[c])]
     if not present:
         return None
@@ -91,7 +102,7 @@ def _best(row: Mapping[str, Any], columns: Sequence[str]) -> str | None:
 
 def _side_verdict(row: Mapping[str, Any], family: Sequence[str], others: Sequence[str], *, named: bool = False) -> str:
     """The best of ``family`` against the best of ``others`` on ``row`` (``-`` where a side did not run)."""
-    ours, theirs = _best(row, family), _best(row, others)
+    ours, theirs = best_of(row, family), best_of(row, others)
     if ours is None or theirs is None:
         return "-"
     word = pair_word(row, ours, theirs)
@@ -103,7 +114,7 @@ def summary_table(rows: Sequence[Mapping[str, Any]]) -> str:
     family = [member for member in FAMILY if any(math.isfinite(row[member]) for row in rows)]
     body = []
     for row in rows:
-        best = _best(row, COLUMNS)
+        best = best_of(row, COLUMNS)
         assert best is not None  # every entry has an estimate (checked when read)
         unit = row["metric"].split("(", 1)[1].rstrip(")") if "(" in row["metric"] else ""
         same = " · ".join(_side_verdict(row, *NETWORKS[net]) for net in NETWORKS)
