@@ -29,6 +29,7 @@ from smcd_rl.envs import register_all as _register_envs
 
 if TYPE_CHECKING:
     from smcd_rl.allocator import keep_freed_memory
+    from smcd_rl.feature_readout import FeatureReadout
     from smcd_rl.files import FileWriteError, UnreadableFileError
     from smcd_rl.filter import ParticleFilter, SMCDFilter
     from smcd_rl.masked_mlp import MaskedMLP
@@ -60,6 +61,7 @@ __version__ = "0.2.0"
 
 __all__ = [
     "MaskedMLP",
+    "FeatureReadout",
     "SMCDFilter",
     "ParticleFilter",
     "Adaptation",
@@ -111,6 +113,7 @@ _SOURCES: dict[str, str] = {
     **dict.fromkeys(["FileWriteError", "UnreadableFileError"], "files"),
     **dict.fromkeys(["ParticleFilter", "SMCDFilter"], "filter"),
     "MaskedMLP": "masked_mlp",
+    "FeatureReadout": "feature_readout",
     **dict.fromkeys(
         ["AdaptiveDynamicsModel", "AdaptiveModel", "CheckpointMismatchError", "UnfittedModelWarning", "load", "save"],
         "model",

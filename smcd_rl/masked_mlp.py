@@ -207,6 +207,14 @@ class MaskedMLP(nn.Module):
         self._check_input(x)
         return self._hidden(x, None if mask is None else self._scaled(mask, x.dtype))
 
+    def trunk(self, x: Tensor) -> Tensor:
+        """What :attr:`linears` read, the part of the network before them that no strategy adapts: here the input.
+
+        Gradient descent steps every layer in :attr:`linears` on a window of ``trunk(x)``; a
+        :class:`~smcd_rl.feature_readout.FeatureReadout` network's trunk is its frozen features module.
+        """
+        return x
+
     def forward_particles(self, x: Tensor, masks: Tensor, readout: Callable[[Tensor], Tensor] | None = None) -> Tensor:
         """Predict with every mask of a particle set in one batched pass.
 

@@ -26,6 +26,7 @@ from smcd_rl.checks import (
     read_inputs,
     read_tensor,
 )
+from smcd_rl.feature_readout import FeatureReadout
 from smcd_rl.files import CheckpointMismatchError, UnreadableFileError, load_file, save_file
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.normalization import Normalizer
@@ -113,7 +114,10 @@ class AdaptiveModel(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         if not isinstance(net, MaskedMLP):
-            raise TypeError(f"net must be a smcd_rl.MaskedMLP, got {type(net).__name__}")
+            raise TypeError(
+                f"net must be a smcd_rl.MaskedMLP (or a smcd_rl.FeatureReadout around a network of your own), got "
+                f"{type(net).__name__}"
+            )
         if isinstance(in_keys, (str, tuple)) or not isinstance(in_keys, Sequence):
             raise TypeError(f"in_keys must be a list of keys such as ['q'], got {in_keys!r}")
         if not in_keys:
@@ -981,12 +985,21 @@ def save(model: AdaptiveModel, path: str | os.PathLike[str]) -> None:
     model.save(path)
 
 
-def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) -> AdaptiveModel:
+def load(
+    path: str | os.PathLike[str], *, adaptation: Adaptation | None = None, features: torch.nn.Module | None = None
+) -> AdaptiveModel:
     """Rebuild a model saved with :func:`save` (or :meth:`AdaptiveModel.save`).
+
+    A model whose network is a :class:`~smcd_rl.feature_readout.FeatureReadout` holds your own
+    features module, whose class smcd_rl cannot rebuild: pass a module of the same architecture
+    back as ``features`` (its weights are then restored from the file; the module you pass is not
+    changed).
 
     Args:
         path: the checkpoint file.
         adaptation: strategy to attach instead of the saved one (a fresh copy of it by default).
+        features: for a ``FeatureReadout`` model, a features module of the saved one's class and
+            shapes; for any other model, leave it out.
 
     Raises:
         FileNotFoundError: there is no file at ``path``.
@@ -995,7 +1008,8 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
         CheckpointMismatchError: the file is a dict but no model checkpoint, e.g. a bare
             ``state_dict`` (load it with ``net.load_state_dict(torch.load(path))``). For a file
             that is not an smcd-rl model checkpoint at all, the message says what it is and how
-            to load it.
+            to load it. Also: a ``FeatureReadout`` model loaded without ``features``, or with a
+            module of another class or shapes than the saved one.
 
     Example:
         >>> import tempfile, smcd_rl
@@ -1008,7 +1022,7 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
     checkpoint = _read_checkpoint(path)
     try:
         # The architecture's config has no dtype: the saved weights carry it (a float64 model stays float64).
-        net = MaskedMLP(**checkpoint["net"], dtype=_saved_dtype(checkpoint))
+        net = _rebuilt_net(checkpoint["net"], _saved_dtype(checkpoint), features, path)
         if adaptation is None:
             saved = checkpoint["adaptation"]
             # The network is rebuilt on the CPU: so are the random generators of its SMCDs.
@@ -1016,6 +1030,8 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
                 {"name": saved["name"], "settings": on_device(saved["name"], settings_of(saved), "cpu")}
             )
         cls = _CLASSES[checkpoint["class"]]
+    except CheckpointMismatchError:
+        raise
     except (TypeError, ValueError, KeyError) as err:  # a configuration this version cannot rebuild
         raise UnreadableFileError(
             f"smcd_rl model checkpoint {path} holds a configuration this version of smcd_rl cannot rebuild "
@@ -1025,6 +1041,35 @@ def load(path: str | os.PathLike[str], *, adaptation: Adaptation | None = None) 
     model = _assemble(cls, net, checkpoint["keys"], adaptation)
     model.load_checkpoint(checkpoint)
     return model
+
+
+def _rebuilt_net(
+    config: dict[str, Any], dtype: torch.dtype | None, features: torch.nn.Module | None, path: str | os.PathLike[str]
+) -> MaskedMLP:
+    """The saved architecture: a :class:`MaskedMLP` from its config, or a ``FeatureReadout`` around ``features``."""
+    saved = config.get("features") if isinstance(config, dict) else None
+    if saved is None:
+        if features is not None:
+            raise CheckpointMismatchError(
+                f"{path} holds a MaskedMLP, which smcd_rl rebuilds itself; load it without features="
+            )
+        return MaskedMLP(**config, dtype=dtype)
+    if features is None:
+        raise CheckpointMismatchError(
+            f"{path} holds a network with your own features module ({saved}), which smcd_rl cannot rebuild; pass "
+            f"one back: smcd_rl.load(path, features=<a {saved.rpartition('.')[2]} of the same shapes>), and its "
+            "weights are restored from the file"
+        )
+    given = f"{type(features).__module__}.{type(features).__qualname__}"
+    if given != saved:
+        raise CheckpointMismatchError(f"{path} holds a features module {saved}, but features= is a {given}")
+    readout = torch.nn.Linear(config["width"], config["out_features"], dtype=dtype)
+    try:
+        return FeatureReadout(
+            copy.deepcopy(features).to(dtype) if dtype else features, readout, in_features=config["in_features"]
+        )
+    except ValueError as err:
+        raise CheckpointMismatchError(f"features= does not fit the network saved in {path}: {err}") from err
 
 
 def _saved_dtype(checkpoint: dict[str, Any]) -> torch.dtype | None:

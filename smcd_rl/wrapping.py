@@ -42,11 +42,15 @@ import torch
 from tensordict.utils import NestedKey
 from torch import nn
 
+from smcd_rl.feature_readout import FeatureReadout
 from smcd_rl.masked_mlp import _ACTIVATIONS, MaskedMLP
 from smcd_rl.model import AdaptiveModel
 from smcd_rl.strategies.base import Adaptation
 
 __all__ = ["masked_mlp_from", "adaptive_model_from"]
+
+#: What a FeatureReadout cannot run, said where one is suggested.
+_NO_SMCD = "; SMCD needs an MLP of Linear, activation and nn.Dropout layers"
 
 #: Activations whose input a dropout mask may scale as well as their output: ``f(m z / k) = m f(z) / k``.
 _HOMOGENEOUS = (nn.ReLU,)
@@ -81,7 +85,9 @@ def masked_mlp_from(module: nn.Module) -> MaskedMLP:
             raise TypeError(
                 f"layer {index} is a {type(layer).__name__}; an MLP to adapt holds nn.Linear layers, one activation "
                 f"({', '.join(kind.__name__ for kind in names)}) and nn.Dropout (one mask bit per unit); "
-                "Dropout2d/3d, normalisation and other layers have no MaskedMLP form"
+                "Dropout2d/3d, normalisation and other layers have no MaskedMLP form. To adapt its readout only "
+                f"(last layer, gradient descent), pass smcd_rl.FeatureReadout.from_sequential(module) "
+                f"to adaptive_model_from{_NO_SMCD}"
             )
     if len(blocks) < 2:
         raise ValueError(
@@ -158,6 +164,9 @@ def adaptive_model_from(
 ) -> AdaptiveModel:
     """``module`` (see :func:`masked_mlp_from`) as an :class:`~smcd_rl.AdaptiveModel` in its own units.
 
+    ``module`` is an MLP-shaped ``nn.Sequential``, on which every strategy runs, or a
+    :class:`~smcd_rl.FeatureReadout` (any network that ends in a linear layer, as its features
+    module and that readout), on which the last layer, gradient descent and the combination run.
     The model is declared trained (``model.fitted``); its inputs and outputs are the module's:
     no standardisation is added (set ``model.input_norm`` / ``model.output_norm`` yourself to add
     one). A module left in training mode is refused, since its predictions are then random: call
@@ -174,12 +183,13 @@ def adaptive_model_from(
         >>> model(TensorDict({"q": torch.zeros(2)}, []))["ee"].shape
         torch.Size([2])
     """
-    if isinstance(module, nn.Module) and module.training and not eval_mode:
+    if isinstance(module, nn.Module) and module.training and not eval_mode and not isinstance(module, FeatureReadout):
         raise ValueError(
             "the module is in training mode, so its dropout makes every prediction random; call module.eval() "
             "before wrapping it, or pass eval_mode=True"
         )
-    net = masked_mlp_from(module)
+    # A FeatureReadout is already a network of the strategies' form, its features held in eval mode.
+    net = module if isinstance(module, FeatureReadout) else masked_mlp_from(module)
     model = AdaptiveModel(
         net, in_keys=in_keys, out_key=out_key, target_key=target_key, base_key=base_key, adaptation=adaptation
     )
@@ -192,7 +202,9 @@ def _flattened(module: nn.Module) -> list[nn.Module]:
     if not isinstance(module, nn.Sequential):
         raise TypeError(
             f"expected an nn.Sequential of Linear, activation and Dropout layers (torchrl's MLP is one), got "
-            f"{type(module).__name__}; for another architecture, build the MaskedMLP yourself and copy its weights"
+            f"{type(module).__name__}; for another architecture that ends in a linear layer, pass "
+            f"smcd_rl.FeatureReadout(features, readout) to adaptive_model_from to adapt its readout (last layer, gradient "
+            f"descent){_NO_SMCD}"
         )
     layers: list[nn.Module] = []
     for layer in module:

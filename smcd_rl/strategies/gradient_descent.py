@@ -117,8 +117,9 @@ class GradientDescent(Adaptation):
         net = self.net
         flat = math.prod(batch_shape)
         self._params = stream_weights.stream_copies(net, flat)
-        weight = next(net.parameters())  # the buffers take the network's device and dtype
-        self._inputs = weight.new_zeros(flat, self.window, net.in_features)
+        weight = net.readout_layer.weight  # the buffers take the network's device and dtype
+        # The window holds what the stepped layers read: the input, or a frozen trunk's features.
+        self._inputs = weight.new_zeros(flat, self.window, self._params["linears.0.weight"].shape[-1])
         self._targets = weight.new_zeros(flat, self.window, net.out_features)
         device = weight.device
         self._count = torch.zeros(flat, dtype=torch.long, device=device)
@@ -128,7 +129,7 @@ class GradientDescent(Adaptation):
         rows = torch.arange(self._count.numel(), device=self._count.device)
         slot = self._count % self.window  # a ring buffer per batch element
         before = (self._count, self._inputs[rows, slot].clone(), self._targets[rows, slot].clone())
-        self._inputs[rows, slot] = inputs.reshape(-1, inputs.shape[-1])
+        self._inputs[rows, slot] = self.net.trunk(inputs.reshape(-1, inputs.shape[-1]))
         self._targets[rows, slot] = targets.reshape(-1, targets.shape[-1])
         self._count = self._count + 1
         # Slots filled so far count in the loss; the rest (after a reset) do not.
@@ -209,5 +210,5 @@ class GradientDescent(Adaptation):
     def predict(self, inputs: Tensor) -> Tensor:
         self._extra_dims(inputs)
         flat = inputs.reshape(math.prod(self._batch_shape), -1, inputs.shape[-1])
-        out = stream_weights.forward(self.net, self._params, flat)
+        out = stream_weights.forward(self.net, self._params, self.net.trunk(flat))
         return out.reshape(*inputs.shape[:-1], out.shape[-1])

@@ -44,8 +44,12 @@ Params = dict[str, Tensor]
 
 
 def stream_copies(net: MaskedMLP, streams: int) -> Params:
-    """``streams`` private copies of ``net``'s parameters, ``{name: [streams, *shape]}``."""
-    return {k: v.detach().expand(streams, *v.shape).clone() for k, v in net.named_parameters()}
+    """``streams`` private copies of the parameters of ``net.linears``, ``{name: [streams, *shape]}``.
+
+    Only ``linears`` are stepped: a network's frozen :meth:`~smcd_rl.MaskedMLP.trunk` before them is
+    shared by every stream.
+    """
+    return {f"linears.{k}": v.detach().expand(streams, *v.shape).clone() for k, v in net.linears.named_parameters()}
 
 
 #: The bytes of weights a chunk of streams may hold: a few MB stay in a core's cache across the

@@ -19,9 +19,10 @@ from tqdm.auto import tqdm
 
 from smcd_rl.checks import check_count, check_key, check_real, check_tensordict
 from smcd_rl.digests import content_digest
+from smcd_rl.feature_readout import FeatureReadout
 from smcd_rl.files import CheckpointMismatchError, load_file, save_file
 from smcd_rl.filter import SMCDFilter
-from smcd_rl.masked_mlp import task_mask_groups
+from smcd_rl.masked_mlp import MaskedMLP, task_mask_groups
 from smcd_rl.model import AdaptiveDynamicsModel, AdaptiveModel
 from smcd_rl.training.task_masks import TaskEpochs, task_index
 
@@ -198,6 +199,7 @@ def fit(
     _require_samples(data, "fit")
     _check_validation(validation, "fit")
     net = model.net
+    _require_own_network(net, "fit")
     if mask_training not in ("random", "task"):
         raise ValueError(f"mask_training must be 'random' or 'task', got {mask_training!r}")
     # Every setting is checked whatever mask_training is: a typo fails now, not when it is switched.
@@ -273,6 +275,16 @@ def fit(
     )
     _record_residual_scale(model, (x, y) if validation is None else validation)
     return history
+
+
+def _require_own_network(net: MaskedMLP, what: str) -> None:
+    """Refuse a network trained elsewhere: smcd_rl's training makes a MaskedMLP, it does not retrain a user's."""
+    if isinstance(net, FeatureReadout):
+        raise TypeError(
+            f"{what} trains smcd_rl's own MaskedMLP; a FeatureReadout network was trained by your own code and is "
+            "adapted as it is (adaptive_model_from declares it trained): train the module with your own loop, "
+            "then wrap it again"
+        )
 
 
 def fit_dynamics(model: AdaptiveDynamicsModel, data: TensorDictBase, **kwargs: Any) -> list[float]:
@@ -375,6 +387,7 @@ def fit_reptile(
         )
     _require_samples(data, "fit_reptile")
     _check_validation(validation, "fit_reptile")
+    _require_own_network(model.net, "fit_reptile")
     num_tasks = data.batch_size[0]
     if tasks_per_batch > num_tasks:
         raise ValueError(
