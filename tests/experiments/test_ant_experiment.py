@@ -67,7 +67,7 @@ ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL")
 #: T+S's on the task-mask network too).
 COLUMNS = set(SCOREBOARD_COLUMNS)
 #: The default methods of T, the network whose masks were trained to identify the leg.
-TASK = ("T+N", "T+G", "T+S", "T+SL")
+TASK = ("T+N", "T+G", "T+S", "T+L", "T+SL")
 ONE_CELL = ["--planners", "rs", "--adaptations", "N", "--conditions", "crippled"]
 
 
@@ -79,7 +79,7 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     printed = captured.out
     planned = planned_stages(captured.err, "run")
     assert planned[:6] == ["collect", "train", "tune M", "collect T", "train T", "tune T"]
-    assert len(planned) == 6 + 2 * (8 + 4) + 3 * 6 * 2
+    assert len(planned) == 6 + 2 * (8 + len(TASK)) + 3 * 6 * 2  # predictions of M and T per condition, then cells
     # The primary table (prediction error) comes first, then its verdicts, the returns and the tuning.
     first = [printed.index(t) for t in ("Prediction error", "M+S paired with M+N", "Episode return", "Tuning of M")]
     assert first == sorted(first)
@@ -101,7 +101,7 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     assert cells == [(ant.PLANNERS[p], ant.METHOD_LABELS[a], c) for p, a, c in ant.CELLS if a in VARIANTS]
     assert all(float(r["return_low"]) <= float(r["return_mean"]) <= float(r["return_high"]) for r in returns)
     predictions = [r for r in rows if r["part"] == "prediction"]
-    assert len(predictions) == 2 * 2 * (8 + 4)  # condition x (one-step, 3-step) x strategy (M's and T's)
+    assert len(predictions) == 2 * 2 * (8 + len(TASK))  # condition x (one-step, 3-step) x strategy (M's and T's)
     assert {r["method"] for r in predictions} >= set(TASK)
     assert all(float(r["rmse_low"]) <= float(r["rmse_mean"]) <= float(r["rmse_high"]) for r in predictions)
     ms = [float(r["ms_per_observation"]) for r in rows]  # every row's method was tuned, M's and T's
@@ -123,9 +123,8 @@ def test_ant_command_writes_every_cell_and_resumes(tmp_path, capsys, monkeypatch
     assert ("M+S", "M+S(evidence)") in pairs and ("M+S", "M+C") in pairs and ("M+G", "M+C") in pairs
     assert {c["verdict"] for c in comparisons} <= {"better", "worse", "no significant difference"}
     payload = json.loads((out / "results.json").read_text())
-    assert (
-        payload["config"]["episodes"] == 2 and len(payload["results"]) == 36 + 48
-    )  # returns, then 2 x 2 x 12 predictions
+    # returns, then condition x (one-step, 3-step) x strategy predictions
+    assert payload["config"]["episodes"] == 2 and len(payload["results"]) == 36 + 2 * 2 * (8 + len(TASK))
     assert len(payload["training"]["paper_noise_std"]) == 41 and payload["machine"]["torch_threads"] == 1
     report = (out / "report.md").read_text()
     assert "mean [95% CI]" in report and "M+S paired with M+N, M+S(evidence), M+S(paper), M+G and M+C" in report
@@ -170,9 +169,7 @@ def test_results_json_has_the_tuning_and_two_scoreboard_entries(tmp_path) -> Non
     for entry, condition in zip(board, ("healthy", "crippled"), strict=True):
         assert entry["cell"] == {"condition": condition, "prediction": "one-step"} and entry["metric"] == "rmse"
         assert entry["unit"] == "observation units" and entry["lower_is_better"] is True
-        ran = set(COLUMNS) - {
-            "T+L"
-        }  # every strategy of both networks but the last layer on T, which the Ant does not run
+        ran = set(COLUMNS)  # every strategy of both networks
         assert set(entry["estimates"]) == ran and entry["estimates"]["combination"]["method"] == "M+C"
         assert entry["note"] == ant.TASK_NOTE  # T+S's network saw the crippled legs, M's did not
         assert all(e["trials"] == 6 for e in entry["estimates"].values())

@@ -114,7 +114,7 @@ class AntConfig(TuningConfig):
         (0, 1, 2, 3), "legs the crippled leg is drawn from per episode", choices=(0, 1, 2, 3)
     )
     task_adaptations: tuple[str, ...] = setting(
-        ("N", "G", "S", "SL"),
+        TASK_ADAPTATIONS,
         "adaptations of T (prediction error only): a second network trained on the healthy Ant and on each leg of "
         "--crippled-legs crippled, as many transitions as M's, its masks trained to identify the leg "
         "(fit(mask_training='task'), methods T+S, T+SL...; none: no T)",

@@ -31,7 +31,7 @@ METHODS: tuple[str, ...] = (
     *(f"T+{variant}" for variant in ("N", "G", "S", "L", "SL")),
 )
 #: What runs by default (R+S(paper) only on request: the R network's comparison is with its tuned methods).
-DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m not in ("R+S(paper)", "T+N", "T+G", "T+L"))
+DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m != "R+S(paper)")
 #: The labels of :func:`~smcd_rl.envs.drone_operators.simulate_operators` (a ``--dataset`` may have others).
 SIMULATED_LABELS: tuple[str, ...] = ("skill", "strategy", "phase", "success", "target")
 

@@ -43,7 +43,22 @@ DEFAULT_INTERVALS = (1, 2, 5, 10, 20)
 #: S(evidence) SMCD calibrated by its evidence, S(paper) SMCD at the paper's settings, C the
 #: combination of N and the tuned ones; L the Bayesian last layer and SL SMCD with a Bayesian
 #: readout.
-METHODS = ("FK", "M+N", "M+G", "M+S", "M+S(evidence)", "M+S(paper)", "M+C", "M+L", "M+SL", "T+S", "T+SL")
+METHODS = (
+    "FK",
+    "M+N",
+    "M+G",
+    "M+S",
+    "M+S(evidence)",
+    "M+S(paper)",
+    "M+C",
+    "M+L",
+    "M+SL",
+    "T+N",
+    "T+G",
+    "T+S",
+    "T+L",
+    "T+SL",
+)
 #: What runs by default: every method.
 DEFAULT_METHODS = METHODS
 

@@ -56,7 +56,7 @@ Example:
     >>> from smcd_rl.experiments.panda.run import PandaConfig, method_labels
     >>> config = PandaConfig()
     >>> method_labels(config)
-    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(evidence)', 'M+S(paper)', 'M+C', 'M+L', 'M+SL', 'T+S', 'T+SL']
+    ['FK', 'M+N', 'M+G', 'M+S', 'M+S(evidence)', 'M+S(paper)', 'M+C', 'M+L', 'M+SL', 'T+N', 'T+G', 'T+S', 'T+L', 'T+SL']
     >>> config.tasks * config.seeds, config.gd_lr, PandaConfig(gd_lr=(0.01,)).gd_lr
     (300, (0.003, 0.01, 0.03, 0.1), (0.01,))
 """
@@ -165,7 +165,21 @@ def run(config: PandaConfig, *, progress: bool = True) -> dict[str, Any]:
             for n in intervals
         }
         # T+S first: its pairs read T+S minus the other.
-        order = ("T+S", "T+SL", "M+S", "M+SL", "M+L", "M+S(evidence)", "M+S(paper)", "M+C", "M+G", "FK")
+        order = (
+            "T+S",
+            "T+SL",
+            "M+S",
+            "M+SL",
+            "M+L",
+            "M+S(evidence)",
+            "M+S(paper)",
+            "M+C",
+            "M+G",
+            "T+L",
+            "T+G",
+            "T+N",
+            "FK",
+        )
         adaptive = [m for m in order if m in labels]
         rows, comparisons = cell_statistics(
             scores,
