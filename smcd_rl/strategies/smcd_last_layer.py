@@ -216,7 +216,9 @@ class SMCDLastLayer(Adaptation):
             scaled, beta = phi, float(diagonal.reshape(-1)[0])
         else:
             scaled, beta = diagonal.to(phi.dtype) * phi, 1.0
-        spread = torch.baddbmm(scaled, projected.to(phi.dtype), downdates, beta=beta, alpha=-1.0)  # (s^2 + q t) phi - U U^T phi
+        spread = torch.baddbmm(
+            scaled, projected.to(phi.dtype), downdates, beta=beta, alpha=-1.0
+        )  # (s^2 + q t) phi - U U^T phi
         return spread, quadratic.to(phi.dtype)
 
     def predict(self, inputs: Tensor) -> Tensor:
@@ -287,7 +289,11 @@ class SMCDLastLayer(Adaptation):
         downdates, steps = state.get("downdates"), state.get("steps")
         # Without its downdates (or with another's) the shared covariance is read dense: always exact.
         self._downdates = self._steps = None
-        if isinstance(downdates, Tensor) and isinstance(steps, Tensor) and downdates.shape[:2] == (means.shape[0], means.shape[-1]):
+        if (
+            isinstance(downdates, Tensor)
+            and isinstance(steps, Tensor)
+            and downdates.shape[:2] == (means.shape[0], means.shape[-1])
+        ):
             self._downdates = downdates.to(device=means.device, dtype=torch.float64).clone()
             self._steps = steps.to(device=means.device, dtype=torch.float64).clone()
 

@@ -55,6 +55,7 @@ def test_bench_filter_prints_ratios_memory_and_writes_files(tmp_path, capsys, mo
     assert planned_stages(captured.err, "bench") == ["N=20", "N=60", "memory"]
     assert "torch_threads=1" in printed and "naive / ours" in printed and "extra peak memory" in printed
     assert "not measured interleaved, not measured back to back" in printed
+    assert (out / "report.md").read_text() == printed  # what a docs page includes is what the command printed
     rows = list(csv.DictReader(open(out / "results.csv")))
     schedules = ["interleaved", "back to back"]
     assert [(int(r["N"]), r["regime"], r["schedule"]) for r in rows] == [

@@ -2,7 +2,7 @@
 
 A benchmark is not a method comparison: it times contenders side by side and reports their
 ratios, so it runs inside :class:`~smcd_rl.experiments.shared.harness.Experiment` (validated options,
-threads, device, out dir, seed) but writes its own ``results.json`` and ``results.csv`` and
+threads, device, out dir, seed) but writes its own ``results.json``, ``results.csv`` and ``report.md`` and
 prints either its report or, with ``--json``, the JSON alone for tools (which the harness's
 ``write``, always printing tables, cannot do).
 
@@ -27,6 +27,7 @@ import torch
 import smcd_rl
 from smcd_rl.experiments.bench.config import BenchConfig
 from smcd_rl.experiments.shared.outputs import write_csv, write_json
+from smcd_rl.files import write_text
 
 __all__ = ["BenchConfig", "scale_to_unit_spread", "machine_line", "publish"]
 
@@ -57,7 +58,9 @@ def machine_line(payload: Mapping[str, Any]) -> str:
 def publish(
     out: Path, payload: Mapping[str, Any], rows: Sequence[Mapping[str, Any]], report: str, *, as_json: bool
 ) -> None:
-    """Write ``results.json`` (the payload) and ``results.csv`` (the rows); print the report, or the JSON alone."""
+    """Write ``results.json`` (the payload), ``results.csv`` (the rows) and ``report.md`` (the report, which a
+    docs page includes as it is); print the report, or the JSON alone."""
     write_json(out / "results.json", payload)
     write_csv(out / "results.csv", rows)
+    write_text(out / "report.md", report.rstrip("\n") + "\n", what="report")
     print(json.dumps(payload, indent=2, default=str) if as_json else report)
