@@ -49,7 +49,7 @@ TINY = [
     "C",
 ]
 #: The methods of the tiny run that adapt, each tuned (and timed) by the fair protocol.
-ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+C", "T+S", "T+SL")
+ADAPTED = ("M+G", "M+S", "M+S(evidence)", "M+C", "T+G", "T+S", "T+L", "T+SL")
 
 
 def run_tiny(out: Path, *extra: str) -> dict[str, Any]:
@@ -82,7 +82,7 @@ def test_tiny_run_writes_its_files_and_planning_beats_random_actions(tmp_path: P
     # Success is the outcome; every method is tuned by its proxy, the model's rollout over the planning horizon.
     assert "tuned by 5-step look-ahead RMSE" in (out / "report.md").read_text()
     rows = {(r["planner"], r["method"], r["metric"]): r for r in result["results"]}
-    assert {m for _, m, _ in rows} == {"M+N", *ADAPTED, "random actions"}
+    assert {m for _, m, _ in rows} == {"M+N", "T+N", *ADAPTED, "random actions"}
     for metric in ("success", "distance"):
         for method in ("M+N", *ADAPTED):
             r = rows[("CEM", method, metric)]
@@ -164,7 +164,7 @@ def test_stage_plan_counts_every_adaptation_and_the_combinations_members() -> No
 
     costs = _costs(FetchConfig())
     cells = [name for name in costs if name.startswith("evaluate reach/cem/")]
-    variants = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL", "T+S", "T+SL")
+    variants = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL", *(f"T+{v}" for v in ("N", "G", "S", "L", "SL")))
     assert cells == [f"evaluate reach/cem/{v}" for v in variants]
     # The combination predicts with N, G, S, L and SL in every rollout step.
     assert costs["evaluate reach/cem/C"] == 5 * costs["evaluate reach/cem/S"] > 0

@@ -60,7 +60,7 @@ class FetchConfig(TuningConfig):
     batch_size: int = setting(128, "training batch size", low=1)
     lr: float = setting(2e-3, "Adam learning rate", above=0.0)
     task_adaptations: tuple[str, ...] = setting(
-        ("S", "SL"),
+        TASK_ADAPTATIONS,
         "adaptations of T, a second network whose masks were trained to identify the draw "
         "(fit(mask_training='task'), methods T+S, T+SL...)",
         choices=TASK_ADAPTATIONS,
