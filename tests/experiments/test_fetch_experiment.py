@@ -164,7 +164,17 @@ def test_stage_plan_counts_every_adaptation_and_the_combinations_members() -> No
 
     costs = _costs(FetchConfig())
     cells = [name for name in costs if name.startswith("evaluate reach/cem/")]
-    variants = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL", *(f"T+{v}" for v in ("N", "G", "S", "L", "SL")))
+    variants = (
+        "N",
+        "G",
+        "S",
+        "S(evidence)",
+        "S(paper)",
+        "C",
+        "L",
+        "SL",
+        *(f"T+{v}" for v in ("N", "G", "S", "L", "SL")),
+    )
     assert cells == [f"evaluate reach/cem/{v}" for v in variants]
     # The combination predicts with N, G, S, L and SL in every rollout step.
     assert costs["evaluate reach/cem/C"] == 5 * costs["evaluate reach/cem/S"] > 0
