@@ -65,7 +65,10 @@ def test_panda_video_writes_each_methods_first_arms_until_they_reach(tmp_path, c
         "M+C": "M+C",
         "M+L": "M+L",
         "M+SL": "M+SL",
+        "T+N": "T+N",
+        "T+G": "T+G",
         "T+S": "T+S",
+        "T+L": "T+L",
         "T+SL": "T+SL",
     }
     names = [f"videos/{safe}-{k}.gif" for safe in methods.values() for k in range(5)]

@@ -64,7 +64,7 @@ Example:
     >>> from smcd_rl.experiments.fetch.config import FetchConfig
     >>> config = FetchConfig()
     >>> config.families, config.planners, config.adaptations, config.task_adaptations
-    (('reach',), ('cem', 'mppi'), ('N', 'G', 'S', 'S(evidence)', 'S(paper)', 'C', 'L', 'SL'), ('S', 'SL'))
+    (('reach',), ('cem', 'mppi'), ('N', 'G', 'S', 'S(evidence)', 'S(paper)', 'C', 'L', 'SL'), ('N', 'G', 'S', 'L', 'SL'))
 """
 
 from __future__ import annotations
