@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, TypedDict
 
 from smcd_rl.experiments.shared.adaptation_config import (
+    TASK_VARIANTS,
     VARIANTS,
     TuningConfig,
     check_learnt_dynamics,
@@ -68,7 +69,7 @@ PREDICTED: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L"
 #: The adaptations of the default return episodes: all but S(paper), whose prediction error is still measured.
 DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "C")
 #: The adaptations of T, the network whose masks were trained to identify the leg (method ``T+<variant>``).
-TASK_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "L", "SL")
+TASK_ADAPTATIONS: tuple[str, ...] = TASK_VARIANTS
 #: Every (planner, adaptation, condition) cell of Fig. 15.
 CELLS: tuple[tuple[str, str, str], ...] = tuple(itertools.product(PLANNERS, METHOD_LABELS, CONDITIONS))
 

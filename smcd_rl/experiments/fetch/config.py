@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from smcd_rl.experiments.shared.adaptation_config import (
+    TASK_VARIANTS,
     VARIANTS,
     TuningConfig,
     check_learnt_dynamics,
@@ -32,7 +33,7 @@ METHOD_LABELS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS
 #: The adaptations of the default run: every one.
 DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
 #: The adaptations of the network whose masks were trained to identify the draw (method ``T+<variant>``).
-TASK_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "L", "SL")
+TASK_ADAPTATIONS: tuple[str, ...] = TASK_VARIANTS
 
 
 @dataclass

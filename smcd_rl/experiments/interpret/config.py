@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from smcd_rl.experiments.shared.adaptation_config import TuningConfig, check_mask_groups
+from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS, TuningConfig, check_mask_groups
 from smcd_rl.experiments.shared.config import setting
 
 __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SIMULATED_LABELS"]
@@ -28,7 +28,7 @@ METHODS: tuple[str, ...] = (
         for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
     ),
     # T: the network whose masks were trained to identify the operator (fit(mask_training="task")).
-    *(f"T+{variant}" for variant in ("N", "G", "S", "L", "SL")),
+    *(f"T+{variant}" for variant in TASK_VARIANTS),
 )
 #: What runs by default (R+S(paper) only on request: the R network's comparison is with its tuned methods).
 DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m != "R+S(paper)")

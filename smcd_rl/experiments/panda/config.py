@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from smcd_rl.experiments.shared.adaptation_config import AdaptationConfig, check_mask_groups
+from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS, VARIANTS, AdaptationConfig, check_mask_groups
 from smcd_rl.experiments.shared.config import setting
 
 __all__ = [
@@ -43,22 +43,7 @@ DEFAULT_INTERVALS = (1, 2, 5, 10, 20)
 #: S(evidence) SMCD calibrated by its evidence, S(paper) SMCD at the paper's settings, C the
 #: combination of N and the tuned ones; L the Bayesian last layer and SL SMCD with a Bayesian
 #: readout.
-METHODS = (
-    "FK",
-    "M+N",
-    "M+G",
-    "M+S",
-    "M+S(evidence)",
-    "M+S(paper)",
-    "M+C",
-    "M+L",
-    "M+SL",
-    "T+N",
-    "T+G",
-    "T+S",
-    "T+L",
-    "T+SL",
-)
+METHODS = ("FK", *(f"M+{variant}" for variant in VARIANTS), *(f"T+{variant}" for variant in TASK_VARIANTS))
 #: What runs by default: every method.
 DEFAULT_METHODS = METHODS
 

@@ -17,6 +17,7 @@ __all__ = [
     "TuningConfig",
     "AdaptationConfig",
     "VARIANTS",
+    "TASK_VARIANTS",
     "LearntDynamicsSettings",
     "check_learnt_dynamics",
     "check_mask_groups",
@@ -26,6 +27,9 @@ __all__ = [
 #: calibrated by its evidence, SMCD at the paper's settings, the combination of the tuned ones, the
 #: Bayesian last layer, SMCD with a Bayesian readout.
 VARIANTS = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
+#: The strategies the network whose masks were trained to identify the task (T) runs: every single
+#: tuned strategy (the evidence, the paper's settings and the combination are M's comparisons).
+TASK_VARIANTS = ("N", "G", "S", "L", "SL")
 
 
 @dataclass

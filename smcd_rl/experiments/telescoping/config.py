@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS
 from smcd_rl.experiments.shared.config import setting
 from smcd_rl.experiments.shared.two_link_family_config import FAMILY_FULL, TwoLinkFamilyConfig
 
@@ -37,7 +38,7 @@ METHODS = (
         for network in ("M", "R")
         for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
     ),
-    *(f"T+{variant}" for variant in ("N", "G", "S", "L", "SL")),
+    *(f"T+{variant}" for variant in TASK_VARIANTS),
 )
 #: What runs by default: Fig. 8's methods, T's, and the last layers on every network (R+S(paper)
 #: only on request: the R network's comparison is R+S against R+G).

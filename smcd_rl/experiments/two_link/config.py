@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS
 from smcd_rl.experiments.shared.config import setting
 from smcd_rl.experiments.shared.two_link_family_config import FAMILY_FULL, TwoLinkFamilyConfig
 
@@ -27,7 +28,7 @@ METHODS = (
         for network in ("M", "R")
         for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
     ),
-    *(f"T+{variant}" for variant in ("N", "G", "S", "L", "SL")),
+    *(f"T+{variant}" for variant in TASK_VARIANTS),
     "LV+N",
 )
 #: The Reptile network's methods (``--full`` runs them; R+S(paper) only on request).
