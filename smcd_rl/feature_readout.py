@@ -41,7 +41,7 @@ from torch import Tensor, nn
 
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["FeatureReadout"]
+__all__ = ["FeatureReadout", "NO_MASKS"]
 
 
 class FeatureReadout(MaskedMLP):
@@ -186,9 +186,15 @@ def _input_size(features: nn.Module) -> int:
     return first.in_features
 
 
+#: Why SMCD cannot run on a FeatureReadout network, and what it needs instead (SMCD's refusal too).
+NO_MASKS = (
+    "a FeatureReadout network has no dropout masks: SMCD filters over dropout masks of an MLP's hidden units, "
+    "and a FeatureReadout network has none (smcd_rl cannot switch the units of its features module). SMCD needs "
+    "an nn.Sequential of Linear, activation and nn.Dropout layers (an nn.Dropout after each hidden layer to mask), "
+    "trained with that dropout and wrapped with smcd_rl.adaptive_model_from; the last layer, gradient descent "
+    "and the combination adapt this network"
+)
+
+
 def _no_masks() -> NoReturn:
-    raise ValueError(
-        "a FeatureReadout network has no dropout masks: SMCD switches hidden units of an MLP trained with "
-        "dropout; wrap such a network with smcd_rl.adaptive_model_from, or adapt this one with the last layer "
-        "or gradient descent"
-    )
+    raise ValueError(NO_MASKS)

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from smcd_rl.checks import check_count, check_real
-from smcd_rl.feature_readout import FeatureReadout
+from smcd_rl.feature_readout import NO_MASKS, FeatureReadout
 from smcd_rl.filter import SMCDFilter, Transition, check_transition
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.resampling import ResamplingScheme, check_scheme
@@ -172,13 +172,7 @@ class SMCD(Adaptation):
 
     def bind(self, net: MaskedMLP, output_scale: Tensor, *, calibration: Mapping[str, Any] | None = None) -> None:
         if isinstance(net, FeatureReadout):
-            raise ValueError(
-                "SMCD filters over dropout masks of an MLP's hidden units, and a FeatureReadout network has none: "
-                "smcd_rl cannot switch the units of its features module. SMCD needs an nn.Sequential of Linear, "
-                "activation and nn.Dropout layers (an nn.Dropout after each hidden layer to mask), trained with that "
-                "dropout and wrapped with smcd_rl.adaptive_model_from; the last layer, gradient descent and the "
-                "combination adapt this network"
-            )
+            raise ValueError(NO_MASKS)
         if net.dropout == 0.0:
             raise ValueError(
                 "SMCD filters over dropout masks, and this network was trained without dropout (a wrapped module "
