@@ -156,8 +156,9 @@ class SMCDLastLayer(Adaptation):
         if self._downdates is not None:
             grown = torch.cat([self._downdates, downdate.unsqueeze(-1)], dim=-1)
             self._downdates = grown if grown.shape[-1] < grown.shape[-2] else None
-        weights = self.smcd._filter.weights.reshape(streams, 1, -1).to(updated.dtype)
-        mean = torch.bmm(weights, updated.reshape(streams, weights.shape[-1], -1)).reshape(streams, *updated.shape[2:])
+        # The readout the last layer holds: the particles' means weighted by the filter's weights now.
+        current = self.smcd._filter.weights.reshape(streams, 1, -1).to(updated.dtype)
+        mean = torch.bmm(current, updated.reshape(streams, current.shape[-1], -1)).reshape(streams, *updated.shape[2:])
         mean = mean.transpose(-1, -2)  # [B, D, out], the last layer's layout
         self.last_layer.load_state_dict({"mean": mean, "cov": cov})
 
