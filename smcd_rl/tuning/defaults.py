@@ -34,6 +34,7 @@ __all__ = [
     "COMBINATION_GRID",
     "LAST_LAYER_GRID",
     "SMCD_LAST_LAYER_SCALES",
+    "SMCD_LAST_LAYER_QUIET_SHARE",
     "FLIP_PROBS",
     "CALIBRATION_REFINE",
     "SEARCH_PARTICLE_SHARE",
@@ -108,7 +109,14 @@ LAST_LAYER_GRID: dict[str, tuple[Any, ...]] = {
 #: SMCD with a Bayesian readout: the tuned last layer's prior scale times each of these (and a
 #: third of the smallest, while the best is there). A tight readout leaves the masks to explain the
 #: task (SL is then SMCD); a wide one lets each particle's readout take a shift no mask expresses.
+#: Where the quiet scale (:data:`SMCD_LAST_LAYER_QUIET_SHARE`) lies below the smallest, the grid's
+#: low end moves down to it, its steps geometric, as many as here.
 SMCD_LAST_LAYER_SCALES = (1.0, 1 / 100, 1 / 30, 1 / 10, 1 / 3, 3.0)
+#: The quiet readout scale: the prior scale at which the readout's predictive variance at the
+#: network's typical features is this share of the filter's noise variance, where SL weighs the
+#: masks as SMCD does. A network with large features makes even a hundredth of the last layer's
+#: scale swamp the filter's likelihood, so SL's grid must reach down to SMCD.
+SMCD_LAST_LAYER_QUIET_SHARE = 0.1
 #: With tune's shortcuts, SMCD with a Bayesian readout confirms at most this many scales at full size.
 SMCD_LAST_LAYER_FINALISTS = 2
 #: The flip probabilities SMCD's calibration tries.

@@ -50,6 +50,7 @@ from smcd_rl.tuning.defaults import (
     ROBUST_SCALE_FACTOR,
     SEARCH_PARTICLE_SHARE,
     SMCD_LAST_LAYER_FINALISTS,
+    SMCD_LAST_LAYER_QUIET_SHARE,
     SMCD_LAST_LAYER_SCALES,
 )
 from smcd_rl.tuning.diagnostics import Trace
@@ -396,7 +397,14 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
     def setting(factor: float) -> dict[str, Any]:
         return {"smcd": smcd.settings, "last_layer": {**readout.settings, "prior_scale": scale * factor}}
 
-    settings = [setting(factor) for factor in SMCD_LAST_LAYER_SCALES]
+    quiet = quiet_readout_scale(search.model, search.x, smcd.settings, readout.settings)
+    factors = smcd_last_layer_factors(quiet / scale)
+    if min(factors) < min(SMCD_LAST_LAYER_SCALES):
+        search.notes.append(
+            f"SMCD with a Bayesian readout: the quiet readout scale is the last layer's x {min(factors):.2g}; "
+            "the scales reach down to it"
+        )
+    settings = [setting(factor) for factor in factors]
     known = all(setting_key("smcd_last_layer", one) in search.known for one in settings)
     if shortcuts and small >= MIN_SEARCH_PARTICLES and not known and search.scorer.criterion.name != "evidence":
         reduced = [
@@ -411,7 +419,7 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
     for one in settings:
         search.score("smcd_last_layer", one)
     # A best readout at the tightest scale: the filter wants the masks to explain more; go tighter.
-    factor = min(SMCD_LAST_LAYER_SCALES)
+    factor = min(factors)
     for _ in range(MAX_EXTENSIONS):
         best = search.best_of.get("smcd_last_layer")
         if best is None or best.settings["last_layer"]["prior_scale"] > scale * factor * (1 + 1e-9):
@@ -423,6 +431,41 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
             f"{scale * factor:g}"
         )
     search.time_best("smcd_last_layer")
+
+
+def smcd_last_layer_factors(quiet: float) -> tuple[float, ...]:
+    """The readout scales SL tries, as factors of the last layer's best: :data:`SMCD_LAST_LAYER_SCALES`,
+    or, where the ``quiet`` factor lies below their smallest, as many geometric steps from it up to the
+    last layer's scale, and three times that.
+
+    Example:
+        >>> smcd_last_layer_factors(0.5) == SMCD_LAST_LAYER_SCALES  # quiet within the grid: the grid
+        True
+        >>> [f"{f:.0e}" for f in smcd_last_layer_factors(1e-4)]
+        ['1e-04', '6e-04', '4e-03', '3e-02', '2e-01', '1e+00', '3e+00']
+    """
+    low = min(SMCD_LAST_LAYER_SCALES)
+    if not quiet < low:
+        return SMCD_LAST_LAYER_SCALES
+    steps = len(SMCD_LAST_LAYER_SCALES) - 1  # below the last layer's own scale
+    return (*(quiet ** (1 - i / steps) for i in range(steps)), 1.0, max(SMCD_LAST_LAYER_SCALES))
+
+
+def quiet_readout_scale(model: AdaptiveModel, x: Tensor, smcd: Mapping[str, Any], readout: Mapping[str, Any]) -> float:
+    """The readout prior scale at which SL's likelihood is SMCD's: the readout's predictive variance
+    ``s_L^2 scale^2 |phi|^2`` at the unadapted network's mean ``|phi|^2`` over the normalised inputs
+    ``x`` is :data:`SMCD_LAST_LAYER_QUIET_SHARE` of the filter's noise variance ``s_S^2``, on the
+    output where that comes first. ``phi`` carries the readout's bias input; both noises are in
+    normalised units (``smcd``'s and ``readout``'s settings give them).
+    """
+    net = model.net
+    with torch.no_grad():
+        features = net.features(x)
+        squares = features.square().sum(-1).mean() + 1.0  # the bias input's 1
+        filter_noise = torch.as_tensor(smcd["noise_std"], dtype=features.dtype) / model.output_norm.std.to(features)
+        readout_noise = torch.as_tensor(readout["noise_std"], dtype=features.dtype)
+        ratio = (filter_noise.expand(net.out_features) / readout_noise.expand(net.out_features)).min()
+    return float((SMCD_LAST_LAYER_QUIET_SHARE * ratio.square() / squares).sqrt())
 
 
 # ---------------------------------------------------------------------------- combination

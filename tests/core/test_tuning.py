@@ -10,6 +10,7 @@ import torch
 from tensordict import TensorDict
 
 import smcd_rl
+import smcd_rl.tuning.held_out
 import smcd_rl.tuning.kinds
 import smcd_rl.tuning.search
 
@@ -512,15 +513,24 @@ def test_the_last_layer_takes_the_robust_form_where_readings_are_corrupted(model
 
 
 def test_smcd_with_a_bayesian_readout_starts_from_the_tuned_smcd_and_last_layer(model) -> None:
+    kinds = smcd_rl.tuning.kinds
     result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["smcd_last_layer"], **FAST)
     assert {"smcd", "last_layer", "smcd_last_layer"} <= set(result.best_of)
     both = [c for c in result.candidates if c.kind == "smcd_last_layer"]
     assert all(c.settings["smcd"] == result.best_of["smcd"].settings for c in both)
     readout = result.best_of["last_layer"].settings["prior_scale"]
     factors = sorted(c.settings["last_layer"]["prior_scale"] / readout for c in both)
-    assert factors[-6:] == pytest.approx([1 / 100, 1 / 30, 1 / 10, 1 / 3, 1, 3])
+    x, _ = smcd_rl.tuning.held_out.pairs(model, shifted_episodes(0.5))
+    quiet = kinds.quiet_readout_scale(model, x, result.best_of["smcd"].settings, result.best_of["last_layer"].settings)
+    grid = kinds.smcd_last_layer_factors(quiet / readout)
+    assert min(grid) < 1 / 100  # this network's features are large: the old grid's low end swamped the filter
+    assert factors[-len(grid) :] == pytest.approx(sorted(grid))
     # below the grid only while the best lies at its low edge, a third each time
-    assert factors[:-6] == pytest.approx([1 / 100 / 3**k for k in range(len(factors) - 6, 0, -1)])
+    low = len(factors) - len(grid)
+    assert factors[:low] == pytest.approx([min(grid) / 3**k for k in range(low, 0, -1)])
+    # At the quiet scale the readout barely moves the likelihood: SL weighs the masks as SMCD does.
+    quietest = next(c for c in both if c.settings["last_layer"]["prior_scale"] == pytest.approx(readout * min(grid)))
+    assert quietest.one_step_rmse == pytest.approx(result.best_of["smcd"].one_step_rmse, rel=0.1)
     strategy = result.strategy("smcd_last_layer")
     assert isinstance(strategy, smcd_rl.SMCDLastLayer)
     # The tuned strategy repeats the scored run: its one-step error on the episodes is the candidate's.
