@@ -125,8 +125,8 @@ class AntConfig(TuningConfig):
         1.0, "share of T's samples trained through a mask of their leg's posterior (the rest random)", low=0.0, high=1.0
     )
     # `smcd-rl task-masks --family ant` (held-out healthy and crippled episodes, never the test episodes):
-    # every sample through its condition's masks, 20 bits a layer, predicted best one step ahead.
-    mask_groups: int = setting(20, "dropout bits per hidden layer of T, a divisor of --hidden (0: one per unit)", low=0)
+    # every sample through its condition's masks, 10 bits a layer, predicted best one step ahead.
+    mask_groups: int = setting(10, "dropout bits per hidden layer of T, a divisor of --hidden (0: one per unit)", low=0)
     prediction_episodes: int = setting(
         50, "random-action episodes per condition on which the prediction error (primary metric) is paired", low=2
     )
@@ -186,7 +186,7 @@ FULL = {
     "transitions": 1_000_000,
     "data_episode_steps": 1000,
     "hidden": 1024,
-    "mask_groups": 64,  # a divisor of the 1024 units (20 is the default width's measured choice)
+    "mask_groups": 64,  # a divisor of the 1024 units (10 is the default width's measured choice)
     "depth": 3,
     "dropout": 0.5,
     "epochs": 100,
