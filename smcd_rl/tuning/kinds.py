@@ -63,6 +63,8 @@ __all__ = [
     "tune_smcd",
     "tune_last_layer",
     "tune_smcd_last_layer",
+    "smcd_last_layer_factors",
+    "quiet_readout_scale",
     "tune_combination",
 ]
 
@@ -457,6 +459,15 @@ def quiet_readout_scale(model: AdaptiveModel, x: Tensor, smcd: Mapping[str, Any]
     ``x`` is :data:`SMCD_LAST_LAYER_QUIET_SHARE` of the filter's noise variance ``s_S^2``, on the
     output where that comes first. ``phi`` carries the readout's bias input; both noises are in
     normalised units (``smcd``'s and ``readout``'s settings give them).
+
+    Example:
+        >>> import torch, smcd_rl
+        >>> model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 1, hidden=(8,)), in_keys=["q"], out_key="y")
+        >>> x = torch.rand(5, 2)
+        >>> scale = quiet_readout_scale(model, x, {"noise_std": 0.1}, {"noise_std": 1.0})
+        >>> squares = model.net.features(x).square().sum(-1).mean() + 1.0
+        >>> round(float(1.0**2 * scale**2 * squares / 0.1**2), 6)  # readout's predictive / filter's noise variance
+        0.1
     """
     net = model.net
     with torch.no_grad():
