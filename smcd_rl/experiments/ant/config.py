@@ -65,7 +65,7 @@ METHOD_LABELS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS
 #: Conditions: the Ant the model was trained on, and the Ant with one leg crippled per episode.
 CONDITIONS: tuple[str, ...] = ("healthy", "crippled")
 #: The adaptations whose prediction error is measured, whichever run the return episodes.
-PREDICTED: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
+PREDICTED: tuple[str, ...] = VARIANTS
 #: The adaptations of the default return episodes: all but S(paper), whose prediction error is still measured.
 DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "C")
 #: The adaptations of T, the network whose masks were trained to identify the leg (method ``T+<variant>``).

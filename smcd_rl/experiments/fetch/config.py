@@ -31,7 +31,7 @@ PLANNERS: dict[str, str] = {"cem": "CEM", "mppi": "MPPI"}
 #: Adaptation names (:data:`~smcd_rl.experiments.shared.adaptation_config.VARIANTS`) and their method labels.
 METHOD_LABELS: dict[str, str] = {variant: f"M+{variant}" for variant in VARIANTS}
 #: The adaptations of the default run: every one.
-DEFAULT_ADAPTATIONS: tuple[str, ...] = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
+DEFAULT_ADAPTATIONS: tuple[str, ...] = VARIANTS
 #: The adaptations of the network whose masks were trained to identify the draw (method ``T+<variant>``).
 TASK_ADAPTATIONS: tuple[str, ...] = TASK_VARIANTS
 

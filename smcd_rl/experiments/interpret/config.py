@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS, TuningConfig, check_mask_groups
+from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS, VARIANTS, TuningConfig, check_mask_groups
 from smcd_rl.experiments.shared.config import setting
 
 __all__ = ["InterpretConfig", "FULL", "PARTS", "METHODS", "DEFAULT_METHODS", "SIMULATED_LABELS"]
@@ -22,11 +22,7 @@ PARTS: tuple[str, ...] = ("fig9", "confidence", "lookahead")
 #: paper's settings / C the combination of the tuned ones / L the Bayesian last layer / SL SMCD with a
 #: Bayesian readout.
 METHODS: tuple[str, ...] = (
-    *(
-        f"{network}+{variant}"
-        for network in ("M", "R")
-        for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
-    ),
+    *(f"{network}+{variant}" for network in ("M", "R") for variant in VARIANTS),
     # T: the network whose masks were trained to identify the operator (fit(mask_training="task")).
     *(f"T+{variant}" for variant in TASK_VARIANTS),
 )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from smcd_rl.experiments.shared.adaptation_config import VARIANTS
 from smcd_rl.experiments.shared.config import setting
 from smcd_rl.experiments.shared.two_link_family_config import FAMILY_FULL, TwoLinkFamilyConfig
 
@@ -38,7 +39,7 @@ SEQUENTIAL = ("pendulum",)
 #: S(evidence) SMCD calibrated by the filter's evidence; S(paper) SMCD at the paper's noise and
 #: flips; C the combination of N and the tuned ones; L the Bayesian last layer (Gaussian or
 #: Tukey); SL SMCD with a Bayesian readout.
-METHODS = ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
+METHODS = VARIANTS
 #: Methods on the families' other networks, trained on the same data: T, whose dropout masks were
 #: trained to identify the task (``fit(mask_training="task")``; one for the arm families, one for
 #: the pendulum), with no adaptation, gradient descent, SMCD, the Bayesian last layer or SMCD with a

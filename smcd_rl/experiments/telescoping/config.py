@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS
+from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS, VARIANTS
 from smcd_rl.experiments.shared.config import setting
 from smcd_rl.experiments.shared.two_link_family_config import FAMILY_FULL, TwoLinkFamilyConfig
 
@@ -33,11 +33,7 @@ TARGET_ANGULAR_SPEED: float = math.pi / (100 * TELESCOPING_DT)
 METHODS = (
     "true",
     "O+P",
-    *(
-        f"{network}+{variant}"
-        for network in ("M", "R")
-        for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
-    ),
+    *(f"{network}+{variant}" for network in ("M", "R") for variant in VARIANTS),
     *(f"T+{variant}" for variant in TASK_VARIANTS),
 )
 #: What runs by default: Fig. 8's methods, T's, and the last layers on every network (R+S(paper)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS
+from smcd_rl.experiments.shared.adaptation_config import TASK_VARIANTS, VARIANTS
 from smcd_rl.experiments.shared.config import setting
 from smcd_rl.experiments.shared.two_link_family_config import FAMILY_FULL, TwoLinkFamilyConfig
 
@@ -23,11 +23,7 @@ __all__ = ["TwoLinkConfig", "FULL", "METHODS", "DEFAULT_METHODS", "REPTILE_METHO
 #: adaptation (``fit(mask_training="task")``).
 METHODS = (
     "O+P",
-    *(
-        f"{network}+{variant}"
-        for network in ("M", "R")
-        for variant in ("N", "G", "S", "S(evidence)", "S(paper)", "C", "L", "SL")
-    ),
+    *(f"{network}+{variant}" for network in ("M", "R") for variant in VARIANTS),
     *(f"T+{variant}" for variant in TASK_VARIANTS),
     "LV+N",
 )
