@@ -36,6 +36,7 @@ __all__ = [
     "SMCD_LAST_LAYER_SCALES",
     "SMCD_LAST_LAYER_QUIET_SHARE",
     "FLIP_PROBS",
+    "PREDICTIONS",
     "CALIBRATION_REFINE",
     "SEARCH_PARTICLE_SHARE",
     "FINALISTS",
@@ -121,6 +122,11 @@ SMCD_LAST_LAYER_QUIET_SHARE = 0.1
 SMCD_LAST_LAYER_FINALISTS = 2
 #: The flip probabilities SMCD's calibration tries.
 FLIP_PROBS = (0.001, 0.003, 0.01, 0.03)
+#: How SMCD may predict, what :func:`smcd_rl.tune` tries at its best setting: with the MMSE mask's
+#: prediction, and with the posterior predictive mean (one forward pass per particle at every
+#: prediction). A planner that scores many candidates per step pays that for each: pass
+#: ``predictions=("mask",)`` there.
+PREDICTIONS = ("mask", "predictive")
 #: Golden-section runs at the end of SMCD's calibration (:func:`smcd_rl.calibrate`'s ``refine``).
 CALIBRATION_REFINE = 5
 #: With tune's shortcuts, SMCD's calibration searches with this share of the particles, then

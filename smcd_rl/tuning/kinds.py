@@ -45,6 +45,7 @@ from smcd_rl.tuning.defaults import (
     MAX_EXTENSIONS,
     MIN_PARTICLES,
     MIN_SEARCH_PARTICLES,
+    PREDICTIONS,
     RACE_MARGIN,
     ROBUST_FORMS,
     ROBUST_SCALE_FACTOR,
@@ -59,6 +60,7 @@ from smcd_rl.tuning.search import Search, TuneCandidate, setting_key, usable, wi
 __all__ = [
     "checked_gd_grid",
     "checked_gd_limits",
+    "checked_predictions",
     "tune_gd",
     "tune_smcd",
     "tune_last_layer",
@@ -238,6 +240,25 @@ def _within(bounds: tuple[float, float], value: float) -> bool:
 
 
 # ---------------------------------------------------------------------------- SMCD
+def checked_predictions(predictions: Sequence[str]) -> tuple[str, ...]:
+    """``tune``'s ``predictions`` as a tuple: ``("mask",)`` or :data:`~smcd_rl.tuning.defaults.PREDICTIONS`
+    (the calibration runs with the MMSE mask's prediction, so it is always among them).
+
+    Example:
+        >>> checked_predictions(["mask"])
+        ('mask',)
+    """
+    if isinstance(predictions, str) or not isinstance(predictions, Sequence):
+        raise TypeError(f"predictions must be a sequence such as {PREDICTIONS}, got {predictions!r}")
+    chosen = tuple(predictions)
+    if "mask" not in chosen or not set(chosen) <= set(PREDICTIONS):
+        raise ValueError(
+            f"predictions must be ('mask',) or {PREDICTIONS} (SMCD's calibration predicts with the MMSE mask), "
+            f"got {chosen}"
+        )
+    return chosen
+
+
 def tune_smcd(
     search: Search,
     num_particles: int,
@@ -245,10 +266,17 @@ def tune_smcd(
     seed: int,
     progress: bool,
     shortcuts: bool = True,
+    predictions: Sequence[str] = PREDICTIONS,
 ) -> dict[str, Calibration]:
     """Halve the particles until a step fits the budget, then calibrate by the search's criterion:
     the noise's factor, its shape (:data:`~smcd_rl.tuning.calibration.NOISE_SHAPES`) and the flip
     probability (:func:`~smcd_rl.tuning.calibration.search_noise`).
+
+    With ``"predictive"`` in ``predictions``, the best setting also predicts with the posterior
+    predictive mean (the weighted mean of every particle's prediction) instead of the MMSE mask's.
+    The filter runs the same either way; the mean costs a forward pass per particle at every
+    prediction, so it is kept only where it predicts better beyond the episodes' noise
+    (:meth:`~smcd_rl.tuning.search.Search.prefer_cheaper`). Then the robust form.
 
     With ``shortcuts`` (not under the evidence criterion, whose choice is SMCD's own score) the
     search runs with :data:`~smcd_rl.tuning.defaults.SEARCH_PARTICLE_SHARE` of the particles, and
@@ -281,6 +309,10 @@ def tune_smcd(
     if known:  # an earlier call calibrated these particles on the same data: its choice stands
         for candidate in known:
             search.score("smcd", candidate.settings)
+        chosen = search.chosen_before.get("smcd")
+        again = [c for c in search.candidates if c.kind == "smcd" and c.settings == chosen and usable(c.score)]
+        if again:
+            search.best_of["smcd"] = again[-1]
     else:
         small = int(particles * SEARCH_PARTICLE_SHARE)
         reduced = shortcuts and search.scorer.criterion.name != "evidence" and small >= MIN_SEARCH_PARTICLES
@@ -313,6 +345,10 @@ def tune_smcd(
                 f"settings (at most {FINALISTS}, within {RACE_MARGIN:.0%} of the best) confirmed with {particles}"
             )
         best = search.best_of.get("smcd")
+        if best is not None and "predictive" in predictions:
+            search.score("smcd", {**best.settings, "prediction": "predictive"})
+            search.prefer_cheaper("smcd", best.settings, "the MMSE mask's prediction", "the posterior predictive mean")
+            best = search.best_of["smcd"]
         if best is not None and search.scorer.criterion.name != "evidence":
             # The robust form at the best setting: a Student-t likelihood of the same scale, whose
             # heavy tails keep one corrupted reading from collapsing the particles onto whichever

@@ -56,11 +56,12 @@ from smcd_rl.model import AdaptiveModel
 from smcd_rl.strategies import SMCD, Adaptation
 from smcd_rl.tuning.calibration import Calibration, checked_flips
 from smcd_rl.tuning.criteria import Criterion, Score, checked_criterion
-from smcd_rl.tuning.defaults import ADAPTING, FLIP_PROBS, KINDS, MASKED_KINDS, kinds_needed
+from smcd_rl.tuning.defaults import ADAPTING, FLIP_PROBS, KINDS, MASKED_KINDS, PREDICTIONS, kinds_needed
 from smcd_rl.tuning.held_out import checked_model, pairs, stacked
 from smcd_rl.tuning.kinds import (
     checked_gd_grid,
     checked_gd_limits,
+    checked_predictions,
     tune_combination,
     tune_gd,
     tune_last_layer,
@@ -90,6 +91,7 @@ def tune(
     progress: bool = True,
     reuse: TuneResult | None = None,
     shortcuts: bool = True,
+    predictions: Sequence[str] = PREDICTIONS,
 ) -> TuneResult:
     """Tune each of ``strategies`` on held-out training-task ``episodes`` by one criterion (see the module doc).
 
@@ -128,6 +130,11 @@ def tune(
             the particles and confirm the best few at full size (:func:`~smcd_rl.tuning.kinds.tune_smcd`);
             ``False``: the full search, every run at full size. Both choices repeat bit for bit
             for one seed.
+        predictions: how SMCD may predict (:data:`~smcd_rl.tuning.defaults.PREDICTIONS`): with
+            its MMSE mask, and with ``"predictive"`` also the posterior predictive mean at its best
+            setting, kept only where it predicts better beyond the episodes' noise (it costs a
+            forward pass per particle at every prediction). Pass ``("mask",)`` where a planner
+            scores many candidates per step.
         reuse: an earlier result of this function on the same model, episodes, seed, flip
             probabilities and criterion (e.g. the unbudgeted one, before a call with ``budget_ms``): each setting
             it scored takes its score from there, and each setting it timed its time, instead of running again.
@@ -139,7 +146,7 @@ def tune(
         runs only read the network).
 
     Raises:
-        ValueError: an unknown strategy or criterion, a horizon the criterion does not take or
+        ValueError: an unknown strategy, criterion or prediction, a horizon the criterion does not take or
             episodes no longer than it, a budget that is not positive, no strategy
             within the budget, episodes :func:`smcd_rl.calibrate` refuses, or a ``reuse`` of
             another model, other episodes, another seed or another criterion.
@@ -154,6 +161,7 @@ def tune(
         budget_ms = check_real(budget_ms, "budget_ms", low=0.0, open_low=True)
     seed = check_seed(seed)
     num_particles = check_count(num_particles, "num_particles")
+    choices = checked_predictions(predictions)
     grid = checked_gd_grid(gd_grid)
     limits = checked_gd_limits(gd_limits, grid)
     td = stacked(episodes)
@@ -188,7 +196,7 @@ def tune(
             "none": lambda: search.score("none", {}),
             "gradient_descent": lambda: tune_gd(search, grid, limits),
             "smcd": lambda: calibrations.update(
-                tune_smcd(search, num_particles, tuple(flips), seed, progress, shortcuts)
+                tune_smcd(search, num_particles, tuple(flips), seed, progress, shortcuts, choices)
             ),
             "last_layer": lambda: tune_last_layer(search),
             "smcd_last_layer": lambda: tune_smcd_last_layer(search, shortcuts),

@@ -323,14 +323,10 @@ class Search:
                     self.best_of[kind] = rival
                     return
                 continue
-            plain, tough = (
-                self.scorer.episode_scores(self.traces[setting_key(kind, c.settings)]) for c in (best, rival)
-            )
-            excess = [a - b for a, b in zip(tough, plain, strict=True)]
-            if len(excess) < 2 or not all(math.isfinite(e) for e in excess):
+            paired = self._paired_excess(kind, rival, best)
+            if paired is None:
                 continue
-            mean, spread = statistics.fmean(excess), statistics.stdev(excess)
-            noise = 2 * spread / math.sqrt(len(excess))
+            mean, noise = paired
             close = rival.score <= within(best.score, ROBUST_MARGIN)
             if mean > noise and not close:
                 continue
@@ -345,6 +341,48 @@ class Search:
                 f"form's {best.score:.4g}: {why}, and it bounds what one corrupted reading does"
             )
             return
+
+    def prefer_cheaper(self, kind: str, cheaper: dict[str, Any], cheap: str, dear: str) -> None:
+        """Keep ``cheaper``, a scored setting of ``kind`` that costs less per observation than the
+        best, unless the best beats it beyond the episodes' noise; say which in :attr:`notes`.
+
+        A setting that costs more must earn it: the best is kept only where its mean gain per
+        episode over ``cheaper``, paired, is more than twice its standard error. ``cheap`` and
+        ``dear`` name the two in the note.
+        """
+        best = self.best_of.get(kind)
+        rival = next((c for c in self.candidates if c.kind == kind and c.settings == cheaper and usable(c.score)), None)
+        if best is None or rival is None or best.settings == cheaper:
+            return
+        paired = self._paired_excess(kind, rival, best)
+        if paired is None:
+            return
+        mean, noise = paired
+        name = kind.replace("_", " ")
+        if mean > noise:
+            self.notes.append(
+                f"{name}: kept {dear} ({best.score:.4g}; {cheap}: {rival.score:.4g}): its gain per episode, "
+                f"{mean:.3g}, is beyond the episodes' noise ({noise:.3g})"
+            )
+            return
+        self.best_of[kind] = rival
+        self.notes.append(
+            f"{name}: kept {cheap} ({rival.score:.4g}; {dear}: {best.score:.4g}): the gain per episode of "
+            f"{dear}, which costs more, is {mean:.3g}, within the episodes' noise ({noise:.3g})"
+        )
+
+    def _paired_excess(self, kind: str, worse: TuneCandidate, better: TuneCandidate) -> tuple[float, float] | None:
+        """The mean excess per episode of ``worse``'s score over ``better``'s, paired, and twice its
+        standard error; ``None`` without both runs or with a refused episode."""
+        if any(setting_key(kind, c.settings) not in self.traces for c in (worse, better)):
+            return None
+        first, second = (
+            self.scorer.episode_scores(self.traces[setting_key(kind, c.settings)]) for c in (worse, better)
+        )
+        excess = [a - b for a, b in zip(first, second, strict=True)]
+        if len(excess) < 2 or not all(math.isfinite(e) for e in excess):
+            return None
+        return statistics.fmean(excess), 2 * statistics.stdev(excess) / math.sqrt(len(excess))
 
     def time_best(self, kind: str) -> None:
         """Measure the time of ``kind``'s best setting, where it has none yet (no budget measured it)."""

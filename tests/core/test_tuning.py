@@ -264,7 +264,8 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
         assert candidate.one_step_rmse == pytest.approx(expected, rel=1e-6)
     # Scoring the grid runs no combination, and no member again: each setting runs once, and the
     # combination takes its members' predictions from their own runs (SMCD's calibration keeps only
-    # its trace, so the calibrated SMCD runs once more, to record them; and its Student-t form, once).
+    # its trace, so the calibrated SMCD runs once more, to record them; its posterior predictive mean
+    # and its Student-t form, once each).
     traced = []
     real_trace = smcd_rl.tuning.scoring.trace_pairs
     monkeypatch.setattr(
@@ -278,7 +279,7 @@ def test_the_combination_grid_is_scored_as_trace_scores_a_combination(model, res
     ran_on = [c for c in settings if math.isfinite(c.one_step_rmse)]
     assert "Combination" not in traced and traced.count("GradientDescent") == len(settings) + len(ran_on)
     calibration_runs = sum(len(c.candidates) for c in again.calibrations.values())  # calibrate's own filters
-    assert traced.count("NoAdaptation") == 1 and traced.count("SMCD") == 2 + calibration_runs
+    assert traced.count("NoAdaptation") == 1 and traced.count("SMCD") == 3 + calibration_runs
     # Each best strategy's run is kept: what the diagnosis of an experiment shows, without running it again.
     # (GD's, raced, joins the runs on the first episodes and on the rest: the same errors per episode,
     # the per-step RMSEs pooled in another order, equal to float rounding.)
@@ -605,12 +606,16 @@ def test_the_shortcut_search_repeats_bit_for_bit_and_confirms_its_finalists_at_f
     for one, other in ((fast, again), (full, full_again)):
         assert [(c.settings, c.score) for c in one.candidates] == [(c.settings, c.score) for c in other.candidates]
     assert fast.calibrations["search"].num_particles == 64 and full.calibrations["search"].num_particles == 256
-    finalists = [c for c in fast.candidates if c.kind == "smcd" and c.settings["likelihood"] == "gaussian"]
+    plain = [c for c in fast.candidates if c.kind == "smcd" and c.settings["likelihood"] == "gaussian"]
+    finalists = [c for c in plain if c.settings["prediction"] == "mask"]
     assert len(finalists) == 5 and all(c.settings["num_particles"] == 256 for c in finalists)
-    # and the robust form at the best finalist's setting, which the robust-form rule weighs against it
-    (robust,) = [c for c in fast.candidates if c.kind == "smcd" and c.settings["likelihood"] == "student-t"]
+    # then the best finalist predicting with the posterior predictive mean, and the robust form at
+    # the setting the prediction rule kept, which the robust-form rule weighs against it
     best = min(finalists, key=lambda c: c.score)
-    assert robust.settings == {**best.settings, "likelihood": "student-t"}
-    assert fast.best_of["smcd"] in (best, robust)
+    (mean,) = [c for c in plain if c.settings["prediction"] == "predictive"]
+    assert mean.settings == {**best.settings, "prediction": "predictive"}
+    (robust,) = [c for c in fast.candidates if c.kind == "smcd" and c.settings["likelihood"] == "student-t"]
+    kept = next(c for c in (best, mean) if robust.settings == {**c.settings, "likelihood": "student-t"})
+    assert fast.best_of["smcd"] in (kept, robust)
     assert any("searched with 64 particles" in note for note in fast.notes)
     assert set(fast.kind_seconds) == {"smcd"} and fast.kind_seconds["smcd"] > 0

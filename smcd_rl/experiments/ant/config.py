@@ -156,6 +156,9 @@ class AntConfig(TuningConfig):
         "the paper's scale: 3 x 1024 model, 10^6 transitions, every planner and adaptation, 110 episodes of 1000 steps",
     )
 
+    #: The planner rolls every candidate through the adapted model at every step: the MMSE mask's
+    #: prediction only (the posterior predictive mean would cost a forward pass per particle each).
+    SMCD_PREDICTIONS: ClassVar[tuple[str, ...]] = ("mask",)
     NON_EMPTY: ClassVar[tuple[str, ...]] = (
         "planners",
         "adaptations",

@@ -129,6 +129,9 @@ class FetchConfig(TuningConfig):
         False, "larger: both families, 50k transitions, 3 x 256 network, 100 test draws of 25 steps, more candidates"
     )
 
+    #: The planner rolls every candidate through the adapted model at every step: the MMSE mask's
+    #: prediction only (the posterior predictive mean would cost a forward pass per particle each).
+    SMCD_PREDICTIONS: ClassVar[tuple[str, ...]] = ("mask",)
     NON_EMPTY: ClassVar[tuple[str, ...]] = ("families", "planners", "adaptations")  # and TuningConfig's
     SELECTION = (
         "families",

@@ -133,6 +133,10 @@ class PandaConfig(AdaptationConfig):
     full: bool = setting(False, "the paper's scale: 3 x 1024 network, 100000 samples, 100 tasks x 5 seeds")
 
     NON_EMPTY = ("intervals", "methods")
+    #: The controller differentiates the adapted kinematics at every control step, not only at
+    #: measurements: the MMSE mask's prediction only (the posterior predictive mean would cost a
+    #: forward and backward pass per particle each).
+    SMCD_PREDICTIONS = ("mask",)
     # Which (method, n) runs there are; a run's name says its method and n.
     SELECTION = ("methods", "intervals")
 

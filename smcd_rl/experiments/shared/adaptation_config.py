@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
 from smcd_rl.experiments.shared.config import EvaluationConfig, setting
-from smcd_rl.tuning.defaults import FLIP_PROBS, GD_GRID
+from smcd_rl.tuning.defaults import FLIP_PROBS, GD_GRID, PREDICTIONS
 
 __all__ = [
     "TuningConfig",
@@ -59,6 +59,10 @@ class TuningConfig(EvaluationConfig):
     budget_ms: float = setting(10.0, "per-observation budget (ms, one thread) of the budgeted view", above=0.0)
 
     NON_EMPTY: ClassVar[tuple[str, ...]] = ("gd_lr", "gd_steps", "gd_window", "calibrate_flips")
+    #: How the tuned SMCD may predict (``smcd_rl.tune``'s ``predictions``): an experiment whose
+    #: controller or planner evaluates the adapted model many times per step keeps the MMSE mask's
+    #: prediction, one forward pass where the posterior predictive mean takes one per particle.
+    SMCD_PREDICTIONS: ClassVar[tuple[str, ...]] = PREDICTIONS
 
 
 @dataclass

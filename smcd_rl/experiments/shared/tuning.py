@@ -53,7 +53,7 @@ from smcd_rl.experiments.shared.tuning_record import TUNED, Tuning, reseeded
 from smcd_rl.experiments.shared.workers import computed, map_jobs
 from smcd_rl.strategies.registry import build
 from smcd_rl.tuning import ms_per_observation
-from smcd_rl.tuning.defaults import kinds_needed
+from smcd_rl.tuning.defaults import PREDICTIONS, kinds_needed
 from smcd_rl.tuning.diagnostics import Trace, trace
 
 __all__ = [
@@ -113,6 +113,7 @@ def tuned_specs(
             "steps": (None, getattr(config, "gd_max_steps", None)),
         },
         "flip_probs": config.calibrate_flips,
+        "predictions": getattr(config, "SMCD_PREDICTIONS", PREDICTIONS),
         "seed": seed,
         "progress": progress,
         # An experiment whose table scores a look-ahead tunes by it (tuning_horizon > 1), else by one-step error.
@@ -320,6 +321,10 @@ def _key(job: TuneJob, config: Any) -> dict[str, Any]:
                 "budget_ms",
             )
         },
+        # What else the tuning reads of the config: a change to any of them is another tuning.
+        "horizon": getattr(config, "tuning_horizon", 1),
+        "gd_limits": [getattr(config, "gd_max_lr", None), getattr(config, "gd_max_steps", None)],
+        "predictions": list(getattr(config, "SMCD_PREDICTIONS", PREDICTIONS)),
     }
 
 

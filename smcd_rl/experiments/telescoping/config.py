@@ -90,6 +90,10 @@ class TelescopingConfig(TwoLinkFamilyConfig):
     full: bool = setting(False, "the paper's scale: 1000 tasks x 150 episodes, hidden 1024, 1000 trials")
 
     NON_EMPTY = ("report_steps", "methods")
+    #: The controller differentiates the adapted kinematics at every control step, not only at
+    #: measurements: the MMSE mask's prediction only (the posterior predictive mean would cost a
+    #: forward and backward pass per particle each).
+    SMCD_PREDICTIONS = ("mask",)
     # Which methods run, which steps the table shows, and the path of --model (the loaded model's
     # digest keys the M methods instead).
     SELECTION = ("methods", "report_steps", "model")
