@@ -14,7 +14,9 @@ a planner's rollout or a look-ahead table scores); or a callable score of your o
   are raced: each runs first on a quarter of the episodes, and only those within 10 % of the
   best there run on the rest (:mod:`smcd_rl.tuning.search`); the others are listed as raced out;
 * SMCD by :func:`smcd_rl.calibrate`: the noise's factor and shape across output dimensions and
-  the flip probability, one search;
+  the flip probability, one search; then, at the best setting, the posterior predictive mean in
+  place of the MMSE mask's prediction, kept only where it predicts better beyond the episodes'
+  noise (``predictions``);
 * :class:`smcd_rl.BayesianLastLayer` over prior scale x drift x likelihood (Gaussian, or
   Student-t at two noise scales), raced, the prior scale extended past an edge
   (:data:`~smcd_rl.tuning.defaults.LAST_LAYER_GRID`);

@@ -619,3 +619,65 @@ def test_the_shortcut_search_repeats_bit_for_bit_and_confirms_its_finalists_at_f
     assert fast.best_of["smcd"] in (kept, robust)
     assert any("searched with 64 particles" in note for note in fast.notes)
     assert set(fast.kind_seconds) == {"smcd"} and fast.kind_seconds["smcd"] > 0
+
+
+def _search_with_two_runs(model, cheap: list[float], dear: list[float]) -> smcd_rl.tuning.search.Search:
+    """A search whose two SMCD settings ran with these one-step RMSEs per episode (the MMSE mask's
+    prediction and the posterior predictive mean's), the dearer one the best by its pooled score."""
+    scorer = smcd_rl.tuning.scoring.Scorer(
+        model, shifted_episodes(0.5, count=len(cheap)), smcd_rl.tuning.criteria.checked_criterion("one-step", None)
+    )
+    search = smcd_rl.tuning.search.Search(
+        scorer, smcd_rl.tuning.search.Timing(model, scorer.x[0], scorer.y[0], None), False
+    )
+    for prediction, errors in (("mask", cheap), ("predictive", dear)):
+        rmse = math.sqrt(sum(e * e for e in errors) / len(errors))
+        settings = {"num_particles": 8, "noise_std": 0.1, "prediction": prediction}
+        run = smcd_rl.tuning.diagnostics.Trace([rmse], rmse, [], [], [], list(errors), [[e] for e in errors])
+        search.traces[smcd_rl.tuning.search.setting_key("smcd", settings)] = run
+        search._add("smcd", settings, rmse)
+    assert search.best_of["smcd"].settings["prediction"] == "predictive"
+    return search
+
+
+def test_the_dearer_prediction_is_kept_only_where_its_gain_is_beyond_the_episodes_noise(model) -> None:
+    """The posterior predictive mean costs a forward pass per particle: it must earn it.
+
+    Both runs have a lower pooled score for the dearer setting. Where it gains 0.01 on every one of
+    six episodes (no spread: the gain is certain) it is kept; where it gains 0.005 on average with
+    gains of -0.04 and +0.05 alternating (standard error 0.02, twice that 0.04) the cheaper one is.
+    """
+    cheap = [0.30, 0.32, 0.28, 0.31, 0.29, 0.30]
+    steady = _search_with_two_runs(model, cheap, [e - 0.01 for e in cheap])
+    steady.prefer_cheaper("smcd", {"num_particles": 8, "noise_std": 0.1, "prediction": "mask"}, "the mask", "the mean")
+    assert steady.best_of["smcd"].settings["prediction"] == "predictive"
+    assert any(note.startswith("smcd: kept the mean") and "beyond the episodes' noise" in note for note in steady.notes)
+    noisy = _search_with_two_runs(model, cheap, [e + (0.04 if i % 2 else -0.05) for i, e in enumerate(cheap)])
+    noisy.prefer_cheaper("smcd", {"num_particles": 8, "noise_std": 0.1, "prediction": "mask"}, "the mask", "the mean")
+    assert noisy.best_of["smcd"].settings["prediction"] == "mask"
+    assert any(note.startswith("smcd: kept the mask") and "within the episodes' noise" in note for note in noisy.notes)
+
+
+def test_tune_tries_smcds_posterior_predictive_mean_at_its_best_setting_unless_told_not_to(model) -> None:
+    episodes = shifted_episodes(0.3)
+    both = smcd_rl.tune(model, episodes, strategies=["smcd"], **FAST)
+    plain = [c for c in both.candidates if c.kind == "smcd" and c.settings["likelihood"] == "gaussian"]
+    masks = [c for c in plain if c.settings["prediction"] == "mask"]
+    (mean,) = [c for c in plain if c.settings["prediction"] == "predictive"]
+    assert mean.settings == {**min(masks, key=lambda c: c.score).settings, "prediction": "predictive"}
+    # The mean is kept only where it scores lower (and then beyond the noise, by the rule above).
+    kept = both.best_of["smcd"].settings.get("prediction")
+    assert kept == "mask" or mean.score < min(c.score for c in masks), (kept, mean.score)
+    mask_only = smcd_rl.tune(model, episodes, strategies=["smcd"], predictions=("mask",), **FAST)
+    assert all(c.settings["prediction"] == "mask" for c in mask_only.candidates if c.kind == "smcd")
+    assert not any("predictive" in note for note in mask_only.notes)
+
+
+@pytest.mark.parametrize(
+    "predictions, error",
+    [("mask", TypeError), (("predictive",), ValueError), (("mask", "median"), ValueError)],
+)
+def test_predictions_that_tune_cannot_try_are_refused_before_any_run(model, monkeypatch, predictions, error) -> None:
+    monkeypatch.setattr(smcd_rl.tuning.scoring, "trace_pairs", lambda *a, **k: pytest.fail("ran"))
+    with pytest.raises(error, match="predictions must be"):
+        smcd_rl.tune(model, shifted_episodes(0.3), strategies=["smcd"], predictions=predictions, **FAST)

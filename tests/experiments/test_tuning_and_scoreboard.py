@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -116,6 +117,26 @@ def test_a_network_that_runs_only_gd_is_tuned_for_gd_only(tmp_path, monkeypatch)
     assert set(model.tuning["best_of"]) == {"none", "gradient_descent"}
     with Experiment(config, progress=False) as ex, pytest.raises(ValueError, match=r"unknown variants \['X'\]"):
         tuning.tune(ex, model, episodes, config, variants=("G", "X"))
+
+
+@dataclass
+class LookaheadConfig(TinyConfig):
+    tuning_horizon: int = 1
+
+
+def test_a_stored_tuning_is_reused_only_for_the_same_horizon(tmp_path, monkeypatch) -> None:
+    """The horizon decides what every setting is scored by: a tuning by one-step error is not one by
+    a 3-step look-ahead, so a rerun with another ``--tuning-horizon`` must tune again."""
+    model, episodes, _ = known_mask_episodes(episodes=4, steps=8)
+    config = LookaheadConfig(out=str(tmp_path), gd_lr=(0.03,), gd_steps=(1,), gd_window=(4,))
+    criteria = []
+    real = smcd_rl.tune
+    monkeypatch.setattr(smcd_rl, "tune", lambda *a, **k: criteria.append(k.get("horizon")) or real(*a, **k))
+    for horizon in (1, 1, 3):
+        with Experiment(dataclasses.replace(config, tuning_horizon=horizon), progress=False) as ex:
+            tuning.tune(ex, model, episodes, dataclasses.replace(config, tuning_horizon=horizon), variants=("G",))
+    # The first run tunes (free and budgeted), the second reuses it, the third tunes by its horizon.
+    assert criteria == [None, None, 3, 3]
 
 
 def test_unknown_variant_is_refused() -> None:

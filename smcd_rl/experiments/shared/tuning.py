@@ -8,7 +8,10 @@ one criterion: the error its table reports where that is a look-ahead (``--tunin
 - **gradient descent (``G``)** over the grid ``--gd-lr`` x ``--gd-steps`` x ``--gd-window`` with
   the squared error, extended past an edge while the best point lies there, and its robust losses
   (Huber, Tukey's biweight) at the best point;
-- **SMCD (``S``)**: the noise (its factor and shape across dimensions) and flip probability (``--calibrate-flips``);
+- **SMCD (``S``)**: the noise (its factor and shape across dimensions) and flip probability
+  (``--calibrate-flips``), and its prediction: the MMSE mask's, or the posterior predictive mean
+  where the config's ``SMCD_PREDICTIONS`` allow it (not where a controller or planner evaluates
+  the model many times per step);
 - **the Bayesian last layer (``L``)** over prior scale x drift x likelihood, and **SMCD with a
   Bayesian readout (``SL``)**: the tuned S with L's readout (:class:`smcd_rl.SMCDLastLayer`);
 - **the combination (``C``)** of N and the other tuned methods (G, S, and L and SL where they
