@@ -19,6 +19,12 @@ from smcd_rl.strategies.particle_forward import Lineage, ParticleForward, Partic
 
 __all__ = ["SMCD"]
 
+#: The posterior predictive mean of many inputs per stream (a look-ahead's, a planner's) runs the
+#: particles over them in pieces of at most this many particle rows (or one input per stream, if
+#: the particles of the streams alone are more): its memory stays that of an observation, not that
+#: many inputs' times it.
+PREDICTIVE_ROWS = 1 << 16
+
 
 class SMCD(Adaptation):
     """Sequential Monte Carlo Dropout: a particle filter over the network's dropout masks.
@@ -267,12 +273,28 @@ class SMCD(Adaptation):
 
     def predict(self, inputs: Tensor) -> Tensor:
         if self.prediction == "predictive":
-            weights = self._mask_view(self._filter.weights, inputs, trailing=1).unsqueeze(-1)  # [*B, *1, N, 1]
-            return (weights * self.predict_particles(inputs)).sum(-2)
+            return self._predictive_mean(inputs)
         mask = self._mask_view(self._filter.mean_mask, inputs, trailing=1)
         if self.readout is not None:
             return self.readout(self.net.features(inputs, mask=mask))
         return self.net(inputs, mask=mask)
+
+    def _predictive_mean(self, inputs: Tensor) -> Tensor:
+        """The weighted mean of the particles' predictions for ``inputs [*B, *extra, in]``, the
+        extra inputs in pieces of :data:`PREDICTIVE_ROWS` particle rows."""
+        extra = inputs.shape[len(self._batch_shape) : -1]
+        if not extra:
+            weights = self._mask_view(self._filter.weights, inputs, trailing=1).unsqueeze(-1)  # [*B, N, 1]
+            return (weights * self.predict_particles(inputs)).sum(-2)
+        flat = inputs.reshape(*self._batch_shape, -1, inputs.shape[-1])  # [*B, K, in]
+        weights = self._mask_view(self._filter.weights, flat, trailing=1).unsqueeze(-1)  # [*B, 1, N, 1]
+        piece = max(1, PREDICTIVE_ROWS // (math.prod(self._batch_shape) * self.num_particles))
+        means = [
+            (weights * self.predict_particles(flat[..., start : start + piece, :])).sum(-2)
+            for start in range(0, flat.shape[-2], piece)
+        ]
+        mean = torch.cat(means, dim=-2)
+        return mean.reshape(*self._batch_shape, *extra, mean.shape[-1])
 
     def predict_particles(self, inputs: Tensor) -> Tensor:
         masks = self._mask_view(self._filter.particles, inputs, trailing=2)  # type: ignore[arg-type]
