@@ -158,6 +158,51 @@ class ParticleFilter:
         """
         self._commit(*self._reweighted(*self._checked_log_likelihood(log_likelihood)))
 
+    def distinct(self) -> tuple[Tensor, Tensor]:
+        """The particles with resampling's copies merged, and their summed weights.
+
+        Copies of one ancestor are equal, so a weighted sum over the particles' predictions needs
+        each only once. Returns ``(particles [*batch, U, D], weights [*batch, U])``, ``U`` the most
+        distinct particles of any batch element, the others' rows padded with an all-off mask of
+        weight 0; or every particle and its weight where the copies are unknown (no resampling
+        since the last transition) or merge fewer than half of them. Computed once per filter state.
+
+        Example:
+            >>> import torch
+            >>> filt = SMCDFilter(mask_dim=4, num_particles=8, generator=torch.Generator().manual_seed(0))
+            >>> filt.reset(batch_shape=(2,))
+            >>> _ = filt.update(lambda masks: 5.0 * masks[..., 0].float())  # first bit on: far likelier
+            >>> particles, weights = filt.distinct()
+            >>> particles.shape[-2] <= 8, torch.allclose(weights.sum(-1), torch.ones(2))
+            (True, True)
+        """
+        particles, log_weights, _ = self._state()
+        weights = log_weights.exp()
+        cached = self._derived.get("distinct")
+        if cached is not None:
+            return cached, self._derived["distinct_weights"]
+        n, dim = particles.shape[-2], particles.shape[-1]
+        if self.ancestors is None:
+            return particles, weights
+        streams = weights.numel() // n
+        groups, inverse = group_copies(flat_particle_index(self.ancestors, n))
+        stream = groups // n  # groups are sorted, so each stream's are consecutive
+        counts = torch.bincount(stream, minlength=streams)
+        most = int(counts.max())
+        if 2 * most > n:
+            return particles, weights
+        slot = torch.arange(groups.numel(), device=self.device) - (counts.cumsum(0) - counts)[stream]
+        summed = torch.zeros(groups.numel(), dtype=weights.dtype, device=self.device)
+        summed.index_add_(0, inverse, weights.reshape(-1))
+        rows = particles.reshape(-1, dim).index_select(0, group_members(inverse, groups.numel()))
+        merged = torch.zeros(streams, most, dim, dtype=particles.dtype, device=self.device)
+        merged_weights = torch.zeros(streams, most, dtype=weights.dtype, device=self.device)
+        merged[stream, slot], merged_weights[stream, slot] = rows, summed
+        batch = weights.shape[:-1]
+        self._derived["distinct"] = merged = merged.reshape(*batch, most, dim)
+        self._derived["distinct_weights"] = merged_weights = merged_weights.reshape(*batch, most)
+        return merged, merged_weights
+
     def update(self, log_likelihood_fn: Callable[[Tensor], Tensor]) -> Tensor:
         """One filter step: propagate, score the proposed particles, reweight and resample.
 

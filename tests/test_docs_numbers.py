@@ -22,6 +22,11 @@ EXPERIMENTS = ROOT / "docs" / "experiments"
 #: page -> {figure: why it is not a result}. Short on purpose: a result belongs in a report.
 NOT_RESULTS: dict[str, dict[str, str]] = {
     "docs/experiments/regimes/index.md": {"1.5": "the pendulum family's length prior, U(0.5, 1.5)"},
+    "docs/concepts/strategies.md": {"4.685": "Tukey's biweight cut, in residuals"},
+    "docs/concepts/mask-training.md": {
+        "1.6": "forward passes of mask training at the defaults (millions), computed from the sizes",
+        "4.5": "forward passes of the gradient steps at the defaults (millions), computed from the sizes",
+    },
 }
 
 #: page -> (a section's heading, why its figures are not checked against a report).
@@ -32,6 +37,9 @@ NOT_CHECKED: dict[str, tuple[str, str]] = {
         "machines: no single machine can rerun it, and it sets the doc tests' tolerances, not a product result",
     ),
 }
+
+#: Concept pages with a section on what the experiments measured: each quotes the experiment pages it links.
+CONCEPTS = ("docs/concepts/strategies.md", "docs/concepts/mask-training.md")
 
 #: A decimal figure of prose: digits, a point, digits (not part of a version, a path or a longer number).
 FIGURE = re.compile(r"(?<![\w.\-/])(\d+\.\d+)(?![\w.]*\d)")
@@ -70,13 +78,21 @@ def _pages() -> dict[str, list[Path]]:
     """Each results page -> the reports and data files it may quote."""
     pages = {}
     for page in sorted(EXPERIMENTS.rglob("index.md")):
-        sources = sorted(page.parent.rglob("report.md")) + sorted(page.parent.glob("*.json"))
-        pages[page.relative_to(ROOT).as_posix()] = sources
+        pages[page.relative_to(ROOT).as_posix()] = _sources(page.parent)
     board = EXPERIMENTS / "scoreboard"
     pages["README.md#results"] = [board / "report.md", board / "scoreboard.json"]
     # The performance page includes the benchmarks' reports, each written by the command it names.
     pages["docs/performance.md"] = sorted((ROOT / "docs" / "benchmarks").glob("*.md"))
+    # A concept page that states what the experiments measured quotes the reports of the pages it links.
+    for page in CONCEPTS:
+        linked = sorted(set(re.findall(r"\(\.\./experiments/([\w/-]+?)/index\.md", (ROOT / page).read_text())))
+        pages[page] = [source for name in linked for source in _sources(EXPERIMENTS / name)]
     return pages
+
+
+def _sources(directory: Path) -> list[Path]:
+    """The reports and data files under an experiment page's directory."""
+    return sorted(directory.rglob("report.md")) + sorted(directory.glob("*.json"))
 
 
 def _text(name: str) -> str:

@@ -280,17 +280,24 @@ class SMCD(Adaptation):
         return self.net(inputs, mask=mask)
 
     def _predictive_mean(self, inputs: Tensor) -> Tensor:
-        """The weighted mean of the particles' predictions for ``inputs [*B, *extra, in]``, the
-        extra inputs in pieces of :data:`PREDICTIVE_ROWS` particle rows."""
+        """The weighted mean of the particles' predictions for ``inputs [*B, *extra, in]``; many
+        inputs per stream run each distinct mask once (:meth:`SMCDFilter.distinct`), in pieces of
+        :data:`PREDICTIVE_ROWS` particle rows."""
         extra = inputs.shape[len(self._batch_shape) : -1]
         if not extra:
             weights = self._mask_view(self._filter.weights, inputs, trailing=1).unsqueeze(-1)  # [*B, N, 1]
             return (weights * self.predict_particles(inputs)).sum(-2)
         flat = inputs.reshape(*self._batch_shape, -1, inputs.shape[-1])  # [*B, K, in]
-        weights = self._mask_view(self._filter.weights, flat, trailing=1).unsqueeze(-1)  # [*B, 1, N, 1]
-        piece = max(1, PREDICTIVE_ROWS // (math.prod(self._batch_shape) * self.num_particles))
+        if self.readout is None:  # copies of one mask predict alike: each distinct mask once
+            particles, weights = self._filter.distinct()
+        else:  # each particle's own readout: copies need not predict alike
+            particles, weights = self._filter.particles, self._filter.weights
+        assert particles is not None
+        masks = self._mask_view(particles, flat, trailing=2)  # [*B, 1, U, D]
+        weights = self._mask_view(weights, flat, trailing=1).unsqueeze(-1)  # [*B, 1, U, 1]
+        piece = max(1, PREDICTIVE_ROWS // (math.prod(self._batch_shape) * particles.shape[-2]))
         means = [
-            (weights * self.predict_particles(flat[..., start : start + piece, :])).sum(-2)
+            (weights * self.net.forward_particles(flat[..., start : start + piece, :], masks, self.readout)).sum(-2)
             for start in range(0, flat.shape[-2], piece)
         ]
         mean = torch.cat(means, dim=-2)

@@ -59,6 +59,28 @@ def test_mean_mask_sums_copies_to_the_weighted_mean(sorted_ancestors: bool) -> N
     torch.testing.assert_close(filt.mean_mask, expected)
 
 
+def test_distinct_particles_merge_copies_and_keep_every_weighted_sum() -> None:
+    """Copies of one ancestor become one particle with their summed weight, per batch element:
+    any weighted sum over the particles (here their bits and a nonlinear function of them) is
+    the same, and a stream with fewer distinct particles is padded with weight 0."""
+    filt = smcd_rl.SMCDFilter(16, num_particles=40, generator=_gen(3))
+    filt.reset((2,))
+    assert filt.distinct()[0].shape == (2, 40, 16)  # no resampling yet: copies unknown, all particles
+    filt.propagate()
+    filt.reweight(-((filt.particles.float().sum(-1) - 12) ** 2))  # peaked: few ancestors survive
+    filt.ess_threshold = 0.0
+    filt.reweight(torch.randn(2, 40, generator=_gen(5)))  # copies keep their ancestors, weights differ
+    particles, weights = filt.distinct()
+    assert particles.shape[-2] <= 20 and weights.shape == particles.shape[:-1]
+    torch.testing.assert_close(weights.sum(-1), torch.ones(2))
+    bits = filt.particles.float()
+    for f in (lambda b: b, lambda b: b.cumsum(-1).sin()):
+        torch.testing.assert_close(
+            (weights.unsqueeze(-1) * f(particles.float())).sum(-2), (filt.weights.unsqueeze(-1) * f(bits)).sum(-2)
+        )
+    assert filt.distinct()[0] is particles  # computed once per filter state
+
+
 def test_log_evidence_and_weights_match_hand_computation() -> None:
     filt = smcd_rl.SMCDFilter(4, num_particles=3, ess_threshold=0.0, generator=_gen())
     filt.reset()
