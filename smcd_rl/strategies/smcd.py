@@ -291,8 +291,8 @@ class SMCD(Adaptation):
         if self.readout is None:  # copies of one mask predict alike: each distinct mask once
             particles, weights = self._filter.distinct()
         else:  # each particle's own readout: copies need not predict alike
+            assert self._filter.particles is not None
             particles, weights = self._filter.particles, self._filter.weights
-        assert particles is not None
         masks = self._mask_view(particles, flat, trailing=2)  # [*B, 1, U, D]
         weights = self._mask_view(weights, flat, trailing=1).unsqueeze(-1)  # [*B, 1, U, 1]
         piece = max(1, PREDICTIVE_ROWS // (math.prod(self._batch_shape) * particles.shape[-2]))
