@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Literal
@@ -132,8 +133,10 @@ class SMCD(Adaptation):
         #: Runs the proposed particles through the network (the path of ``forward_path``).
         self.particle_forward: ParticleForward | None = None
         #: What turns last hidden activations ``[*B, ..., width]`` into outputs instead of the
-        #: network's output layer: an adapted readout per stream (:class:`smcd_rl.SMCDLastLayer`).
-        self.readout: Callable[[Tensor], Tensor] | None = None
+        #: network's output layer: an adapted readout per stream (:class:`smcd_rl.SMCDLastLayer`),
+        #: called as ``readout(features)``, or ``readout(features, members=members)`` for the
+        #: particles ``members [*B, U]`` picks (:meth:`SMCDFilter.distinct`) in place of all of them.
+        self.readout: Callable[..., Tensor] | None = None
         #: With :attr:`readout`: each proposed particle's noise variance factor, ``[*B, N]`` or per
         #: output ``[*B, N, out]`` (at least 1), for the predictions the readout just made: the
         #: readout's own uncertainty at the particle's features (:class:`smcd_rl.SMCDLastLayer`);
@@ -288,16 +291,16 @@ class SMCD(Adaptation):
             weights = self._mask_view(self._filter.weights, inputs, trailing=1).unsqueeze(-1)  # [*B, N, 1]
             return (weights * self.predict_particles(inputs)).sum(-2)
         flat = inputs.reshape(*self._batch_shape, -1, inputs.shape[-1])  # [*B, K, in]
-        if self.readout is None:  # copies of one mask predict alike: each distinct mask once
-            particles, weights = self._filter.distinct()
-        else:  # each particle's own readout: copies need not predict alike
-            assert self._filter.particles is not None
-            particles, weights = self._filter.particles, self._filter.weights
+        # Copies of one particle predict alike (a readout per particle is copied with it): each once.
+        particles, weights, members = self._filter.distinct()
+        readout = self.readout
+        if readout is not None and members is not None:
+            readout = functools.partial(readout, members=members)
         masks = self._mask_view(particles, flat, trailing=2)  # [*B, 1, U, D]
         weights = self._mask_view(weights, flat, trailing=1).unsqueeze(-1)  # [*B, 1, U, 1]
         piece = max(1, PREDICTIVE_ROWS // (math.prod(self._batch_shape) * particles.shape[-2]))
         means = [
-            (weights * self.net.forward_particles(flat[..., start : start + piece, :], masks, self.readout)).sum(-2)
+            (weights * self.net.forward_particles(flat[..., start : start + piece, :], masks, readout)).sum(-2)
             for start in range(0, flat.shape[-2], piece)
         ]
         mean = torch.cat(means, dim=-2)

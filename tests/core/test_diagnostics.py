@@ -78,20 +78,25 @@ def test_predictive_mean_is_the_weighted_mean_of_the_particles_predictions() -> 
         smcd_rl.SMCD(prediction="mean")
 
 
-def test_the_predictive_mean_of_many_inputs_runs_each_distinct_mask_once_in_pieces(monkeypatch) -> None:
+@pytest.mark.parametrize("readout", [False, True])
+def test_the_predictive_mean_of_many_inputs_runs_each_distinct_mask_once_in_pieces(monkeypatch, readout) -> None:
     """A look-ahead of 20 inputs per stream with 1,000 particles once held 20 times an observation's
     activations at once (the two-link look-ahead ran out of memory) and ran every copy resampling
     made. Now each distinct mask runs once, with its copies' weights, in pieces of PREDICTIVE_ROWS
-    particle rows; the result is each input's own prediction over every particle."""
+    particle rows; the result is each input's own prediction over every particle. With a readout per
+    particle (SMCD with a Bayesian readout) each copy carries its particle's readout: the same holds."""
     torch.manual_seed(0)
     model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8, 8)), in_keys=["q"], out_key="ee")
     model.fitted = True  # a random network on purpose
     # A sharp likelihood and resampling at every step: a few ancestors survive, each many times.
     smcd = smcd_rl.SMCD(num_particles=16, noise_std=0.05, prediction="predictive", ess_threshold=1.0)
-    model.with_adaptation(smcd).reset(batch_shape=(3,))
-    smcd.observe(torch.rand(3, 2), torch.rand(3, 2))
+    strategy = (
+        smcd_rl.SMCDLastLayer(smcd, smcd_rl.BayesianLastLayer(noise_std=0.01, prior_scale=1.0)) if readout else smcd
+    )
+    model.with_adaptation(strategy).reset(batch_shape=(3,))
+    strategy.observe(torch.rand(3, 2), torch.rand(3, 2))
     q = torch.rand(3, 4, 5, 2)
-    one_at_a_time = torch.stack([torch.stack([smcd.predict(q[:, i, j]) for j in range(5)], 1) for i in range(4)], 1)
+    one_at_a_time = torch.stack([torch.stack([strategy.predict(q[:, i, j]) for j in range(5)], 1) for i in range(4)], 1)
     runs = []
     real = smcd.net.forward_particles
     monkeypatch.setattr(
@@ -102,7 +107,7 @@ def test_the_predictive_mean_of_many_inputs_runs_each_distinct_mask_once_in_piec
     distinct = smcd.filter.distinct()[0].shape[-2]
     assert distinct <= 8  # at most half of the 16 particles: the merged path runs
     monkeypatch.setattr(smcd_rl.strategies.smcd, "PREDICTIVE_ROWS", 3 * distinct * 6)  # six inputs per stream
-    pieces = smcd.predict(q)
+    pieces = strategy.predict(q)
     assert runs == [(6, distinct), (6, distinct), (6, distinct), (2, distinct)]  # 20 inputs per stream
     assert pieces.shape == (3, 4, 5, 2)
     assert torch.allclose(pieces, one_at_a_time, atol=1e-6)

@@ -65,13 +65,16 @@ def test_distinct_particles_merge_copies_and_keep_every_weighted_sum() -> None:
     the same, and a stream with fewer distinct particles is padded with weight 0."""
     filt = smcd_rl.SMCDFilter(16, num_particles=40, generator=_gen(3))
     filt.reset((2,))
-    assert filt.distinct()[0].shape == (2, 40, 16)  # no resampling yet: copies unknown, all particles
+    assert filt.distinct()[0].shape == (2, 40, 16) and filt.distinct()[2] is None  # copies unknown yet
     filt.propagate()
     filt.reweight(-((filt.particles.float().sum(-1) - 12) ** 2))  # peaked: few ancestors survive
     filt.ess_threshold = 0.0
     filt.reweight(torch.randn(2, 40, generator=_gen(5)))  # copies keep their ancestors, weights differ
-    particles, weights = filt.distinct()
-    assert particles.shape[-2] <= 20 and weights.shape == particles.shape[:-1]
+    particles, weights, members = filt.distinct()
+    assert particles.shape[-2] <= 20 and weights.shape == members.shape == particles.shape[:-1]
+    # Each merged particle is the particle its member names (padding rows carry no weight).
+    named = filt.particles.gather(1, members.unsqueeze(-1).expand(-1, -1, 16))
+    assert bool(((named == particles).all(-1) | (weights == 0)).all())
     torch.testing.assert_close(weights.sum(-1), torch.ones(2))
     bits = filt.particles.float()
     for f in (lambda b: b, lambda b: b.cumsum(-1).sin()):
