@@ -78,7 +78,7 @@ class ParticleFilter:
         self._particles: Tensor | None = None
         self._log_weights: Tensor | None = None
         #: Quantities computed from particles and weights (e.g. the MMSE mask), dropped when either changes.
-        self._derived: dict[str, Tensor] = {}
+        self._derived: dict[str, Any] = {}
         self.log_evidence: Tensor | None = None
         #: Ancestor index of every particle at the last resampling, ``[*batch, N]``: particles with
         #: the same ancestor are identical copies. ``None`` when unknown (no resampling since the
@@ -158,55 +158,39 @@ class ParticleFilter:
         """
         self._commit(*self._reweighted(*self._checked_log_likelihood(log_likelihood)))
 
-    def distinct(self) -> tuple[Tensor, Tensor, Tensor | None]:
-        """The particles with resampling's copies merged, their summed weights, and which particles they are.
+    def distinct(self) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """The particles with resampling's copies merged, over every batch element at once.
 
         Copies of one ancestor are equal, so a weighted sum over the particles' predictions needs
-        each only once. Returns ``(particles [*batch, U, D], weights [*batch, U], members [*batch, U])``,
-        ``U`` the most distinct particles of any batch element, ``members`` the index of one copy of
-        each among the batch element's particles (state kept per particle, such as a readout, is
-        read there); a batch element with fewer is padded with an all-off mask of weight 0 (member
-        0). Where the copies are unknown (no resampling since the last transition) or merge fewer
-        than half of them: every particle, its weight and ``None``. Computed once per filter state.
+        each only once. Returns ``(particles [G, D], weights [G], streams [G], members [G])``: each
+        distinct particle, its copies' summed weight, the flat index of its batch element and the
+        index among that element's particles of one of its copies (state kept per particle, such as
+        a readout, is read there); ``None`` where the copies are unknown (no resampling since the
+        last transition). Computed once per filter state.
 
         Example:
             >>> import torch
             >>> filt = SMCDFilter(mask_dim=4, num_particles=8, generator=torch.Generator().manual_seed(0))
             >>> filt.reset(batch_shape=(2,))
             >>> _ = filt.update(lambda masks: 5.0 * masks[..., 0].float())  # first bit on: far likelier
-            >>> particles, weights, members = filt.distinct()
-            >>> particles.shape[-2] <= 8, torch.allclose(weights.sum(-1), torch.ones(2))
-            (True, True)
+            >>> particles, weights, streams, members = filt.distinct()
+            >>> particles.shape[0] <= 16, torch.zeros(2).index_add_(0, streams, weights).tolist()
+            (True, [1.0, 1.0])
         """
-        particles, log_weights, _ = self._state()
-        weights = log_weights.exp()
         cached = self._derived.get("distinct")
         if cached is not None:
-            return cached, self._derived["distinct_weights"], self._derived["distinct_members"]
-        n, dim = particles.shape[-2], particles.shape[-1]
+            return cached[0], cached[1], cached[2], cached[3]
         if self.ancestors is None:
-            return particles, weights, None
-        streams = weights.numel() // n
+            return None
+        particles, log_weights, _ = self._state()
+        n, dim = particles.shape[-2], particles.shape[-1]
         groups, inverse = group_copies(flat_particle_index(self.ancestors, n))
-        stream = groups // n  # groups are sorted, so each stream's are consecutive
-        counts = torch.bincount(stream, minlength=streams)
-        most = int(counts.max())
-        if 2 * most > n:
-            return particles, weights, None
-        slot = torch.arange(groups.numel(), device=self.device) - (counts.cumsum(0) - counts)[stream]
-        summed = torch.zeros(groups.numel(), dtype=weights.dtype, device=self.device)
-        summed.index_add_(0, inverse, weights.reshape(-1))
-        member = group_members(inverse, groups.numel())  # a flat row of one copy of each
-        merged = torch.zeros(streams, most, dim, dtype=particles.dtype, device=self.device)
-        merged_weights = torch.zeros(streams, most, dtype=weights.dtype, device=self.device)
-        members = torch.zeros(streams, most, dtype=torch.long, device=self.device)
-        merged[stream, slot] = particles.reshape(-1, dim).index_select(0, member)
-        merged_weights[stream, slot], members[stream, slot] = summed, member % n
-        batch = weights.shape[:-1]
-        self._derived["distinct"] = merged = merged.reshape(*batch, most, dim)
-        self._derived["distinct_weights"] = merged_weights = merged_weights.reshape(*batch, most)
-        self._derived["distinct_members"] = members = members.reshape(*batch, most)
-        return merged, merged_weights, members
+        summed = torch.zeros(groups.numel(), dtype=log_weights.dtype, device=self.device)
+        summed.index_add_(0, inverse, log_weights.exp().reshape(-1))
+        member = group_members(inverse, groups.numel())  # the flat row of one copy of each
+        found = (particles.reshape(-1, dim).index_select(0, member), summed, member // n, member % n)
+        self._derived["distinct"] = found
+        return found
 
     def update(self, log_likelihood_fn: Callable[[Tensor], Tensor]) -> Tensor:
         """One filter step: propagate, score the proposed particles, reweight and resample.

@@ -134,8 +134,8 @@ class SMCD(Adaptation):
         self.particle_forward: ParticleForward | None = None
         #: What turns last hidden activations ``[*B, ..., width]`` into outputs instead of the
         #: network's output layer: an adapted readout per stream (:class:`smcd_rl.SMCDLastLayer`),
-        #: called as ``readout(features)``, or ``readout(features, members=members)`` for the
-        #: particles ``members [*B, U]`` picks (:meth:`SMCDFilter.distinct`) in place of all of them.
+        #: called as ``readout(features)``, or ``readout(features, members=(streams, members))`` for
+        #: features ``[..., G, width]`` of the particles those pick (:meth:`SMCDFilter.distinct`).
         self.readout: Callable[..., Tensor] | None = None
         #: With :attr:`readout`: each proposed particle's noise variance factor, ``[*B, N]`` or per
         #: output ``[*B, N, out]`` (at least 1), for the predictions the readout just made: the
@@ -284,26 +284,31 @@ class SMCD(Adaptation):
 
     def _predictive_mean(self, inputs: Tensor) -> Tensor:
         """The weighted mean of the particles' predictions for ``inputs [*B, *extra, in]``; many
-        inputs per stream run each distinct mask once (:meth:`SMCDFilter.distinct`), in pieces of
-        :data:`PREDICTIVE_ROWS` particle rows."""
+        inputs per stream run each distinct particle once (:meth:`SMCDFilter.distinct`), in pieces
+        of :data:`PREDICTIVE_ROWS` particle rows."""
         extra = inputs.shape[len(self._batch_shape) : -1]
         if not extra:
             weights = self._mask_view(self._filter.weights, inputs, trailing=1).unsqueeze(-1)  # [*B, N, 1]
             return (weights * self.predict_particles(inputs)).sum(-2)
-        flat = inputs.reshape(*self._batch_shape, -1, inputs.shape[-1])  # [*B, K, in]
-        # Copies of one particle predict alike (a readout per particle is copied with it): each once.
-        particles, weights, members = self._filter.distinct()
-        readout = self.readout
-        if readout is not None and members is not None:
-            readout = functools.partial(readout, members=members)
-        masks = self._mask_view(particles, flat, trailing=2)  # [*B, 1, U, D]
-        weights = self._mask_view(weights, flat, trailing=1).unsqueeze(-1)  # [*B, 1, U, 1]
-        piece = max(1, PREDICTIVE_ROWS // (math.prod(self._batch_shape) * particles.shape[-2]))
-        means = [
-            (weights * self.net.forward_particles(flat[..., start : start + piece, :], masks, readout)).sum(-2)
-            for start in range(0, flat.shape[-2], piece)
-        ]
-        mean = torch.cat(means, dim=-2)
+        streams = math.prod(self._batch_shape)
+        flat = inputs.reshape(streams, -1, inputs.shape[-1])  # [S, K, in]
+        found = self._filter.distinct()
+        if found is None:  # copies unknown: every particle of every stream
+            assert self._filter.particles is not None
+            particles = self._filter.particles.reshape(streams * self.num_particles, -1)
+            weights = self._filter.weights.reshape(-1)
+            rows = torch.arange(streams * self.num_particles, device=particles.device)
+            stream, member = rows // self.num_particles, rows % self.num_particles
+        else:  # copies of one particle predict alike (a readout per particle is copied with it)
+            particles, weights, stream, member = found
+        readout = None if self.readout is None else functools.partial(self.readout, members=(stream, member))
+        mean = torch.zeros(streams, flat.shape[1], self.net.out_features, dtype=inputs.dtype, device=inputs.device)
+        piece = max(1, PREDICTIVE_ROWS // particles.shape[0])
+        for start in range(0, flat.shape[1], piece):
+            rows = flat[stream, start : start + piece].transpose(0, 1)  # [k, G, in]: each particle's stream's inputs
+            predicted = self.net.forward_particles(rows, particles, readout)  # [k, G, out]
+            weighted = (weights.unsqueeze(-1) * predicted).transpose(0, 1)  # [G, k, out]
+            mean[:, start : start + piece].index_add_(0, stream, weighted.to(mean.dtype))
         return mean.reshape(*self._batch_shape, *extra, mean.shape[-1])
 
     def predict_particles(self, inputs: Tensor) -> Tensor:

@@ -162,13 +162,15 @@ class SMCDLastLayer(Adaptation):
         mean = mean.transpose(-1, -2)  # [B, D, out], the last layer's layout
         self.last_layer.load_state_dict({"mean": mean, "cov": cov})
 
-    def _particle_readout(self, features: Tensor, members: Tensor | None = None) -> Tensor:
+    def _particle_readout(self, features: Tensor, members: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """Each particle's readout of its last hidden ``features [*B, *extra, N, width]`` by its own
-        mean; with ``members [*B, U]``, the features are those of the particles it picks."""
+        mean; with ``members = (streams, indices)``, of features ``[..., G, width]`` of the
+        particles they pick."""
         means = self._state()
         if members is not None:
-            picked = members.reshape(means.shape[0], -1, 1, 1).expand(-1, -1, *means.shape[2:])
-            means = means.gather(1, picked)
+            picked = means[members[0], members[1]].to(features.dtype)  # [G, out, width + 1]
+            self._seen = None
+            return torch.einsum("...gd,god->...go", BayesianLastLayer._augmented(features), picked)
         streams, particles = means.shape[:2]
         phi = BayesianLastLayer._augmented(features.reshape(streams, -1, particles, features.shape[-1]))
         extra = phi.shape[1]

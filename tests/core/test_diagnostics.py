@@ -102,11 +102,11 @@ def test_the_predictive_mean_of_many_inputs_runs_each_distinct_mask_once_in_piec
     monkeypatch.setattr(
         smcd.net,
         "forward_particles",
-        lambda x, masks, readout: runs.append((x.shape[-2], masks.shape[-2])) or real(x, masks, readout),
+        lambda x, masks, readout: runs.append((x.shape[0], masks.shape[0])) or real(x, masks, readout),
     )
-    distinct = smcd.filter.distinct()[0].shape[-2]
-    assert distinct <= 8  # at most half of the 16 particles: the merged path runs
-    monkeypatch.setattr(smcd_rl.strategies.smcd, "PREDICTIVE_ROWS", 3 * distinct * 6)  # six inputs per stream
+    distinct = smcd.filter.distinct()[0].shape[0]
+    assert distinct <= 24  # of the 3 streams' 48 particles: the merged path runs each once
+    monkeypatch.setattr(smcd_rl.strategies.smcd, "PREDICTIVE_ROWS", distinct * 6)  # six inputs per stream
     pieces = strategy.predict(q)
     assert runs == [(6, distinct), (6, distinct), (6, distinct), (2, distinct)]  # 20 inputs per stream
     assert pieces.shape == (3, 4, 5, 2)

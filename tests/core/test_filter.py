@@ -62,25 +62,23 @@ def test_mean_mask_sums_copies_to_the_weighted_mean(sorted_ancestors: bool) -> N
 def test_distinct_particles_merge_copies_and_keep_every_weighted_sum() -> None:
     """Copies of one ancestor become one particle with their summed weight, per batch element:
     any weighted sum over the particles (here their bits and a nonlinear function of them) is
-    the same, and a stream with fewer distinct particles is padded with weight 0."""
+    the same, and each merged particle is the particle its member names."""
     filt = smcd_rl.SMCDFilter(16, num_particles=40, generator=_gen(3))
     filt.reset((2,))
-    assert filt.distinct()[0].shape == (2, 40, 16) and filt.distinct()[2] is None  # copies unknown yet
+    assert filt.distinct() is None  # no resampling yet: copies unknown
     filt.propagate()
     filt.reweight(-((filt.particles.float().sum(-1) - 12) ** 2))  # peaked: few ancestors survive
     filt.ess_threshold = 0.0
     filt.reweight(torch.randn(2, 40, generator=_gen(5)))  # copies keep their ancestors, weights differ
-    particles, weights, members = filt.distinct()
-    assert particles.shape[-2] <= 20 and weights.shape == members.shape == particles.shape[:-1]
-    # Each merged particle is the particle its member names (padding rows carry no weight).
-    named = filt.particles.gather(1, members.unsqueeze(-1).expand(-1, -1, 16))
-    assert bool(((named == particles).all(-1) | (weights == 0)).all())
-    torch.testing.assert_close(weights.sum(-1), torch.ones(2))
+    found = filt.distinct()
+    assert found is not None
+    particles, weights, streams, members = found
+    assert particles.shape[0] <= 40 and weights.shape == streams.shape == members.shape == particles.shape[:1]
+    assert torch.equal(filt.particles[streams, members], particles)
     bits = filt.particles.float()
     for f in (lambda b: b, lambda b: b.cumsum(-1).sin()):
-        torch.testing.assert_close(
-            (weights.unsqueeze(-1) * f(particles.float())).sum(-2), (filt.weights.unsqueeze(-1) * f(bits)).sum(-2)
-        )
+        merged = torch.zeros(2, 16).index_add_(0, streams, weights.unsqueeze(-1) * f(particles.float()))
+        torch.testing.assert_close(merged, (filt.weights.unsqueeze(-1) * f(bits)).sum(-2))
     assert filt.distinct()[0] is particles  # computed once per filter state
 
 
