@@ -148,6 +148,7 @@ def tune(
         runs only read the network).
 
     Raises:
+        TypeError: ``predictions`` a string or not a sequence.
         ValueError: an unknown strategy, criterion or prediction, a horizon the criterion does not take or
             episodes no longer than it, a budget that is not positive, no strategy
             within the budget, episodes :func:`smcd_rl.calibrate` refuses, or a ``reuse`` of
