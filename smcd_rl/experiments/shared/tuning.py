@@ -8,10 +8,8 @@ one criterion: the error its table reports where that is a look-ahead (``--tunin
 - **gradient descent (``G``)** over the grid ``--gd-lr`` x ``--gd-steps`` x ``--gd-window`` with
   the squared error, extended past an edge while the best point lies there, and its robust losses
   (Huber, Tukey's biweight) at the best point;
-- **SMCD (``S``)**: the noise (its factor and shape across dimensions) and flip probability
-  (``--calibrate-flips``), and its prediction: the MMSE mask's, or the posterior predictive mean
-  where the config's ``SMCD_PREDICTIONS`` allow it (not where a controller or planner evaluates
-  the model many times per step);
+- **SMCD (``S``)**: the noise (its factor and shape), flip probability (``--calibrate-flips``) and
+  prediction (the MMSE mask's, or the predictive mean where ``SMCD_PREDICTIONS`` allow it);
 - **the Bayesian last layer (``L``)** over prior scale x drift x likelihood, and **SMCD with a
   Bayesian readout (``SL``)**: the tuned S with L's readout (:class:`smcd_rl.SMCDLastLayer`);
 - **the combination (``C``)** of N and the other tuned methods (G, S, and L and SL where they
@@ -324,9 +322,7 @@ def _key(job: TuneJob, config: Any) -> dict[str, Any]:
                 "budget_ms",
             )
         },
-        # What else the tuning reads of the config: a change to any of them is another tuning.
-        "horizon": getattr(config, "tuning_horizon", 1),
-        "gd_limits": [getattr(config, "gd_max_lr", None), getattr(config, "gd_max_steps", None)],
+        "read_too": [getattr(config, k, None) for k in ("tuning_horizon", "gd_max_lr", "gd_max_steps")],
         "predictions": list(getattr(config, "SMCD_PREDICTIONS", PREDICTIONS)),
     }
 
