@@ -178,9 +178,8 @@ class ParticleFilter:
             >>> particles.shape[0] <= 16, torch.allclose(per_stream, torch.ones(2))
             (True, True)
         """
-        cached = self._derived.get("distinct")
-        if cached is not None:
-            return cached[0], cached[1], cached[2], cached[3]
+        if "distinct" in self._derived:
+            return self._derived["distinct"]
         if self.ancestors is None:
             return None
         particles, log_weights, _ = self._state()
