@@ -37,6 +37,7 @@ __all__ = [
     "SMCD_LAST_LAYER_QUIET_SHARE",
     "FLIP_PROBS",
     "PREDICTIONS",
+    "WEIGHINGS",
     "CALIBRATION_REFINE",
     "SEARCH_PARTICLE_SHARE",
     "FINALISTS",
@@ -127,6 +128,10 @@ FLIP_PROBS = (0.001, 0.003, 0.01, 0.03)
 #: prediction). A planner that scores many candidates per step pays that for each: pass
 #: ``predictions=("mask",)`` there.
 PREDICTIONS = ("mask", "predictive")
+#: How SMCD with a Bayesian readout may weigh its particles, what :func:`smcd_rl.tune` tries at its
+#: best setting (:data:`smcd_rl.strategies.smcd_last_layer.WEIGHINGS`): by the readout's
+#: predictive, and by each particle's readout mean under the filter's noise alone.
+WEIGHINGS = ("predictive", "mean")
 #: Golden-section runs at the end of SMCD's calibration (:func:`smcd_rl.calibrate`'s ``refine``).
 CALIBRATION_REFINE = 5
 #: With tune's shortcuts, SMCD's calibration searches with this share of the particles, then

@@ -53,6 +53,7 @@ from smcd_rl.tuning.defaults import (
     SMCD_LAST_LAYER_FINALISTS,
     SMCD_LAST_LAYER_QUIET_SHARE,
     SMCD_LAST_LAYER_SCALES,
+    WEIGHINGS,
 )
 from smcd_rl.tuning.diagnostics import Trace
 from smcd_rl.tuning.search import Search, TuneCandidate, setting_key, usable, within
@@ -61,6 +62,7 @@ __all__ = [
     "checked_gd_grid",
     "checked_gd_limits",
     "checked_predictions",
+    "checked_weighings",
     "tune_gd",
     "tune_smcd",
     "tune_last_layer",
@@ -248,14 +250,27 @@ def checked_predictions(predictions: Sequence[str]) -> tuple[str, ...]:
         >>> checked_predictions(["mask"])
         ('mask',)
     """
-    if isinstance(predictions, str) or not isinstance(predictions, Sequence):
-        raise TypeError(f"predictions must be a sequence such as {PREDICTIONS}, got {predictions!r}")
-    chosen = tuple(predictions)
-    if "mask" not in chosen or not set(chosen) <= set(PREDICTIONS):
-        raise ValueError(
-            f"predictions must be ('mask',) or {PREDICTIONS} (SMCD's calibration predicts with the MMSE mask), "
-            f"got {chosen}"
-        )
+    return _checked_choices("predictions", predictions, PREDICTIONS, "SMCD's calibration predicts with the MMSE mask")
+
+
+def checked_weighings(weighings: Sequence[str]) -> tuple[str, ...]:
+    """``tune``'s ``weighings`` as a tuple: ``("predictive",)`` or :data:`~smcd_rl.tuning.defaults.WEIGHINGS`
+    (SMCD with a Bayesian readout's scales are searched with the readout's predictive, so it is always among them).
+
+    Example:
+        >>> checked_weighings(["predictive", "mean"])
+        ('predictive', 'mean')
+    """
+    return _checked_choices("weighings", weighings, WEIGHINGS, "the readout's scales are searched with it")
+
+
+def _checked_choices(name: str, given: Sequence[str], allowed: tuple[str, ...], why: str) -> tuple[str, ...]:
+    """``given`` as a tuple: ``allowed[:1]`` or ``allowed`` (in any order), the first always among them."""
+    if isinstance(given, str) or not isinstance(given, Sequence):
+        raise TypeError(f"{name} must be a sequence such as {allowed}, got {given!r}")
+    chosen = tuple(given)
+    if allowed[0] not in chosen or not set(chosen) <= set(allowed):
+        raise ValueError(f"{name} must be {allowed[:1]} or {allowed} ({why}), got {chosen}")
     return chosen
 
 
@@ -412,7 +427,7 @@ def _unadapted_residual(search: Search) -> list[float]:
     return [max(float(v), 1e-6) for v in residual.square().mean(dim=(0, 1)).sqrt()]
 
 
-def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
+def tune_smcd_last_layer(search: Search, shortcuts: bool = True, weighings: Sequence[str] = WEIGHINGS) -> None:
     """SMCD with a Bayesian readout: the tuned SMCD's filter with the tuned last layer's readout,
     its prior scale at :data:`~smcd_rl.tuning.defaults.SMCD_LAST_LAYER_SCALES` times the last layer's best.
 
@@ -422,7 +437,9 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
     settings are the tuned SMCD's: calibrating them again would cost as many runs as SMCD's own.
     With ``shortcuts`` the scales run with SMCD's reduced particles first (as its calibration
     does), and only the best :data:`~smcd_rl.tuning.defaults.SMCD_LAST_LAYER_FINALISTS` of those
-    within :data:`~smcd_rl.tuning.defaults.RACE_MARGIN` of the best there run at full size.
+    within :data:`~smcd_rl.tuning.defaults.RACE_MARGIN` of the best there run at full size. With
+    ``"mean"`` in ``weighings``, ``weighing="mean"`` runs last, at the best scale and the next wider
+    one, and the lower score wins.
     """
     smcd, readout = search.best_of.get("smcd"), search.best_of.get("last_layer")
     if smcd is None or readout is None:
@@ -468,7 +485,35 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True) -> None:
             f"SMCD with a Bayesian readout: best prior_scale {scale * factor * 3:g} on the grid's low edge; tried "
             f"{scale * factor:g}"
         )
+    if "mean" in weighings:
+        _try_mean_weighing(search, setting, sorted({*factors, factor}), scale)
     search.time_best("smcd_last_layer")
+
+
+#: How the notes name :class:`smcd_rl.SMCDLastLayer`'s weighings.
+WEIGHING_NAMES = {"predictive": "the readout's predictive", "mean": "each particle's readout mean"}
+
+
+def _try_mean_weighing(
+    search: Search, setting: Callable[[float], dict[str, Any]], factors: Sequence[float], scale: float
+) -> None:
+    """Score ``weighing="mean"`` at the best readout scale and the next wider one tried; the lower
+    score wins, as between the scales (the two weighings cost the same), and a note says which.
+
+    Without the readout's uncertainty in the particles' likelihood a freer readout no longer blurs
+    the masks' weights, so the next wider scale is the other contender.
+    """
+    best = search.best_of.get("smcd_last_layer")
+    if best is None:
+        return
+    chosen = best.settings["last_layer"]["prior_scale"] / scale
+    wider = [f for f in factors if f > chosen * (1 + 1e-9)]
+    scores = [search.score("smcd_last_layer", {**setting(f), "weighing": "mean"}) for f in (chosen, *wider[:1])]
+    kept = search.best_of["smcd_last_layer"].settings.get("weighing", "predictive")
+    search.notes.append(
+        f"SMCD with a Bayesian readout: weighs its particles by {WEIGHING_NAMES[kept]} ({best.score:.4g} by the "
+        f"readout's predictive; {min(scores):.4g} by each particle's readout mean)"
+    )
 
 
 def smcd_last_layer_factors(quiet: float) -> tuple[float, ...]:

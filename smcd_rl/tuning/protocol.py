@@ -58,12 +58,13 @@ from smcd_rl.model import AdaptiveModel
 from smcd_rl.strategies import SMCD, Adaptation
 from smcd_rl.tuning.calibration import Calibration, checked_flips
 from smcd_rl.tuning.criteria import Criterion, Score, checked_criterion
-from smcd_rl.tuning.defaults import ADAPTING, FLIP_PROBS, KINDS, MASKED_KINDS, PREDICTIONS, kinds_needed
+from smcd_rl.tuning.defaults import ADAPTING, FLIP_PROBS, KINDS, MASKED_KINDS, PREDICTIONS, WEIGHINGS, kinds_needed
 from smcd_rl.tuning.held_out import checked_model, pairs, stacked
 from smcd_rl.tuning.kinds import (
     checked_gd_grid,
     checked_gd_limits,
     checked_predictions,
+    checked_weighings,
     tune_combination,
     tune_gd,
     tune_last_layer,
@@ -94,6 +95,7 @@ def tune(
     reuse: TuneResult | None = None,
     shortcuts: bool = True,
     predictions: Sequence[str] = PREDICTIONS,
+    weighings: Sequence[str] = WEIGHINGS,
 ) -> TuneResult:
     """Tune each of ``strategies`` on held-out training-task ``episodes`` by one criterion (see the module doc).
 
@@ -137,6 +139,10 @@ def tune(
             setting, kept only where it predicts better beyond the episodes' noise (it costs a
             forward pass per particle at every prediction). Pass ``("mask",)`` where a planner
             scores many candidates per step.
+        weighings: how SMCD with a Bayesian readout may weigh its particles
+            (:data:`~smcd_rl.tuning.defaults.WEIGHINGS`): by the readout's predictive, and with
+            ``"mean"`` also by each particle's readout mean, tried at the best scale and the next
+            wider one; the lower score wins, as between the readout's scales.
         reuse: an earlier result of this function on the same model, episodes, seed, flip
             probabilities and criterion (e.g. the unbudgeted one, before a call with ``budget_ms``): each setting
             it scored takes its score from there, and each setting it timed its time, instead of running again.
@@ -148,8 +154,8 @@ def tune(
         runs only read the network).
 
     Raises:
-        TypeError: ``predictions`` a string or not a sequence.
-        ValueError: an unknown strategy, criterion or prediction, a horizon the criterion does not take or
+        TypeError: ``predictions`` or ``weighings`` a string or not a sequence.
+        ValueError: an unknown strategy, criterion, prediction or weighing, a horizon the criterion does not take or
             episodes no longer than it, a budget that is not positive, no strategy
             within the budget, episodes :func:`smcd_rl.calibrate` refuses, or a ``reuse`` of
             another model, other episodes, another seed or another criterion.
@@ -165,6 +171,7 @@ def tune(
     seed = check_seed(seed)
     num_particles = check_count(num_particles, "num_particles")
     choices = checked_predictions(predictions)
+    weighs = checked_weighings(weighings)
     grid = checked_gd_grid(gd_grid)
     limits = checked_gd_limits(gd_limits, grid)
     td = stacked(episodes)
@@ -202,7 +209,7 @@ def tune(
                 tune_smcd(search, num_particles, tuple(flips), seed, progress, shortcuts, choices)
             ),
             "last_layer": lambda: tune_last_layer(search),
-            "smcd_last_layer": lambda: tune_smcd_last_layer(search, shortcuts),
+            "smcd_last_layer": lambda: tune_smcd_last_layer(search, shortcuts, weighs),
             "combination": lambda: tune_combination(search, [k for k in ("none", *ADAPTING) if k in search.best_of]),
         }
         for kind in kinds:

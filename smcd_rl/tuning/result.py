@@ -222,11 +222,15 @@ def describe_settings(settings: dict[str, Any]) -> str:
         'num_particles 500, flip_prob 0.01, noise_std [0.0134, 0.0132]'
         >>> describe_settings(BayesianLastLayer(prior_scale=0.3, drift=0.01).config())
         'prior_scale 0.3, noise_std 0.1, drift 0.01, likelihood gaussian'
+        >>> describe_settings({"smcd": {"num_particles": 500}, "last_layer": {"prior_scale": 0.3}, "weighing": "mean"})
+        'num_particles 500; readout prior_scale 0.3; weighing mean'
     """
     if "members" in settings:
         return f"{' + '.join(m['name'] for m in settings['members'])}, eta {settings['eta']:g}, share {settings['share']:g}"
     if "last_layer" in settings:
-        return f"{describe_settings(settings['smcd'])}; readout {describe_settings(settings['last_layer'])}"
+        weighing = settings.get("weighing", "predictive")  # shown where it is not the default
+        weighed = "" if weighing == "predictive" else f"; weighing {weighing}"
+        return f"{describe_settings(settings['smcd'])}; readout {describe_settings(settings['last_layer'])}{weighed}"
     kind = "smcd" if "num_particles" in settings else "last_layer" if "prior_scale" in settings else "gradient_descent"
     searched, defaults = SEARCHED[kind], _DEFAULTS[kind]
     shown = {

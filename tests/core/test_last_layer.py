@@ -396,6 +396,43 @@ def test_smcd_last_layer_with_an_unadapted_readout_is_smcd() -> None:
     torch.testing.assert_close(both.adaptation.particles, alone.adaptation.particles)
 
 
+def test_weighing_by_the_readout_mean_weighs_the_particles_as_smcd_does() -> None:
+    """At the first observation every particle's readout mean is the trained output layer: with
+    ``weighing="mean"`` the filter weighs (and so resamples) the particles exactly as SMCD does.
+    The readout's predictive (a wide prior) widens each particle's likelihood by its features, so
+    it resamples others: the test fails if ``weighing`` were ignored either way."""
+    smcd = {"num_particles": 32, "noise_std": 0.1}
+    td = TensorDict({"q": torch.rand(4, 2), "ee": torch.rand(4, 2)}, [4])
+    models = {
+        name: _adaptive(adaptation)
+        for name, adaptation in (
+            ("S", smcd_rl.SMCD(**smcd, generator=torch.Generator().manual_seed(1))),
+            *(
+                (
+                    w,
+                    smcd_rl.SMCDLastLayer(
+                        smcd_rl.SMCD(**smcd, generator=torch.Generator().manual_seed(1)),
+                        {"prior_scale": 3.0},
+                        weighing=w,
+                    ),
+                )
+                for w in ("mean", "predictive")
+            ),
+        )
+    }
+    particles = {}
+    for name, model in models.items():
+        model.reset(batch_shape=(4,))
+        model.observe(td.clone())
+        particles[name] = model.adaptation.particles
+    # the same weights resample the same particles; other weights, other particles
+    assert torch.equal(particles["mean"], particles["S"])
+    assert not torch.equal(particles["predictive"], particles["S"])
+    assert models["mean"].adaptation.config()["weighing"] == "mean"
+    with pytest.raises(ValueError, match="weighing must be one of"):
+        smcd_rl.SMCDLastLayer({}, {}, weighing="point")
+
+
 def test_smcd_last_layer_refuses_an_observation_without_touching_either_part(tmp_path) -> None:
     model = _adaptive(smcd_rl.SMCDLastLayer({"num_particles": 16, "noise_std": 0.1}, {"noise_std": 0.1}))
     model.reset(batch_shape=(4,))

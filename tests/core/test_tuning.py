@@ -517,7 +517,7 @@ def test_smcd_with_a_bayesian_readout_starts_from_the_tuned_smcd_and_last_layer(
     kinds = smcd_rl.tuning.kinds
     result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["smcd_last_layer"], **FAST)
     assert {"smcd", "last_layer", "smcd_last_layer"} <= set(result.best_of)
-    both = [c for c in result.candidates if c.kind == "smcd_last_layer"]
+    both = [c for c in result.candidates if c.kind == "smcd_last_layer" and "weighing" not in c.settings]
     assert all(c.settings["smcd"] == result.best_of["smcd"].settings for c in both)
     readout = result.best_of["last_layer"].settings["prior_scale"]
     factors = sorted(c.settings["last_layer"]["prior_scale"] / readout for c in both)
@@ -671,6 +671,55 @@ def test_tune_tries_smcds_posterior_predictive_mean_at_its_best_setting_unless_t
     mask_only = smcd_rl.tune(model, episodes, strategies=["smcd"], predictions=("mask",), **FAST)
     assert all(c.settings["prediction"] == "mask" for c in mask_only.candidates if c.kind == "smcd")
     assert not any("predictive" in note for note in mask_only.notes)
+
+
+def test_tune_tries_weighing_by_the_readout_mean_at_sls_best_scale_and_the_next_wider_one(model) -> None:
+    episodes = shifted_episodes(0.5)
+    result = smcd_rl.tune(model, episodes, strategies=["smcd_last_layer"], **FAST)
+    both = [c for c in result.candidates if c.kind == "smcd_last_layer" and math.isfinite(c.score)]
+    searched = [c for c in both if "weighing" not in c.settings]
+    twins = [c for c in both if c.settings.get("weighing") == "mean"]
+    best = min(searched, key=lambda c: c.score)
+    scale = best.settings["last_layer"]["prior_scale"]
+    wider = sorted(s for c in searched if (s := c.settings["last_layer"]["prior_scale"]) > scale * (1 + 1e-9))
+    assert [c.settings["last_layer"]["prior_scale"] for c in twins] == pytest.approx([scale, *wider[:1]])
+    assert all(c.settings["smcd"] == best.settings["smcd"] for c in twins)
+    # The lower score wins, as between the scales, and the note says which.
+    assert result.best_of["smcd_last_layer"] == min(both, key=lambda c: c.score)
+    kept = "each particle's readout mean" if min(twins, key=lambda c: c.score).score < best.score else "the readout's"
+    assert any(
+        note.startswith(f"SMCD with a Bayesian readout: weighs its particles by {kept}") for note in result.notes
+    )
+    assert isinstance(result.strategy("smcd_last_layer"), smcd_rl.SMCDLastLayer)
+    alone = smcd_rl.tune(
+        model, episodes, strategies=["smcd_last_layer"], weighings=("predictive",), reuse=result, **FAST
+    )
+    assert not any("weighing" in c.settings for c in alone.candidates if c.kind == "smcd_last_layer")
+
+
+def test_the_mean_weighing_runs_at_the_best_scale_and_the_next_wider_one_tried(model, monkeypatch) -> None:
+    """Without the readout's uncertainty in the likelihood a freer readout no longer blurs the masks:
+    the next wider scale tried is the other contender (the search above may end at the widest)."""
+    search = _search_with_two_runs(model, [0.30] * 6, [0.29] * 6)
+    scored: list[dict] = []
+    monkeypatch.setattr(search, "score", lambda kind, settings, **_: scored.append(settings) or 0.5)
+    smcd = {"num_particles": 8, "noise_std": 0.1}
+    best = {"smcd": smcd, "last_layer": {"prior_scale": 0.2}}
+    search.best_of["smcd_last_layer"] = smcd_rl.tuning.search.TuneCandidate("smcd_last_layer", best, 0.1, math.nan)
+    factors = [0.01, 0.1, 1.0, 3.0]
+    smcd_rl.tuning.kinds._try_mean_weighing(
+        search, lambda f: {"smcd": smcd, "last_layer": {"prior_scale": 2.0 * f}}, factors, 2.0
+    )
+    assert [s["last_layer"]["prior_scale"] for s in scored] == pytest.approx([0.2, 2.0])
+    assert all(s["weighing"] == "mean" and s["smcd"] == smcd for s in scored)
+    assert search.notes[-1].endswith("(0.1 by the readout's predictive; 0.5 by each particle's readout mean)")
+
+
+@pytest.mark.parametrize("weighings, error", [("mean", TypeError), (("mean",), ValueError), (("max",), ValueError)])
+def test_weighings_that_tune_cannot_try_are_refused_before_any_run(model, monkeypatch, weighings, error) -> None:
+    monkeypatch.setattr(smcd_rl.tuning.scoring, "trace_pairs", lambda *a, **k: pytest.fail("ran"))
+    with pytest.raises(error, match="weighings must be"):
+        smcd_rl.tune(model, shifted_episodes(0.3), strategies=["smcd_last_layer"], weighings=weighings, **FAST)
 
 
 @pytest.mark.parametrize(

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
 from smcd_rl.experiments.shared.config import EvaluationConfig, setting
-from smcd_rl.tuning.defaults import FLIP_PROBS, GD_GRID, PREDICTIONS
+from smcd_rl.tuning.defaults import FLIP_PROBS, GD_GRID, PREDICTIONS, WEIGHINGS
 
 __all__ = [
     "TuningConfig",
@@ -63,6 +63,8 @@ class TuningConfig(EvaluationConfig):
     #: controller or planner evaluates the adapted model many times per step keeps the MMSE mask's
     #: prediction, one forward pass where the posterior predictive mean takes one per particle.
     SMCD_PREDICTIONS: ClassVar[tuple[str, ...]] = PREDICTIONS
+    #: How the tuned SMCD with a Bayesian readout may weigh its particles (``smcd_rl.tune``'s ``weighings``).
+    SL_WEIGHINGS: ClassVar[tuple[str, ...]] = WEIGHINGS
 
 
 @dataclass

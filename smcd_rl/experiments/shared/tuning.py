@@ -11,7 +11,8 @@ one criterion: the error its table reports where that is a look-ahead (``--tunin
 - **SMCD (``S``)**: the noise (its factor and shape), flip probability (``--calibrate-flips``) and
   prediction (the MMSE mask's, or the predictive mean where ``SMCD_PREDICTIONS`` allow it);
 - **the Bayesian last layer (``L``)** over prior scale x drift x likelihood, and **SMCD with a
-  Bayesian readout (``SL``)**: the tuned S with L's readout (:class:`smcd_rl.SMCDLastLayer`);
+  Bayesian readout (``SL``)**: the tuned S with L's readout (:class:`smcd_rl.SMCDLastLayer`), its
+  scale and (where ``SL_WEIGHINGS`` allow it) how its filter weighs the particles;
 - **the combination (``C``)** of N and the other tuned methods (G, S, and L and SL where they
   run), its ``eta`` and fixed share;
 - **SMCD calibrated by its evidence (``S(evidence)``)** and **SMCD at the paper's settings
@@ -54,20 +55,10 @@ from smcd_rl.experiments.shared.tuning_record import TUNED, Tuning, reseeded
 from smcd_rl.experiments.shared.workers import computed, map_jobs
 from smcd_rl.strategies.registry import build
 from smcd_rl.tuning import ms_per_observation
-from smcd_rl.tuning.defaults import PREDICTIONS, kinds_needed
+from smcd_rl.tuning.defaults import PREDICTIONS, WEIGHINGS, kinds_needed
 from smcd_rl.tuning.diagnostics import Trace, trace
 
-__all__ = [
-    "Tuning",
-    "TuneJob",
-    "tune",
-    "tune_all",
-    "tuned_specs",
-    "VARIANTS",
-    "TUNED",
-    "OPTIONS",
-    "STUDENT",
-]
+__all__ = ["Tuning", "TuneJob", "tune", "tune_all", "tuned_specs", "VARIANTS", "TUNED", "OPTIONS", "STUDENT"]
 
 
 def tuned_specs(
@@ -115,6 +106,7 @@ def tuned_specs(
         },
         "flip_probs": config.calibrate_flips,
         "predictions": getattr(config, "SMCD_PREDICTIONS", PREDICTIONS),
+        "weighings": getattr(config, "SL_WEIGHINGS", WEIGHINGS),
         "seed": seed,
         "progress": progress,
         # An experiment whose table scores a look-ahead tunes by it (tuning_horizon > 1), else by one-step error.
@@ -324,6 +316,7 @@ def _key(job: TuneJob, config: Any) -> dict[str, Any]:
         },
         "read_too": [getattr(config, k, None) for k in ("tuning_horizon", "gd_max_lr", "gd_max_steps")],
         "predictions": list(getattr(config, "SMCD_PREDICTIONS", PREDICTIONS)),
+        "weighings": list(getattr(config, "SL_WEIGHINGS", WEIGHINGS)),
     }
 
 
