@@ -20,6 +20,8 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from smcd_rl.strategies.smcd_last_layer import WEIGHINGS as SMCD_LAST_LAYER_WEIGHINGS
+
 __all__ = [
     "KINDS",
     "ADAPTING",
@@ -131,7 +133,7 @@ PREDICTIONS = ("mask", "predictive")
 #: How SMCD with a Bayesian readout may weigh its particles, what :func:`smcd_rl.tune` tries at its
 #: best setting (:data:`smcd_rl.strategies.smcd_last_layer.WEIGHINGS`): by the readout's
 #: predictive, and by each particle's readout mean under the filter's noise alone.
-WEIGHINGS = ("predictive", "mean")
+WEIGHINGS = SMCD_LAST_LAYER_WEIGHINGS
 #: Golden-section runs at the end of SMCD's calibration (:func:`smcd_rl.calibrate`'s ``refine``).
 CALIBRATION_REFINE = 5
 #: With tune's shortcuts, SMCD's calibration searches with this share of the particles, then
