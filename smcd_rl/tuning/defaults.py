@@ -20,8 +20,6 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from smcd_rl.strategies.smcd_last_layer import WEIGHINGS as SMCD_LAST_LAYER_WEIGHINGS
-
 __all__ = [
     "KINDS",
     "ADAPTING",
@@ -132,8 +130,9 @@ FLIP_PROBS = (0.001, 0.003, 0.01, 0.03)
 PREDICTIONS = ("mask", "predictive")
 #: How SMCD with a Bayesian readout may weigh its particles, what :func:`smcd_rl.tune` tries at its
 #: best setting (:data:`smcd_rl.strategies.smcd_last_layer.WEIGHINGS`): by the readout's
-#: predictive, and by each particle's readout mean under the filter's noise alone.
-WEIGHINGS = SMCD_LAST_LAYER_WEIGHINGS
+#: predictive, and by each particle's readout mean under the filter's noise alone. A copy: this
+#: module imports nothing, so ``--help`` never loads torch (a test keeps the two equal).
+WEIGHINGS = ("predictive", "mean")
 #: Golden-section runs at the end of SMCD's calibration (:func:`smcd_rl.calibrate`'s ``refine``).
 CALIBRATION_REFINE = 5
 #: With tune's shortcuts, SMCD's calibration searches with this share of the particles, then

@@ -715,6 +715,10 @@ def test_the_mean_weighing_runs_at_the_best_scale_and_the_next_wider_one_tried(m
     assert search.notes[-1].endswith("(0.1 by the readout's predictive; 0.5 by each particle's readout mean)")
 
 
+def test_tunes_weighings_are_the_strategys() -> None:
+    assert smcd_rl.tuning.defaults.WEIGHINGS == smcd_rl.strategies.smcd_last_layer.WEIGHINGS
+
+
 @pytest.mark.parametrize("weighings, error", [("mean", TypeError), (("mean",), ValueError), (("max",), ValueError)])
 def test_weighings_that_tune_cannot_try_are_refused_before_any_run(model, monkeypatch, weighings, error) -> None:
     monkeypatch.setattr(smcd_rl.tuning.scoring, "trace_pairs", lambda *a, **k: pytest.fail("ran"))
