@@ -105,8 +105,7 @@ def tuned_specs(
             "steps": (None, getattr(config, "gd_max_steps", None)),
         },
         "flip_probs": config.calibrate_flips,
-        "predictions": getattr(config, "SMCD_PREDICTIONS", PREDICTIONS),
-        "weighings": getattr(config, "SL_WEIGHINGS", WEIGHINGS),
+        **_choices(config),
         "seed": seed,
         "progress": progress,
         # An experiment whose table scores a look-ahead tunes by it (tuning_horizon > 1), else by one-step error.
@@ -314,9 +313,17 @@ def _key(job: TuneJob, config: Any) -> dict[str, Any]:
                 "budget_ms",
             )
         },
+        # What else the tuning reads of the config: a change to any of them is another tuning.
         "read_too": [getattr(config, k, None) for k in ("tuning_horizon", "gd_max_lr", "gd_max_steps")],
-        "predictions": list(getattr(config, "SMCD_PREDICTIONS", PREDICTIONS)),
-        "weighings": list(getattr(config, "SL_WEIGHINGS", WEIGHINGS)),
+        **{name: list(allowed) for name, allowed in _choices(config).items()},
+    }
+
+
+def _choices(config: Any) -> dict[str, tuple[str, ...]]:
+    """``smcd_rl.tune``'s ``predictions`` and ``weighings`` as the config allows them."""
+    return {
+        "predictions": tuple(getattr(config, "SMCD_PREDICTIONS", PREDICTIONS)),
+        "weighings": tuple(getattr(config, "SL_WEIGHINGS", WEIGHINGS)),
     }
 
 
