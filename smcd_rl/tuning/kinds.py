@@ -474,19 +474,20 @@ def tune_smcd_last_layer(search: Search, shortcuts: bool = True, weighings: Sequ
     for one in settings:
         search.score("smcd_last_layer", one)
     # A best readout at the tightest scale: the filter wants the masks to explain more; go tighter.
-    factor = min(factors)
+    factor, tried = min(factors), list(factors)
     for _ in range(MAX_EXTENSIONS):
         best = search.best_of.get("smcd_last_layer")
         if best is None or best.settings["last_layer"]["prior_scale"] > scale * factor * (1 + 1e-9):
             break
         factor /= 3
+        tried.append(factor)
         search.score("smcd_last_layer", setting(factor))
         search.notes.append(
             f"SMCD with a Bayesian readout: best prior_scale {scale * factor * 3:g} on the grid's low edge; tried "
             f"{scale * factor:g}"
         )
     if "mean" in weighings:
-        _try_mean_weighing(search, setting, sorted({*factors, factor}), scale)
+        _try_mean_weighing(search, setting, sorted(tried), scale)
     search.time_best("smcd_last_layer")
 
 

@@ -715,6 +715,29 @@ def test_the_mean_weighing_runs_at_the_best_scale_and_the_next_wider_one_tried(m
     assert search.notes[-1].endswith("(0.1 by the readout's predictive; 0.5 by each particle's readout mean)")
 
 
+def test_the_mean_weighings_wider_scale_is_the_extension_just_above_the_best(model, monkeypatch) -> None:
+    """Where SL's search extends below its grid more than once, the next wider scale tried is the
+    previous extension, not the grid's low edge. Scoring SL by its scale alone makes every tighter
+    scale win, so the search extends as far as it may and the best is its last extension."""
+    score = smcd_rl.tuning.search.Search.score
+
+    def by_scale(self, kind, settings, **kwargs):
+        if kind != "smcd_last_layer":
+            return score(self, kind, settings, **kwargs)
+        return self._add(kind, settings, settings["last_layer"]["prior_scale"])
+
+    contenders: list[list[float]] = []
+    monkeypatch.setattr(smcd_rl.tuning.search.Search, "score", by_scale)
+    monkeypatch.setattr(smcd_rl.tuning.kinds, "_try_mean_weighing", lambda s, f, factors, c: contenders.append(factors))
+    result = smcd_rl.tune(model, shifted_episodes(0.5), strategies=["last_layer", "smcd", "smcd_last_layer"], **FAST)
+    scales = sorted(c.settings["last_layer"]["prior_scale"] for c in result.candidates if c.kind == "smcd_last_layer")
+    readout = result.best_of["last_layer"].settings["prior_scale"]
+    extensions = smcd_rl.tuning.defaults.MAX_EXTENSIONS
+    assert len(scales) > len(smcd_rl.tuning.defaults.SMCD_LAST_LAYER_SCALES) + 1  # extended more than once
+    (factors,) = contenders
+    assert [f * readout for f in factors[: extensions + 1]] == pytest.approx(scales[: extensions + 1])
+
+
 def test_tunes_weighings_are_the_strategys() -> None:
     assert smcd_rl.tuning.defaults.WEIGHINGS == smcd_rl.strategies.smcd_last_layer.WEIGHINGS
 
