@@ -354,7 +354,7 @@ class ParticleFilter:
                 weights or an infinite evidence or ESS.
         """
         log_weights, log_evidence = self._state()[1:]
-        joint = log_weights.to(torch.float64).add_(log_likelihood)  # a fresh float64 copy, then in place
+        joint = log_weights.to(torch.float64, copy=True).add_(log_likelihood)  # a fresh copy (float64 weights too)
         peak = joint.amax(dim=-1, keepdim=True)
         if not finite and not bool(torch.isfinite(peak).all()):
             raise ValueError(

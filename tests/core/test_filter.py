@@ -360,6 +360,18 @@ def test_a_log_likelihood_that_overflows_the_weights_dtype_is_refused_and_change
     assert not torch.isnan(filt.log_weights).any() and torch.isfinite(filt.mean_mask).all()
 
 
+def test_a_refused_reweighting_leaves_float64_weights_unchanged() -> None:
+    """The reweighting works on a float64 copy of the weights in place: where the weights are
+    float64 already the copy must still be made, or a refused step leaves them rewritten."""
+    filt = smcd_rl.SMCDFilter(3, num_particles=2, generator=_gen())
+    filt.reset(batch_shape=(1,))
+    state = filt.state_dict()
+    filt.load_state_dict({**state, "log_weights": torch.tensor([[0.0, -math.inf]], dtype=torch.float64)})
+    with pytest.raises(ValueError, match="zero likelihood"):  # the only weighted particle is impossible
+        filt.reweight(torch.tensor([[-math.inf, 0.0]], dtype=torch.float64))
+    assert torch.equal(filt.log_weights, torch.tensor([[0.0, -math.inf]], dtype=torch.float64))
+
+
 def test_a_log_evidence_that_would_overflow_is_refused_and_changes_nothing() -> None:
     """Each likelihood fits float32, but their sum over steps does not: the evidence would be -inf."""
     filt = smcd_rl.SMCDFilter(10, num_particles=20, generator=_gen())
