@@ -244,6 +244,31 @@ class ParticleFilter:
             "generator": self.generator.get_state(),
         }
 
+    def snapshot(self) -> tuple[dict[str, Any], Tensor]:
+        """The state as it is now, by reference, for :meth:`restore` to put back.
+
+        For a step of several parts that must undo the filter's part when a later one fails:
+        nothing is copied, since a step replaces the filter's tensors and never writes into them.
+        A state to keep past the next change, to save or to edit is :meth:`state_dict`'s.
+
+        Example:
+            >>> import torch
+            >>> filt = SMCDFilter(4, num_particles=8)
+            >>> filt.reset()
+            >>> before, particles = filt.snapshot(), filt.particles
+            >>> _ = filt.update(lambda masks: masks.sum(-1).float())
+            >>> filt.restore(before)
+            >>> filt.particles is particles
+            True
+        """
+        return {**vars(self), "_derived": dict(self._derived)}, self.generator.get_state()
+
+    def restore(self, snapshot: tuple[dict[str, Any], Tensor]) -> None:
+        """Put back a :meth:`snapshot` of this filter, generator included."""
+        attributes, generator = snapshot
+        vars(self).update(attributes, _derived=dict(attributes["_derived"]))
+        self.generator.set_state(generator)
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state_dict` exactly: later updates give the same bits as from the saved state."""
         self.particles = state["particles"].clone().to(self.device)

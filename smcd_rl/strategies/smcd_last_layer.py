@@ -129,6 +129,7 @@ class SMCDLastLayer(Adaptation):
         # - U U^T exactly (float64), U [B, D, t]; None once t passes D, where the dense P is cheaper.
         self._downdates: Tensor | None = None
         self._steps: Tensor | None = None  # [B]: t, the observations each stream's P has taken
+        self._downdate_buffer: Tensor | None = None  # U's storage, with room for the next columns
 
     def reset(self, batch_shape: tuple[int, ...]) -> None:
         self._batch_shape = batch_shape
@@ -145,7 +146,7 @@ class SMCDLastLayer(Adaptation):
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
         self._check_transition(inputs, targets)
         means = self._state()
-        before = self.smcd.state_dict()
+        before = self.smcd._filter.snapshot()
         self.smcd.observe(inputs, targets)  # weighs the proposed particles through _particle_readout
         try:
             assert self._seen is not None and len(self._seen) == 4
@@ -159,34 +160,51 @@ class SMCDLastLayer(Adaptation):
                     "a particle's readout became inf or NaN on this observation (a target of inf or of a far larger "
                     "scale than the model's); the adaptation state is unchanged"
                 )
-            updated = torch.addcmul(means, step, spread.unsqueeze(-2))
             particles = phi.shape[1]
             weights = self.smcd._filter.weights.reshape(streams, particles).to(phi.dtype)
             ancestors = self.smcd._filter.ancestors
+            flat = None
             if ancestors is not None:  # each readout mean follows its particle through resampling
                 rows = particles * torch.arange(streams, device=phi.device).unsqueeze(1)
                 flat = (ancestors.reshape(streams, particles) + rows).reshape(-1)
-                updated = updated.reshape(streams * particles, -1).index_select(0, flat).reshape(updated.shape)
                 # the weights of each proposed particle's copies: its share of the weighted mean features
                 weights = torch.zeros_like(weights).reshape(-1).index_add_(0, flat, weights.reshape(-1))
                 weights = weights.reshape(streams, particles)
             mean_features = torch.bmm(weights.unsqueeze(1), phi)[:, 0, :-1]  # the shared covariance's update
             _, cov, downdate = self.last_layer.updated(mean_features, targets)
         except BaseException:
-            self.smcd.load_state_dict(before)  # the readout refused it: the filter forgets it too
+            self.smcd._filter.restore(before)  # the readout refused it: the filter forgets it too
             raise
         finally:
             self._seen = None
+        updated = torch.addcmul(means, step, spread.unsqueeze(-2))
+        if flat is not None:
+            updated = updated.reshape(streams * particles, -1).index_select(0, flat).reshape(updated.shape)
         self._means = updated
         self._steps = self._steps + 1 if self._steps is not None else None
-        if self._downdates is not None:
-            grown = torch.cat([self._downdates, downdate.unsqueeze(-1)], dim=-1)
-            self._downdates = grown if grown.shape[-1] < grown.shape[-2] else None
+        self._grow_downdates(downdate)
         # The readout the last layer holds: the particles' means weighted by the filter's weights now.
         current = self.smcd._filter.weights.reshape(streams, 1, -1).to(updated.dtype)
         mean = torch.bmm(current, updated.reshape(streams, current.shape[-1], -1)).reshape(streams, *updated.shape[2:])
         mean = mean.transpose(-1, -2)  # [B, D, out], the last layer's layout
         self.last_layer.load_state_dict({"mean": mean, "cov": cov})
+
+    def _grow_downdates(self, downdate: Tensor) -> None:
+        """Append this observation's downdate ``[B, D]`` to ``U``, in a buffer that doubles as it
+        fills (a ``cat`` each observation copied all of ``U``); past ``D`` columns, the dense ``P``."""
+        if self._downdates is None:
+            return
+        streams, width, taken = self._downdates.shape
+        if taken + 1 >= width:
+            self._downdates = None
+            return
+        buffer = self._downdate_buffer
+        if buffer is None or buffer.shape[-1] <= taken or buffer.data_ptr() != self._downdates.data_ptr():
+            buffer = self._downdates.new_empty(streams, width, min(max(2 * (taken + 1), 8), width))
+            buffer[..., :taken] = self._downdates
+            self._downdate_buffer = buffer
+        buffer[..., taken] = downdate
+        self._downdates = buffer[..., : taken + 1]
 
     def _particle_readout(self, features: Tensor, members: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """Each particle's readout of its last hidden ``features [*B, *extra, N, width]`` by its own

@@ -372,6 +372,22 @@ def test_a_refused_reweighting_leaves_float64_weights_unchanged() -> None:
     assert torch.equal(filt.log_weights, torch.tensor([[0.0, -math.inf]], dtype=torch.float64))
 
 
+def test_restoring_a_snapshot_puts_back_every_part_of_the_state() -> None:
+    """A snapshot holds references: it restores the state exactly as state_dict would, generator,
+    ancestors and MMSE mask included, after steps that replaced every one of them."""
+    filt = smcd_rl.SMCDFilter(6, num_particles=20, generator=_gen())
+    filt.reset(batch_shape=(2,))
+    filt.update(lambda m: -m.sum(-1).float())
+    saved, snapshot = filt.state_dict(), filt.snapshot()
+    for _ in range(3):
+        filt.update(lambda m: -(m.sum(-1).float() - 3).square())
+    filt.restore(snapshot)
+    restored = filt.state_dict()
+    assert saved.keys() == restored.keys()
+    for key, value in saved.items():
+        assert (value is None and restored[key] is None) or torch.equal(value, restored[key]), key
+
+
 def test_a_log_evidence_that_would_overflow_is_refused_and_changes_nothing() -> None:
     """Each likelihood fits float32, but their sum over steps does not: the evidence would be -inf."""
     filt = smcd_rl.SMCDFilter(10, num_particles=20, generator=_gen())

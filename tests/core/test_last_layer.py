@@ -451,6 +451,31 @@ def test_smcd_last_layer_refuses_an_observation_without_touching_either_part(tmp
     assert smcd_rl.load(path).adaptation.config() == model.adaptation.config()
 
 
+def test_a_readout_that_refuses_what_the_filter_took_leaves_the_filter_as_it_was(monkeypatch) -> None:
+    """The readout can refuse an observation after the filter has taken it: the filter's step is
+    undone too, its generator included, so the stream goes on as if it had never been offered."""
+    inputs, targets, _ = _task(_net(), 6, 3, seed=4, noise=0.05)
+    runs = []
+    for refuse in (False, True):
+        smcd = smcd_rl.SMCD(num_particles=40, noise_std=0.1, generator=torch.Generator().manual_seed(0))
+        both = _bound(smcd_rl.SMCDLastLayer(smcd, smcd_rl.BayesianLastLayer(noise_std=0.2, prior_scale=0.5)), _net())
+        predictions = []
+        for step, (x, y) in enumerate(zip(inputs, targets, strict=True)):
+            if refuse and step == 3:
+                with monkeypatch.context() as patched:
+                    patched.setattr(both.last_layer, "updated", _refuses)
+                    with pytest.raises(ValueError, match="refused"):
+                        both.observe(x, y)
+            both.observe(x, y)
+            predictions.append(both.predict(inputs[0]).detach())
+        runs.append(torch.stack(predictions))
+    assert torch.equal(runs[0], runs[1])
+
+
+def _refuses(*args: object) -> None:
+    raise ValueError("refused by the readout")
+
+
 def test_smcd_last_layer_names_a_wrong_shape_a_new_dtype_or_a_foreign_state() -> None:
     """Each once a raw RuntimeError: targets of the wrong shape, ``model.to(float64)`` mid-stream, and
     a state saved at another batch size (which also left the filter loaded and the readout not)."""
