@@ -284,3 +284,17 @@ def test_the_combination_from_its_members_runs_equals_running_it(tmp_path, capsy
     assert trials["derived"].keys() == trials["run"].keys() and len(trials["run"]) == 8 * 2 * 2
     for key, value in trials["run"].items():
         assert trials["derived"][key] == pytest.approx(value, rel=1e-5, abs=1e-7), key
+
+
+def test_the_plan_ranks_the_evaluations_as_the_default_run_measured_them() -> None:
+    """The workers take the costliest evaluations first by this plan. Measured in the default run,
+    SMCD with a Bayesian readout on the task-mask network (T+SL) and on M (M+SL) are the two longest,
+    and T's SMCD costs more than M's (each of T's forwards samples the arms' posteriors): a plan
+    that ranked them below GD started T+SL last, and one worker ran it alone for half a minute."""
+    from smcd_rl.experiments.two_link.stages import stage_costs
+
+    costs = stage_costs(two_link.TwoLinkConfig())
+    evaluations = sorted((cost, name) for name, cost in costs.items() if name.startswith("evaluate "))
+    assert [name for _, name in evaluations[-2:]] == ["evaluate M+SL", "evaluate T+SL"]
+    assert costs["evaluate T+S"] > costs["evaluate M+S"]
+    assert costs["tune M"] > costs["tune T"] > costs["tune R"]

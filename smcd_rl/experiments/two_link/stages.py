@@ -16,30 +16,32 @@ __all__ = ["stage_costs"]
 
 
 #: Seconds of each stage at the defaults, each process on one thread beside another on a 2-core
-#: AMD EPYC (two workers): the overall progress line scales these by the settings and by this
-#: run's measured speed of each kind of stage to say how long is left.
+#: Intel Xeon (two workers): the overall progress line scales these by the settings and by this
+#: run's measured speed of each kind of stage to say how long is left, and the workers take the
+#: costliest stages first, so that a long one does not start last and run alone.
 _REFERENCE_SECONDS = {
-    "train": 59.0,
-    "train reptile": 66.0,
-    "train task": 66.0,  # M's training and, from the second epoch, each arm's mask posterior
-    "train latent": 92.0,
-    "tune G": 20.0,  # the raced grid of gradient descent and its extensions, on one network
-    "tune S": 75.0,  # SMCD's calibration (the noise's factor, shape and flip), 1000 particles of 2 x 512
-    "tune S grouped": 20.0,  # the same on the task-mask network, whose particles cost a fraction
-    "tune references": 23.0,  # S(evidence): a calibration that reuses the one-step search's bracket
+    "train": 62.0,
+    "train reptile": 64.0,
+    "train task": 64.0,  # M's training and, from the second epoch, each arm's mask posterior
+    "train latent": 71.0,
+    # A network's tuning, at twice the default tuning episodes and burn-in (see the factor below).
+    "tune G": 37.0,  # the raced grid of gradient descent and its extensions, on one network
+    "tune S": 108.0,  # SMCD's calibration (the noise's factor, shape and flip), 1000 particles of 2 x 512
+    "tune S grouped": 180.0,  # the same on the task-mask network, whose arm posteriors each forward samples
+    "tune references": 125.0,  # S(evidence)'s calibration, S(paper)'s score and the diagnosis
     "tune L": 6.0,  # the last layer's raced grid
-    "tune SL": 10.0,  # three filter runs of SMCD with the tuned readout
-    "evaluate G": 22.5,  # per method over 200 arms at T = 1, 5, 10
-    "evaluate S": 10.0,
-    "evaluate S grouped": 2.6,
-    "evaluate S(evidence)": 19.0,  # broader posteriors: more distinct particles per step
+    "tune SL": 40.0,  # the readout's scales and weighings, each a run of the filter with the readout
+    "evaluate G": 24.0,  # per method over 200 arms at T = 1, 5, 10
+    "evaluate S": 15.0,
+    "evaluate S grouped": 22.0,
+    "evaluate S(evidence)": 24.0,  # broader posteriors: more distinct particles per step
     "evaluate S(paper)": 17.0,
-    "evaluate L": 2.0,  # one forward and a readout update per observation
-    "evaluate SL": 16.0,  # SMCD's filter with the readout's update
-    "evaluate SL grouped": 7.0,
-    "evaluate C": 31.5,  # its members G and S, run again
+    "evaluate L": 1.6,  # one forward and a readout update per observation
+    "evaluate SL": 39.0,  # SMCD's filter with a readout per particle
+    "evaluate SL grouped": 62.0,
+    "evaluate C": 39.0,  # its members G and S, run again
     "evaluate C derived": 0.5,  # from its members' runs, where M+N, M+G and M+S run too
-    "evaluate O+P": 0.3,
+    "evaluate O+P": 0.4,
     "evaluate N": 0.1,
 }
 
