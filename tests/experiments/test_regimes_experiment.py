@@ -207,3 +207,19 @@ def test_the_readout_table_counts_rows_against_the_better_part_and_both() -> Non
     table, summary = readout_table(pairs, rows, "f", ["T=1", "T=3"])
     assert summary == "worse than the better part in 1 of 2 rows, better than both in 1"
     assert "| SL vs S " in table and "T+SL" not in table
+
+
+def test_the_plan_ranks_the_stages_as_the_default_run_measured_them() -> None:
+    """The workers take the costliest stages first by this plan. Measured at the defaults, the
+    pendulum's combination (its members run again) is the longest evaluation, about twice an arm
+    family's, and a network's task-mask twin tunes in about its time, not twice it: a plan that
+    priced every combination like 19 s started the 82 s one last."""
+    from smcd_rl.experiments.regimes.run import stage_costs
+
+    costs = stage_costs(RegimesConfig())
+    evaluations = sorted((cost, name) for name, cost in costs.items() if name.startswith("evaluate "))
+    assert evaluations[-1][1] == "evaluate pendulum C"
+    assert costs["evaluate pendulum C"] > 1.5 * costs["evaluate two-link C"]
+    assert costs["evaluate two-link T+G"] > 3 * costs["evaluate two-link G"]
+    assert 0.8 < costs["tune arm-task"] / costs["tune arm"] < 1.25
+    assert costs["tune pendulum-reptile"] < 0.25 * costs["tune pendulum"]

@@ -189,22 +189,38 @@ def _evaluate(name: str, built: tuple[Any, ...]) -> dict[str, Any]:
     return regime_errors(model, plan, target)
 
 
-#: Seconds of each stage at the defaults on a 2-core AMD EPYC (one thread; evaluations two at a
-#: time): the overall progress line scales these by this run's measured speed to say how long is left.
-_REFERENCE_SECONDS = {
+#: Seconds of each training at the defaults on a 2-core AMD EPYC (one thread): the overall
+#: progress line scales the plan by this run's measured speed to say how long is left.
+_TRAIN_SECONDS = {
     "train arm": 60.0,
     "train pendulum": 30.0,
     "train pendulum-task": 60.0,  # the pendulum network's training and each pendulum's mask posterior
     "train pendulum-reptile": 30.0,
     "train arm-task": 70.0,  # the arm network's training and each arm's mask posterior
-    "tune": 510.0,  # per network: the GD grid, its extensions, SMCD's calibration, the combination
-    "evaluate N": 0.05,  # per family, 50 tasks; the methods' tuned settings set their cost
-    "evaluate G": 70.0,
-    "evaluate G@": 4.0,
-    "evaluate S": 25.0,
-    "evaluate L": 1.0,
-    "evaluate C": 100.0,
-    "evaluate C@": 30.0,
+}
+#: Seconds of each network's tuning and of each method's evaluation at the defaults (50 tasks,
+#: 1000 particles), measured on a 2-core Intel Xeon with one thread. With ``--workers`` the
+#: workers take the costliest first, so these rank the stages as they run: a costly one planned
+#: cheap starts last and runs alone.
+_TUNE_SECONDS = {"arm": 82.0, "pendulum": 98.0, "arm-task": 86.0, "pendulum-task": 73.0, "pendulum-reptile": 11.0}
+#: Method kind -> (seconds on a family of the arm network, on the pendulum). A budgeted method
+#: (``G@10ms``) is its kind with ``@``; the tuned settings set the cost, not the kind alone.
+_EVALUATE_SECONDS = {
+    "N": (0.05, 0.05),
+    "G": (4.7, 13.8),
+    "G@": (4.6, 12.9),
+    "S": (11.4, 16.1),
+    "S@": (11.4, 15.6),
+    "S(evidence)": (10.9, 11.9),
+    "S(paper)": (5.9, 11.1),
+    "L": (0.5, 0.5),
+    "SL": (22.0, 31.0),
+    "C": (43.0, 82.0),  # its members run again
+    "C@": (13.0, 25.0),
+    "T+G": (31.0, 20.0),  # gradients through the arm posteriors of the task-mask network
+    "T+S": (7.2, 8.9),  # grouped masks
+    "T+SL": (18.0, 25.0),
+    "R+G": (10.0, 10.0),
 }
 
 
@@ -222,18 +238,32 @@ def stage_costs(config: RegimesConfig) -> dict[str, float]:
     other = _other_variants(config)
     networks = [*sorted({network_of(f) for f in config.families}), *other]
     epochs = {"pendulum-reptile": config.reptile_epochs}  # the others train config.epochs
-    costs = {
-        f"train {net}": _REFERENCE_SECONDS[f"train {net}"] * epochs.get(net, config.epochs) / 20 for net in networks
-    }
+    costs = {f"train {net}": _TRAIN_SECONDS[f"train {net}"] * epochs.get(net, config.epochs) / 20 for net in networks}
     tuning = config.tuning_episodes / 20 * config.tuning_steps / 30
-    # The other networks tune only the kinds of their methods, without the references.
-    share = {net: 0.5 * len({v for v in variants if v != "N"}) for net, variants in other.items()}
-    costs.update({f"tune {net}": _REFERENCE_SECONDS["tune"] * tuning * share.get(net, 1.0) for net in networks})
+    # The other networks tune only the kinds of their methods: their share of the defaults' kinds.
+    default = _other_variants(RegimesConfig())
+    share = {
+        net: len({v for v in variants if v != "N"}) / max(1, len({v for v in default.get(net, ()) if v != "N"}))
+        for net, variants in other.items()
+    }
+    costs.update({f"tune {net}": _TUNE_SECONDS[net] * tuning * share.get(net, 1.0) for net in networks})
     for family in config.families:
         for method in _labels(config):
-            variant = split_method(method)[1]
-            if not runs_on(family, method):
-                continue
-            kind = variant[0] + ("@" if "@" in variant and variant[0] != "S" else "")
-            costs[f"evaluate {family} {method}"] = _REFERENCE_SECONDS[f"evaluate {kind}"] * scale
+            if runs_on(family, method):
+                costs[f"evaluate {family} {method}"] = _evaluate_seconds(family, method) * scale
     return costs
+
+
+def _evaluate_seconds(family: str, method: str) -> float:
+    """``method``'s evaluation seconds on ``family`` at the defaults: its own kind's, else its variant's.
+
+    Example:
+        >>> _evaluate_seconds("pendulum", "G@10ms"), _evaluate_seconds("two-link", "T+N")
+        (12.9, 0.05)
+    """
+    prefix, variant = split_method(method)
+    kind = variant.split("@")[0] + "@" if "@" in variant else variant
+    for key in (f"{prefix}+{kind}" if prefix else kind, kind, kind[0]):
+        if key in _EVALUATE_SECONDS:
+            return _EVALUATE_SECONDS[key][family == "pendulum"]
+    return _EVALUATE_SECONDS["S"][family == "pendulum"]
