@@ -70,6 +70,9 @@ class UnreadableFileError(ValueError):
         super().__init__(message)
         self.path = path
 
+    def __reduce__(self) -> tuple[Any, ...]:  # picklable: a worker process's error reaches the caller as it is
+        return type(self), (str(self), self.path), self.__dict__
+
 
 class FileWriteError(OSError, ValueError):
     """A file could not be written (read-only directory, disk full, ...).
@@ -85,6 +88,9 @@ class FileWriteError(OSError, ValueError):
         super().__init__(message)
         self.path = path
         self.errno = errno_
+
+    def __reduce__(self) -> tuple[Any, ...]:  # picklable, as UnreadableFileError
+        return type(self), (str(self), self.path, self.errno), self.__dict__
 
 
 def load_file(
@@ -155,23 +161,41 @@ def load_file(
 
 
 def _check_records(path: Path, *, what: str, fix: str) -> None:
-    """Raise :class:`UnreadableFileError` if a record of the zip archive ``torch.save`` wrote fails its CRC-32.
+    """Raise :class:`UnreadableFileError` if the zip archive ``torch.save`` wrote is damaged.
 
     ``torch.load`` does not check the checksums ``torch.save`` writes, so a flipped bit in a tensor
     would load as a wrong number, and one in the pickled dict as a missing entry (``KeyError``
-    later). A file that is not a zip archive is left to ``torch.load`` to judge.
+    later). A record must match its CRC-32, and its local header the archive's directory (a flipped
+    bit in a header's name length shifts where ``torch.load`` reads the data from, which no CRC
+    covers); no record may be marked a directory (``torch.save`` writes none, and ``torch.load``
+    reads such a record's tensor as uninitialised memory). A file that is not a zip archive is
+    left to ``torch.load`` to judge.
     """
     try:
-        with zipfile.ZipFile(path) as archive:
-            bad = archive.testzip()
+        archive = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError):
         return
+    with archive:
+        try:
+            bad = archive.testzip()  # reads each record through its local header
+        except Exception as err:  # a header that does not parse: BadZipFile, UnicodeDecodeError, ...
+            raise UnreadableFileError(
+                f"{what} {path} is corrupt: a record's header does not match the archive's directory "
+                f"({type(err).__name__}); {fix}",
+                path,
+            ) from err
+        if bad is None:
+            bad = next((i.filename for i in archive.infolist() if i.is_dir() or i.external_attr & _DIRECTORY), None)
     if bad is not None:
         raise UnreadableFileError(
-            f"{what} {path} is corrupt: its record {bad!r} does not match its checksum (a flipped bit on "
-            f"the disk?); {fix}",
+            f"{what} {path} is corrupt: its record {bad!r} does not match its checksum or header (a flipped bit "
+            f"on the disk?); {fix}",
             path,
         )
+
+
+#: The MS-DOS "directory" bit of a zip record's external attributes.
+_DIRECTORY = 0x10
 
 
 def save_file(obj: Mapping[str, Any], path: str | os.PathLike[str], *, what: str = "file") -> None:

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -158,6 +159,27 @@ def test_a_flipped_bit_in_a_stored_tensor_is_found(tmp_path: Path) -> None:
     _flip_bit(path, torch.tensor(0.25).numpy().tobytes())
     with pytest.raises(UnreadableFileError, match="cached result file .* is corrupt.*delete it and rerun"):
         store.get("tuning", {"k": 1})
+
+
+def test_a_flipped_bit_that_no_checksum_covers_is_found_too(tmp_path: Path) -> None:
+    """Two bits outside every CRC-32 loaded as wrong numbers: a record's "directory" attribute in the
+    archive's directory (torch.load then reads the tensor as uninitialised memory), and its name's
+    length in its local header (the data read from the wrong offset; the header check raised a
+    ValueError that was taken for "not a zip archive" and skipped). Found by flipping every bit of a
+    small stored result: each of these two was the only flip that loaded silently."""
+    store = ResultStore(tmp_path, what="cached result")
+    store.put("tuning", {"k": 1}, {"loss": torch.tensor([0.5, 1.5, 2.5])})
+    path = store.path("tuning", {"k": 1})
+    raw = path.read_bytes()
+    with zipfile.ZipFile(path) as archive:
+        record = next(info for info in archive.infolist() if info.filename.endswith("/data/0"))
+    directory_entry = raw.rfind(record.filename.encode()) - 46  # the central directory's header of the record
+    for offset, mask in ((directory_entry + 38, 0x10), (record.header_offset + 26, 0x80)):
+        damaged = bytearray(raw)
+        damaged[offset] ^= mask
+        path.write_bytes(damaged)
+        with pytest.raises(UnreadableFileError, match="cached result file .* is corrupt.*delete it and rerun"):
+            store.get("tuning", {"k": 1})
 
 
 def test_a_result_that_is_not_a_mapping_is_refused(tmp_path: Path) -> None:
