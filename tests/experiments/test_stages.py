@@ -140,3 +140,14 @@ def test_a_report_rounds_its_wall_time_into_the_next_minute(tmp_path) -> None:
     result = {"experiment": "x", "config": {}, "seconds": {"total": 599.6}, "machine": machine}
     write_report(tmp_path / "report.md", result, {}, [])
     assert "Wall time 10 min 0 s on cpu" in (tmp_path / "report.md").read_text()
+
+
+@pytest.mark.parametrize("cost", [-0.5, float("nan"), float("inf"), "1"])
+def test_a_cost_that_is_not_a_finite_number_at_least_0_is_refused_and_the_plan_kept(cost: object) -> None:
+    """A negative cost divided the time left by zero, NaN and inf crashed the progress line."""
+    plan = StagePlan("demo", {"a": 1.0}, stream=io.StringIO())
+    with pytest.raises(ValueError, match=r"stage 'b' has a planned cost of .*; a cost is a finite number >= 0"):
+        plan.plan({"b": cost})  # type: ignore[dict-item]
+    assert plan.costs == {"a": 1.0}
+    with pytest.raises(ValueError, match="stage 'b'"):
+        StagePlan("demo", {"a": 1.0, "b": cost}, stream=io.StringIO())  # type: ignore[dict-item]

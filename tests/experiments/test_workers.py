@@ -9,7 +9,9 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
+import smcd_rl.files
 from smcd_rl import cli
 from smcd_rl.experiments.shared.workers import AUTO_MIN_SECONDS, auto_workers, computed, map_jobs
 from tests.experiments.test_two_link_experiment import TINY
@@ -88,3 +90,45 @@ def test_auto_starts_workers_only_for_work_long_enough_to_repay_them() -> None:
     assert auto_workers(jobs=4, threads=1, planned_seconds=AUTO_MIN_SECONDS / 2) == 1
     assert auto_workers(jobs=4, threads=0, planned_seconds=1e6) == 1  # torch already uses every core
     assert auto_workers(jobs=1, threads=1, planned_seconds=1e6) == 1
+
+
+def _fails_to_read(path: str) -> None:
+    smcd_rl.files.load_file(path, what="checkpoint")
+
+
+def test_a_workers_error_reaches_the_caller_as_raised_and_names_the_job(tmp_path: Path) -> None:
+    """The project's file errors take a path besides their message, so a worker could not send them
+    back: the caller got "a process in the pool was terminated abruptly" instead of the fix."""
+    bad = tmp_path / "bad.ckpt"
+    bad.write_bytes(b"garbage")
+    jobs = {"reader": functools.partial(_fails_to_read, str(bad)), "other": functools.partial(int, "1")}
+    with pytest.raises(smcd_rl.files.UnreadableFileError, match="is corrupt or truncated.*delete it") as raised:
+        map_jobs(jobs, computed, workers=2)
+    assert raised.value.path == bad and "job 'reader'" in "".join(raised.value.__notes__)
+
+
+def test_each_job_runs_on_its_own_copy_of_its_inputs_in_one_process_as_in_workers() -> None:
+    """A job that changes its input in place changed the next job's and the caller's in one process
+    (the result depended on what ran before it), and nothing in worker processes."""
+    state = torch.zeros(3)
+    job = functools.partial(torch.Tensor.add_, state, 1.0)
+    for workers in (1, 2):
+        results = map_jobs({"a": job, "b": job}, computed, workers=workers)
+        assert [r.tolist() for r in results.values()] == [[1.0] * 3] * 2, workers
+    assert state.tolist() == [0.0] * 3
+
+
+def test_a_failed_job_stops_the_pools_workers_and_no_other_process() -> None:
+    """Stopping the workers after a failure terminated every child process of the caller."""
+    other = multiprocessing.get_context("spawn").Process(target=time.sleep, args=(30,))
+    other.start()
+    try:
+        with pytest.raises(ValueError, match="invalid literal"):
+            map_jobs(
+                {"bad": functools.partial(int, "x"), "slow": functools.partial(time.sleep, 5)}, computed, workers=2
+            )
+        other.join(timeout=3)  # time for a SIGTERM to land
+        assert other.is_alive()
+    finally:
+        other.terminate()
+        other.join()

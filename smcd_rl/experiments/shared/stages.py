@@ -18,6 +18,8 @@ still prints its line.
 
 from __future__ import annotations
 
+import math
+import numbers
 import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -32,6 +34,14 @@ __all__ = ["StagePlan", "duration", "estimate", "mlp_flops", "tuning_cost", "upd
 RESUMED_SECONDS = 1.0
 #: What every stage costs beyond its planned work, in the plan's units (about seconds).
 STAGE_OVERHEAD = 0.5
+
+
+def _checked(costs: Mapping[str, float]) -> dict[str, float]:
+    """``costs`` as floats, each finite and ``>= 0``, or a ``ValueError`` naming the first that is not."""
+    for name, cost in costs.items():
+        if not isinstance(cost, numbers.Real) or isinstance(cost, bool) or not math.isfinite(cost) or cost < 0:
+            raise ValueError(f"stage {name!r} has a planned cost of {cost!r}; a cost is a finite number >= 0")
+    return {name: float(cost) for name, cost in costs.items()}
 
 
 def duration(seconds: float) -> str:
@@ -156,7 +166,7 @@ class StagePlan:
         quiet: bool = False,
     ) -> None:
         self.command = command
-        self.costs = dict(costs or {})
+        self.costs = _checked(costs or {})
         self.stream = stream
         self.quiet = quiet
         self.done: set[str] = set()
@@ -165,8 +175,13 @@ class StagePlan:
         self._started = time.perf_counter()
 
     def plan(self, costs: Mapping[str, float]) -> None:
-        """Declare (or replace) the stages still to come: name -> relative cost (e.g. expected seconds)."""
-        self.costs = {**{k: v for k, v in self.costs.items() if k in self.done}, **costs}
+        """Declare (or replace) the stages still to come: name -> relative cost (e.g. expected seconds).
+
+        Raises:
+            ValueError: a cost is not a finite number ``>= 0`` (the time left would be nonsense);
+                the plan is left as it was.
+        """
+        self.costs = {**{k: v for k, v in self.costs.items() if k in self.done}, **_checked(costs)}
 
     def remaining(self) -> float | None:
         """Estimated seconds for the planned stages not yet finished; None before any stage was timed."""

@@ -21,6 +21,7 @@ Example:
 from __future__ import annotations
 
 import concurrent.futures
+import copy
 import multiprocessing
 import os
 import pickle
@@ -106,7 +107,9 @@ def map_jobs(
 
     if workers <= 1 or len(jobs) <= 1:
         for name, factory in jobs.items():
-            finished(name, call(name, factory()))
+            # On a copy, as a worker would run it: a job that changes its inputs in place must not
+            # change the next job's (or the caller's).
+            finished(name, call(name, copy.deepcopy(factory)()))
         return results
     # Plain pickle, not multiprocessing's: torch would otherwise move every tensor into shared
     # memory, and a worker that trains a model in place would change the caller's model too.
@@ -131,13 +134,22 @@ def map_jobs(
         order = sorted(payloads, key=lambda name: -(costs or {}).get(name, 0.0))  # stable: ties keep their order
         futures = {pool.submit(_run_job, payloads[name]): name for name in order}
         for future in concurrent.futures.as_completed(futures):
-            finished(futures[future], pickle.loads(future.result()))
+            try:
+                result = future.result()
+            except Exception as err:
+                if hasattr(err, "add_note"):  # Python 3.11+: the traceback says which job failed
+                    err.add_note(f"(in the worker running job {futures[future]!r})")
+                raise
+            finished(futures[future], pickle.loads(result))
             bar.update()
     except BaseException:  # Ctrl-C or a failed job: stop the others now, keep what finished
         bar.close()  # ends its line, so the message that follows stands on its own
+        # The pool's own workers only: any other child process of the caller is not ours to stop.
+        processes = list(getattr(pool, "_processes", None) or {})
         pool.shutdown(wait=False, cancel_futures=True)
         for child in multiprocessing.active_children():
-            child.terminate()
+            if child.pid in processes:
+                child.terminate()
         raise
     bar.close()
     pool.shutdown()
@@ -162,6 +174,18 @@ def _start_worker(threads: int, parent: int) -> None:
 
 
 def _run_job(payload: bytes) -> bytes:
-    """In a worker: unpickle the job, run it, pickle its result (each tensor a copy, not shared memory)."""
+    """In a worker: unpickle the job, run it, pickle its result (each tensor a copy, not shared memory).
+
+    An error reaches the caller as raised; one that cannot be pickled (an exception class whose
+    constructor takes other arguments than its message) as a ``RuntimeError`` with its type and
+    message, instead of breaking the pool.
+    """
     call, name, factory = pickle.loads(payload)
-    return pickle.dumps(call(name, factory()), protocol=pickle.HIGHEST_PROTOCOL)
+    try:
+        return pickle.dumps(call(name, factory()), protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception as err:
+        try:
+            pickle.loads(pickle.dumps(err))
+        except Exception:
+            raise RuntimeError(f"job {name!r} failed: {type(err).__name__}: {err}") from None
+        raise
