@@ -270,14 +270,47 @@ class ParticleFilter:
         self.generator.set_state(generator)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a :meth:`state_dict` exactly: later updates give the same bits as from the saved state."""
+        """Restore a :meth:`state_dict` exactly: later updates give the same bits as from the saved state.
+
+        Raises:
+            ValueError: ``state`` is not a state of this filter: not a :meth:`state_dict`, of another
+                batch shape, particle count or mask width, or with NaN weights, or a generator state
+                that is not one; the filter is left as it was.
+        """
+        self._check_state(state)
+        self.generator.set_state(state["generator"])  # checked: cannot fail after the parts below
         self.particles = state["particles"].clone().to(self.device)
         self.log_weights = state["log_weights"].clone().to(self.device)
         self.log_evidence = state["log_evidence"].clone().to(self.device)
         self._num_particles = self.particles.shape[-2]
         self.last_ess = _clone(state.get("last_ess"), self.device)
         self.ancestors = _clone(state.get("ancestors"), self.device)
-        self.generator.set_state(state["generator"])
+
+    def _check_state(self, state: Any) -> None:
+        """Raise ``ValueError`` unless ``state`` is a :meth:`state_dict` that fits this filter as it is."""
+        names = ("particles", "log_weights", "log_evidence", "generator")
+        if not isinstance(state, dict) or not all(isinstance(state.get(name), Tensor) for name in names):
+            raise ValueError(f"a filter's state is a dict of the tensors {list(names)} (its state_dict())")
+        particles, log_weights, log_evidence = (state[name] for name in names[:3])
+        current = self.particles
+        if (
+            particles.dim() < 2
+            or log_weights.shape != particles.shape[:-1]
+            or log_evidence.shape != particles.shape[:-2]
+            or (current is not None and particles.shape != current.shape)
+        ):
+            fits = f"this filter's {list(current.shape)}" if current is not None else "its weights and evidence"
+            raise ValueError(
+                f"a state with particles {list(particles.shape)} and weights {list(log_weights.shape)} does not fit "
+                f"{fits} (another batch size, particle count or network?); reset the model to the batch shape "
+                "it was saved with"
+            )
+        if bool(torch.isnan(log_weights).any()) or not bool(torch.isfinite(log_weights).any(-1).all()):
+            raise ValueError("the state's log weights are NaN, or -inf for every particle of a batch element")
+        try:
+            torch.Generator().set_state(state["generator"])
+        except (RuntimeError, TypeError) as err:
+            raise ValueError(f"the state's generator state is not a random generator's ({err})") from err
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         """Put back ``state``'s particles, weights and evidence in the batch elements where ``rows`` is True.
@@ -632,6 +665,13 @@ class SMCDFilter(ParticleFilter):
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._check_state(state)
+        mask = state.get("mean_mask")
+        if mask is not None and (
+            not isinstance(mask, Tensor)
+            or mask.shape != state["particles"].shape[:-2] + (state["particles"].shape[-1],)
+        ):
+            raise ValueError("the state's MMSE mask does not fit its particles; pass this filter's state_dict()")
         super().load_state_dict(state)
         self.last_flips = _clone(state.get("last_flips"), self.device)
         if state.get("mean_mask") is not None:

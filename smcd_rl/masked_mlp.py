@@ -287,6 +287,12 @@ class MaskedMLP(nn.Module):
             raise TypeError(
                 f"input must be a float tensor (the network's dtype), got {x.dtype}; convert it with .float()"
             )
+        dtype = self.readout_layer.weight.dtype
+        if x.dtype != dtype:
+            raise TypeError(
+                f"input of dtype {x.dtype}, the network's is {dtype}; convert the input with .to({dtype}) "
+                f"or the network with .to({x.dtype})"
+            )
         if x.dim() < 1 or x.shape[-1] != self.in_features:
             raise ValueError(
                 f"input must have shape [..., {self.in_features}] (in_features={self.in_features}), got {list(x.shape)}"

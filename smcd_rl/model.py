@@ -254,6 +254,7 @@ class AdaptiveModel(TensorDictModuleBase):
                     self.adaptation.reset(batch_shape)
                     self.adaptation.restore_rows(kept, ~where)
                 return
+        self.adaptation.check_batch(batch_shape)  # a batch shape it refuses leaves everything as it was
         self.net.eval()
         # Bind again: training sets the output scale and .to(device) moves the network since.
         self._bind(self.adaptation)

@@ -30,7 +30,7 @@ from torch import Tensor
 from smcd_rl.checks import check_real
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["Adaptation", "is_auto", "checked_noise", "checked_likelihood", "Likelihood", "TUKEY_CUT"]
+__all__ = ["Adaptation", "is_auto", "checked_noise", "checked_likelihood", "checked_rows", "Likelihood", "TUKEY_CUT"]
 
 #: Tukey's biweight (gradient descent's ``loss="tukey"``, the Bayesian last layer's
 #: ``likelihood="tukey"``) ignores a residual beyond this many units of its scale: the classic
@@ -65,6 +65,13 @@ class Adaptation(ABC):
     @abstractmethod
     def reset(self, batch_shape: tuple[int, ...]) -> None:
         """Forget everything adapted so far; keep one independent state per batch element."""
+
+    def check_batch(self, batch_shape: tuple[int, ...]) -> None:  # noqa: B027 - a hook with a default
+        """Raise ``ValueError`` if this strategy cannot keep a state for ``batch_shape``.
+
+        :meth:`smcd_rl.AdaptiveModel.reset` asks before it changes anything, so a refused batch
+        shape leaves the model and its state as they were. Every batch shape is fine by default.
+        """
 
     @abstractmethod
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
@@ -134,7 +141,9 @@ class Adaptation(ABC):
 
     def _check_transition(self, inputs: Tensor, targets: Tensor) -> None:
         """Refuse an :meth:`observe` whose ``inputs`` are not ``[*B, in]`` or ``targets`` not ``[*B, out]``
-        (a transposed or wrong-width tensor would otherwise be reshaped into nonsense)."""
+        (a transposed or wrong-width tensor would otherwise be reshaped into nonsense), or whose
+        inputs are not of the network's dtype or targets not real floats (a complex target would
+        lose its imaginary part)."""
         net = self.net
         for name, value, width in (("inputs", inputs, net.in_features), ("targets", targets, net.out_features)):
             expected = (*self._batch_shape, width)
@@ -143,6 +152,12 @@ class Adaptation(ABC):
                 raise ValueError(
                     f"{type(self).__name__}.observe: {name} of shape {shape}, expected {list(expected)} (the model's "
                     f"batch shape, then {width} values); call model.reset(batch_shape=...) to change the batch shape"
+                )
+            dtype = net.readout_layer.weight.dtype
+            if not value.is_floating_point() or (name == "inputs" and value.dtype != dtype):
+                raise TypeError(
+                    f"{type(self).__name__}.observe: {name} of dtype {value.dtype}, expected the network's {dtype}; "
+                    f"convert them with .to({dtype}) (or the model with model.to(...))"
                 )
 
     def _mask_view(self, value: Tensor, inputs: Tensor, trailing: int) -> Tensor:
@@ -154,6 +169,19 @@ class Adaptation(ABC):
     def __repr__(self) -> str:
         args = ", ".join(f"{k}={v!r}" for k, v in self.config().items())
         return f"{type(self).__name__}({args})"
+
+
+def checked_rows(rows: Any, batch_shape: tuple[int, ...]) -> Tensor:
+    """``rows`` of :meth:`Adaptation.restore_rows` as a bool tensor of ``batch_shape``, or a ``ValueError``.
+
+    Example:
+        >>> checked_rows(torch.tensor([True, False]), (2,))
+        tensor([ True, False])
+    """
+    if not isinstance(rows, Tensor) or rows.dtype != torch.bool or tuple(rows.shape) != tuple(batch_shape):
+        got = f"{rows.dtype} {list(rows.shape)}" if isinstance(rows, Tensor) else type(rows).__name__
+        raise ValueError(f"rows must be a bool tensor of the batch shape {list(batch_shape)}, got {got}")
+    return rows
 
 
 def is_auto(value: Any) -> bool:

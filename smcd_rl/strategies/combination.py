@@ -127,7 +127,12 @@ class Combination(Adaptation):
         for member in self._members:
             member.bind(net, output_scale, calibration=calibration)
 
+    def check_batch(self, batch_shape: tuple[int, ...]) -> None:
+        for member in self._members:
+            member.check_batch(batch_shape)
+
     def reset(self, batch_shape: tuple[int, ...]) -> None:
+        self.check_batch(batch_shape)  # before any member changes
         for member in self._members:
             member.reset(batch_shape)
         self._batch_shape = batch_shape

@@ -62,7 +62,7 @@ from torch import Tensor
 
 from smcd_rl.checks import check_real
 from smcd_rl.masked_mlp import MaskedMLP
-from smcd_rl.strategies.base import TUKEY_CUT, Adaptation, checked_likelihood, checked_noise
+from smcd_rl.strategies.base import TUKEY_CUT, Adaptation, checked_likelihood, checked_noise, checked_rows
 
 __all__ = ["BayesianLastLayer", "MAX_DRIFT_VARIANCE"]
 
@@ -129,6 +129,7 @@ class BayesianLastLayer(Adaptation):
         self._sigma = self._noise.to(device=weight.device, dtype=STATE_DTYPE).expand(net.out_features)
 
     def reset(self, batch_shape: tuple[int, ...]) -> None:
+        self.check_batch(batch_shape)
         self._batch_shape = batch_shape
         streams = math.prod(batch_shape)
         output = self.net.readout_layer
@@ -137,6 +138,11 @@ class BayesianLastLayer(Adaptation):
         self._mean = prior.expand(streams, *prior.shape).clone()
         eye = torch.eye(prior.shape[0], dtype=prior.dtype, device=prior.device)
         self._cov = (self.prior_scale**2 * eye).expand(streams, *eye.shape).clone()
+
+    def check_batch(self, batch_shape: tuple[int, ...]) -> None:
+        """Refuse a batch without streams (a dimension of 0): a readout posterior needs one stream at least."""
+        if math.prod(batch_shape) == 0:
+            raise ValueError(f"batch_shape {list(batch_shape)} has no streams; a Bayesian readout needs one at least")
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
         mean, _ = self._state()
@@ -256,6 +262,20 @@ class BayesianLastLayer(Adaptation):
         return {"mean": mean.clone(), "cov": cov.clone()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        given, given_cov = self._checked_state(state)
+        mean, cov = self._state()
+        self._mean = given.to(device=mean.device, dtype=STATE_DTYPE).clone()
+        self._cov = given_cov.to(device=cov.device, dtype=STATE_DTYPE).clone()
+
+    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
+        given, given_cov = self._checked_state(state)
+        mean, cov = self._state()
+        keep = checked_rows(rows, self._batch_shape).to(mean.device).reshape(-1, 1, 1)
+        self._mean = torch.where(keep, given.to(mean), mean)
+        self._cov = torch.where(keep, given_cov.to(cov), cov)
+
+    def _checked_state(self, state: Any) -> tuple[Tensor, Tensor]:
+        """``state``'s mean and covariance after checking they fit this posterior, finite."""
         mean, cov = self._state()
         given = state.get("mean") if isinstance(state, Mapping) else None
         given_cov = state.get("cov") if isinstance(state, Mapping) else None
@@ -271,14 +291,9 @@ class BayesianLastLayer(Adaptation):
                 f"a last layer's state of shapes {shapes} does not fit this one's {[list(mean.shape), list(cov.shape)]} "
                 "(another batch size or network?); reset the model to the batch shape it was saved with"
             )
-        self._mean = given.to(device=mean.device, dtype=STATE_DTYPE).clone()
-        self._cov = given_cov.to(device=cov.device, dtype=STATE_DTYPE).clone()
-
-    def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
-        mean, cov = self._state()
-        keep = rows.to(mean.device).reshape(-1, 1, 1)
-        self._mean = torch.where(keep, state["mean"], mean)
-        self._cov = torch.where(keep, state["cov"], cov)
+        if not (bool(torch.isfinite(given).all()) and bool(torch.isfinite(given_cov).all())):
+            raise ValueError("a last layer's state with inf or NaN in its mean or covariance; pass its state_dict()")
+        return given, given_cov
 
     # -------------------------------------------------------------- helpers
     @staticmethod

@@ -286,6 +286,7 @@ class SMCD(Adaptation):
         """The weighted mean of the particles' predictions for ``inputs [*B, *extra, in]``; many
         inputs per stream run each distinct particle once (:meth:`SMCDFilter.distinct`), in pieces
         of :data:`PREDICTIVE_ROWS` particle rows."""
+        self._extra_dims(inputs)  # inputs that do not start with the batch shape would mix the streams
         extra = inputs.shape[len(self._batch_shape) : -1]
         if not extra:
             weights = self._mask_view(self._filter.weights, inputs, trailing=1).unsqueeze(-1)  # [*B, N, 1]

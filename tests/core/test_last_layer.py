@@ -221,6 +221,34 @@ def test_a_float32_model_at_the_extreme_settings_holds_over_five_thousand_observ
         assert float((layer.predict(x) - (x[:, :2].sin() + 0.3)).abs().max()) < 0.05
 
 
+@pytest.mark.parametrize("weighing", ["mean", "predictive"])
+def test_smcd_last_layer_in_float32_at_the_widest_prior_predicts_as_in_float64(weighing: str) -> None:
+    """Each particle's ``(P + q I) phi`` is the prior's ``s^2 phi`` less the downdates, which cancel
+    to a small remainder: in float32 at ``prior_scale=1e6`` the remainder was lost, the readout
+    means grew to about 1e12 within 400 readings and later readings were refused. Past
+    ``FLOAT32_SPREAD_LIMIT`` it is taken in float64: over 1,000 readings none is refused, and a
+    float32 model's error on the target is within a fifth of its float64 twin's (the filters'
+    resampling parts ways on the last bits, so their particles, not their accuracy, differ)."""
+    errors = {}
+    for dtype in (torch.float32, torch.float64):
+        torch.manual_seed(0)
+        net = smcd_rl.MaskedMLP(2, 2, hidden=(16, 16))
+        smcd = smcd_rl.SMCD(num_particles=10, noise_std=0.1, generator=torch.Generator().manual_seed(2))
+        readout = smcd_rl.BayesianLastLayer(prior_scale=1e6, noise_std=0.1)
+        both = smcd_rl.SMCDLastLayer(smcd, readout, weighing=weighing)
+        model = smcd_rl.AdaptiveModel(net, in_keys=["q"], out_key="ee", adaptation=both).to(dtype)
+        model.fitted = True
+        model.reset(batch_shape=(2,))
+        generator = torch.Generator().manual_seed(1)
+        for _ in range(1000):
+            x = (torch.rand(2, 2, generator=generator) * 4 - 2).to(dtype)
+            both.observe(x, torch.sin(3 * x))  # a refusal raises
+        test = (torch.rand(2, 50, 2, generator=generator) * 4 - 2).to(dtype)
+        with torch.no_grad():
+            errors[dtype] = float((both.predict(test) - torch.sin(3 * test)).double().square().mean().sqrt())
+    assert errors[torch.float32] < 1.2 * errors[torch.float64], errors
+
+
 def test_a_drift_beyond_what_the_posterior_resolves_is_refused() -> None:
     with pytest.raises(ValueError, match=r"drift \* prior_scale\*\*2 = 1e\+18 is beyond 1e\+12"):
         smcd_rl.BayesianLastLayer(prior_scale=1e6, drift=1e6)
@@ -500,6 +528,84 @@ def test_smcd_last_layer_names_a_wrong_shape_a_new_dtype_or_a_foreign_state() ->
     after = both.state_dict()
     assert torch.equal(after["smcd"]["particles"], before["smcd"]["particles"])
     assert torch.equal(after["last_layer"]["mean"], before["last_layer"]["mean"])
+
+
+def _same_state(a: object, b: object) -> bool:
+    """Two state dicts (nested, tensors compared exactly) are equal."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same_state(a[k], b[k]) for k in a)
+    if isinstance(a, Tensor) and isinstance(b, Tensor):
+        return a.shape == b.shape and bool(torch.equal(a, b))
+    return a == b
+
+
+def test_smcd_last_layer_refuses_a_foreign_or_broken_state_and_keeps_its_own() -> None:
+    """Each loaded and broke every later call with a raw error (or refusal): a filter state of
+    another particle count, NaN readout means, a generator state that is not one; and
+    ``restore_rows`` restored the filter's rows before its rows argument (a list) failed, leaving
+    the readout means unrestored."""
+    both = smcd_rl.SMCDLastLayer(
+        smcd_rl.SMCD(num_particles=20, noise_std=0.1), smcd_rl.BayesianLastLayer(noise_std=0.1)
+    )
+    model = _adaptive(both)
+    model.reset(batch_shape=(3,))
+    both.observe(torch.rand(3, 2), torch.rand(3, 2))
+    saved = both.state_dict()
+    both.observe(torch.rand(3, 2), torch.rand(3, 2))
+    before = both.state_dict()
+    other = smcd_rl.SMCDLastLayer(
+        smcd_rl.SMCD(num_particles=30, noise_std=0.1), smcd_rl.BayesianLastLayer(noise_std=0.1)
+    )
+    _adaptive(other).reset(batch_shape=(3,))
+    broken = {
+        r"particles \[3, 30, 64\] .* does not fit this filter's \[3, 20, 64\]": {
+            **saved,
+            "smcd": other.state_dict()["smcd"],
+        },
+        "readout means hold inf or NaN": {**saved, "means": torch.full_like(saved["means"], float("nan"))},
+        "generator state is not a random generator's": {
+            **saved,
+            "smcd": {**saved["smcd"], "generator": torch.zeros(3, dtype=torch.uint8)},
+        },
+    }
+    for message, state in broken.items():
+        with pytest.raises(ValueError, match=message):
+            both.load_state_dict(state)
+        assert _same_state(both.state_dict(), before), message
+    for rows in ([True, False, True], torch.tensor([1, 0, 1])):
+        with pytest.raises(ValueError, match=r"rows must be a bool tensor of the batch shape \[3\]"):
+            both.restore_rows(saved, rows)  # type: ignore[arg-type]
+        assert _same_state(both.state_dict(), before)
+    both.restore_rows(saved, torch.tensor([True, False, True]))  # a good call still restores those rows
+    assert torch.equal(both.state_dict()["means"][0], saved["means"][0])
+    assert torch.equal(both.state_dict()["means"][1], before["means"][1])
+
+
+def test_the_direct_api_names_a_wrong_dtype_and_an_empty_batch() -> None:
+    """float64 inputs on a float32 network gave torch's "mat1 and mat2 must have the same dtype",
+    complex targets lost their imaginary part silently, and ``reset(batch_shape=(0,))`` was
+    accepted, every later call then failing with "cannot reshape tensor of 0 elements"."""
+    both = smcd_rl.SMCDLastLayer(
+        smcd_rl.SMCD(num_particles=20, noise_std=0.1), smcd_rl.BayesianLastLayer(noise_std=0.1)
+    )
+    model = _adaptive(both)
+    model.reset(batch_shape=(3,))
+    for inputs, targets, name in (
+        (torch.rand(3, 2, dtype=torch.float64), torch.rand(3, 2), "inputs of dtype torch.float64"),
+        (torch.rand(3, 2), torch.rand(3, 2, dtype=torch.complex64), "targets of dtype torch.complex64"),
+        (torch.rand(3, 2), torch.ones(3, 2, dtype=torch.bool), "targets of dtype torch.bool"),
+    ):
+        with pytest.raises(TypeError, match=f"{name}, expected the network's torch.float32"):
+            both.observe(inputs, targets)
+    with pytest.raises(TypeError, match="input of dtype torch.float64, the network's is torch.float32"):
+        both.predict(torch.rand(3, 2, dtype=torch.float64))
+    for adaptation in (both, smcd_rl.BayesianLastLayer(noise_std=0.1)):
+        model = _adaptive(adaptation)
+        model.reset(batch_shape=(3,))
+        with pytest.raises(ValueError, match=r"batch_shape \[2, 0\] has no streams"):
+            model.reset(batch_shape=(2, 0))
+        assert model.batch_shape == (3,)
+        adaptation.observe(torch.rand(3, 2), torch.rand(3, 2))  # still the batch it had
 
 
 def _masked_family(shift: float, streams: int = 40, steps: int = 30, seed: int = 3):

@@ -547,3 +547,18 @@ def test_a_float64_model_loads_as_float64(tmp_path) -> None:
     loaded.reset()
     model.reset()
     assert torch.equal(loaded.predict(q), model.predict(q))
+
+
+def test_the_predictive_mean_refuses_inputs_that_do_not_start_with_the_batch_shape() -> None:
+    """With ``prediction="predictive"`` the batch was never checked: on a batch of (2, 3), inputs
+    [3, 2, 4, 2] gave a [2, 3, 4, 2] prediction with the streams mixed up, and [1, 6, 2] on a batch
+    of (6,) a raw RuntimeError. The MMSE mask's prediction refused both."""
+    for prediction in ("mask", "predictive"):
+        smcd = smcd_rl.SMCD(num_particles=8, noise_std=0.1, prediction=prediction)
+        model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee", adaptation=smcd)
+        model.fitted = True
+        for batch, inputs in (((2, 3), torch.rand(3, 2, 4, 2)), ((6,), torch.rand(1, 6, 2))):
+            model.reset(batch_shape=batch)
+            with pytest.raises(ValueError, match="do not start with the model's batch shape"):
+                smcd.predict(inputs)
+        assert smcd.predict(torch.rand(6, 4, 2)).shape == (6, 4, 2)  # extra dims after the batch are fine
