@@ -555,7 +555,9 @@ def test_the_predictive_mean_refuses_inputs_that_do_not_start_with_the_batch_sha
     of (6,) a raw RuntimeError. The MMSE mask's prediction refused both."""
     for prediction in ("mask", "predictive"):
         smcd = smcd_rl.SMCD(num_particles=8, noise_std=0.1, prediction=prediction)
-        model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee", adaptation=smcd)
+        model = smcd_rl.AdaptiveModel(
+            smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee", adaptation=smcd
+        )
         model.fitted = True
         for batch, inputs in (((2, 3), torch.rand(3, 2, 4, 2)), ((6,), torch.rand(1, 6, 2))):
             model.reset(batch_shape=batch)
