@@ -31,6 +31,7 @@ __all__ = [
     "check_seed",
     "check_real",
     "check_shape",
+    "checked_rows",
     "check_real_tensor",
     "check_tensordict",
     "check_key",
@@ -90,6 +91,19 @@ def check_shape(value: Any, name: str) -> tuple[int, ...]:
         hint = f"; for {value} elements pass ({value},)" if isinstance(value, numbers.Integral) else ""
         raise TypeError(f"{name} must be a sequence of ints such as (3,), got {value!r}{hint}")
     return tuple(check_count(size, f"{name}[{i}]", minimum=0) for i, size in enumerate(value))
+
+
+def checked_rows(rows: Any, batch_shape: tuple[int, ...]) -> Tensor:
+    """``rows`` of a ``restore_rows`` (the batch elements to put back) as a bool tensor of ``batch_shape``, or a ``ValueError``.
+
+    Example:
+        >>> checked_rows(torch.tensor([True, False]), (2,))
+        tensor([ True, False])
+    """
+    if not isinstance(rows, Tensor) or rows.dtype != torch.bool or tuple(rows.shape) != tuple(batch_shape):
+        got = f"{rows.dtype} {list(rows.shape)}" if isinstance(rows, Tensor) else type(rows).__name__
+        raise ValueError(f"rows must be a bool tensor of the batch shape {list(batch_shape)}, got {got}")
+    return rows
 
 
 def check_real_tensor(value: Any, name: str) -> Tensor:

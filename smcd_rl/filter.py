@@ -15,7 +15,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from smcd_rl.checks import check_count, check_real, check_shape
+from smcd_rl.checks import check_count, check_real, check_shape, checked_rows
 from smcd_rl.resampling import ResamplingScheme, check_scheme, resample_indices
 
 __all__ = ["ParticleFilter", "SMCDFilter", "sample_flip_positions", "flat_particle_index", "Transition"]
@@ -352,13 +352,7 @@ class ParticleFilter:
                 f"restore_rows needs a state_dict() of this filter with particles {list(particles.shape)}, got {got}; "
                 "save the state after the reset whose rows you restore"
             )
-        rows = torch.as_tensor(rows, device=self.device)
-        if rows.dtype != torch.bool or tuple(rows.shape) != self.batch_shape:
-            raise ValueError(
-                f"rows must be a bool tensor of the batch shape {list(self.batch_shape)}, "
-                f"got {rows.dtype} {list(rows.shape)}"
-            )
-        return rows
+        return checked_rows(torch.as_tensor(rows, device=self.device), self.batch_shape)
 
     def _checked_log_likelihood(self, log_likelihood: Tensor) -> tuple[Tensor, bool]:
         """``log_likelihood`` in the weights' dtype after checking it, and whether all of it is finite.
@@ -665,17 +659,19 @@ class SMCDFilter(ParticleFilter):
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self._check_state(state)
+        super().load_state_dict(state)
+        self.last_flips = _clone(state.get("last_flips"), self.device)
+        if state.get("mean_mask") is not None:
+            self._derived["mean_mask"] = state["mean_mask"].clone().to(self.device)
+
+    def _check_state(self, state: Any) -> None:
+        super()._check_state(state)
         mask = state.get("mean_mask")
         if mask is not None and (
             not isinstance(mask, Tensor)
             or mask.shape != state["particles"].shape[:-2] + (state["particles"].shape[-1],)
         ):
             raise ValueError("the state's MMSE mask does not fit its particles; pass this filter's state_dict()")
-        super().load_state_dict(state)
-        self.last_flips = _clone(state.get("last_flips"), self.device)
-        if state.get("mean_mask") is not None:
-            self._derived["mean_mask"] = state["mean_mask"].clone().to(self.device)
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         """As :meth:`ParticleFilter.restore_rows`; the restored rows' MMSE mask is restored bit for bit too.

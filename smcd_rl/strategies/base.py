@@ -30,7 +30,7 @@ from torch import Tensor
 from smcd_rl.checks import check_real
 from smcd_rl.masked_mlp import MaskedMLP
 
-__all__ = ["Adaptation", "is_auto", "checked_noise", "checked_likelihood", "checked_rows", "Likelihood", "TUKEY_CUT"]
+__all__ = ["Adaptation", "is_auto", "checked_noise", "checked_likelihood", "Likelihood", "TUKEY_CUT"]
 
 #: Tukey's biweight (gradient descent's ``loss="tukey"``, the Bayesian last layer's
 #: ``likelihood="tukey"``) ignores a residual beyond this many units of its scale: the classic
@@ -169,19 +169,6 @@ class Adaptation(ABC):
     def __repr__(self) -> str:
         args = ", ".join(f"{k}={v!r}" for k, v in self.config().items())
         return f"{type(self).__name__}({args})"
-
-
-def checked_rows(rows: Any, batch_shape: tuple[int, ...]) -> Tensor:
-    """``rows`` of :meth:`Adaptation.restore_rows` as a bool tensor of ``batch_shape``, or a ``ValueError``.
-
-    Example:
-        >>> checked_rows(torch.tensor([True, False]), (2,))
-        tensor([ True, False])
-    """
-    if not isinstance(rows, Tensor) or rows.dtype != torch.bool or tuple(rows.shape) != tuple(batch_shape):
-        got = f"{rows.dtype} {list(rows.shape)}" if isinstance(rows, Tensor) else type(rows).__name__
-        raise ValueError(f"rows must be a bool tensor of the batch shape {list(batch_shape)}, got {got}")
-    return rows
 
 
 def is_auto(value: Any) -> bool:

@@ -60,9 +60,9 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from smcd_rl.checks import check_real
+from smcd_rl.checks import check_real, checked_rows
 from smcd_rl.masked_mlp import MaskedMLP
-from smcd_rl.strategies.base import TUKEY_CUT, Adaptation, checked_likelihood, checked_noise, checked_rows
+from smcd_rl.strategies.base import TUKEY_CUT, Adaptation, checked_likelihood, checked_noise
 
 __all__ = ["BayesianLastLayer", "MAX_DRIFT_VARIANCE"]
 

@@ -67,8 +67,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from smcd_rl.checks import checked_rows
 from smcd_rl.masked_mlp import MaskedMLP
-from smcd_rl.strategies.base import Adaptation, checked_rows
+from smcd_rl.strategies.base import Adaptation
 from smcd_rl.strategies.last_layer import BayesianLastLayer
 from smcd_rl.strategies.smcd import SMCD
 
