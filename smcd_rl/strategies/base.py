@@ -27,7 +27,7 @@ from typing import Any, ClassVar, Literal
 import torch
 from torch import Tensor
 
-from smcd_rl.checks import check_real
+from smcd_rl.checks import check_real, check_real_tensor
 from smcd_rl.masked_mlp import MaskedMLP
 
 __all__ = ["Adaptation", "is_auto", "checked_noise", "checked_likelihood", "Likelihood", "TUKEY_CUT"]
@@ -75,7 +75,13 @@ class Adaptation(ABC):
 
     @abstractmethod
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
-        """Adapt to one transition per batch element: ``inputs [*B, in]``, ``targets [*B, out]``."""
+        """Adapt to one transition per batch element: ``inputs [*B, in]``, ``targets [*B, out]``.
+
+        ``inputs`` in the network's dtype, ``targets`` real floats of any precision, both on the
+        network's device. The built-in strategies refuse anything else with a ``ValueError`` or
+        ``TypeError`` (``_check_transition``, which a strategy of your own can call too), and an
+        observation a strategy refuses leaves its state as it was.
+        """
 
     @abstractmethod
     def predict(self, inputs: Tensor) -> Tensor:
@@ -130,7 +136,16 @@ class Adaptation(ABC):
         return self._net
 
     def _extra_dims(self, inputs: Tensor) -> int:
-        """How many batch dims ``inputs`` has beyond the model's batch shape (they broadcast)."""
+        """How many batch dims ``inputs`` has beyond the model's batch shape (they broadcast).
+
+        Inputs that are not ``[*B, *extra, in]`` real floats of the network's dtype on its device
+        are refused first, with the fix (gradient descent's own weights, which bypass the
+        network's checks, would read meta-device inputs and return numbers).
+        """
+        name = f"{type(self).__name__}.predict: inputs"
+        self._check_tensor(inputs, name, same_dtype=True)
+        if inputs.dim() < 1 or inputs.shape[-1] != self.net.in_features:
+            raise ValueError(f"{name} of shape {list(inputs.shape)}, expected [..., {self.net.in_features}]")
         extra = inputs.dim() - 1 - len(self._batch_shape)
         if extra < 0 or tuple(inputs.shape[: len(self._batch_shape)]) != self._batch_shape:
             raise ValueError(
@@ -141,9 +156,10 @@ class Adaptation(ABC):
 
     def _check_transition(self, inputs: Tensor, targets: Tensor) -> None:
         """Refuse an :meth:`observe` whose ``inputs`` are not ``[*B, in]`` or ``targets`` not ``[*B, out]``
-        (a transposed or wrong-width tensor would otherwise be reshaped into nonsense), or whose
+        (a transposed or wrong-width tensor would otherwise be reshaped into nonsense), whose
         inputs are not of the network's dtype or targets not real floats (a complex target would
-        lose its imaginary part)."""
+        lose its imaginary part), or either is not on the network's device (the meta device holds
+        no values at all)."""
         net = self.net
         for name, value, width in (("inputs", inputs, net.in_features), ("targets", targets, net.out_features)):
             expected = (*self._batch_shape, width)
@@ -153,12 +169,22 @@ class Adaptation(ABC):
                     f"{type(self).__name__}.observe: {name} of shape {shape}, expected {list(expected)} (the model's "
                     f"batch shape, then {width} values); call model.reset(batch_shape=...) to change the batch shape"
                 )
-            dtype = net.readout_layer.weight.dtype
-            if not value.is_floating_point() or (name == "inputs" and value.dtype != dtype):
-                raise TypeError(
-                    f"{type(self).__name__}.observe: {name} of dtype {value.dtype}, expected the network's {dtype}; "
-                    f"convert them with .to({dtype}) (or the model with model.to(...))"
-                )
+            self._check_tensor(value, f"{type(self).__name__}.observe: {name}", same_dtype=name == "inputs")
+
+    def _check_tensor(self, value: Any, name: str, *, same_dtype: bool) -> None:
+        """Refuse ``value`` unless it is a real float tensor (of the network's dtype if ``same_dtype``) on its device."""
+        check_real_tensor(value, name)
+        weight = self.net.readout_layer.weight
+        if not value.is_floating_point() or (same_dtype and value.dtype != weight.dtype):
+            raise TypeError(
+                f"{name} of dtype {value.dtype}, expected the network's {weight.dtype}; convert them with "
+                f".to({weight.dtype}) (or the model with model.to(...))"
+            )
+        if value.device != weight.device:
+            raise ValueError(
+                f"{name} on {value.device}, the network on {weight.device}; move them with "
+                f".to({str(weight.device)!r}) (or the model with model.to(...))"
+            )
 
     def _mask_view(self, value: Tensor, inputs: Tensor, trailing: int) -> Tensor:
         """View ``value [*B, *rest]`` with singleton dims for ``inputs``' extra batch dims."""

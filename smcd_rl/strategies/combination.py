@@ -143,6 +143,7 @@ class Combination(Adaptation):
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
         log_weights, losses = self._state()
+        self._check_transition(inputs, targets)
         # Scored before they adapt: each member's prediction of what it has not seen yet.
         predictions = torch.stack([member.predict(inputs) for member in self._members], dim=-1)  # [*B, out, K]
         step = (predictions - targets.unsqueeze(-1)).square().sum(-2)  # [*B, K]

@@ -126,11 +126,12 @@ class GradientDescent(Adaptation):
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
         assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
+        self._check_transition(inputs, targets)
         rows = torch.arange(self._count.numel(), device=self._count.device)
         slot = self._count % self.window  # a ring buffer per batch element
         before = (self._count, self._inputs[rows, slot].clone(), self._targets[rows, slot].clone())
         self._inputs[rows, slot] = self.net.trunk(inputs.reshape(-1, inputs.shape[-1]))
-        self._targets[rows, slot] = targets.reshape(-1, targets.shape[-1])
+        self._targets[rows, slot] = targets.reshape(-1, targets.shape[-1]).to(self._targets.dtype)
         self._count = self._count + 1
         # Slots filled so far count in the loss; the rest (after a reset) do not.
         filled = (torch.arange(self.window, device=rows.device) < self._count.unsqueeze(-1)).to(self._inputs.dtype)

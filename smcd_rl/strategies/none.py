@@ -24,7 +24,7 @@ class NoAdaptation(Adaptation):
         self._batch_shape = batch_shape
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
-        pass
+        self._check_transition(inputs, targets)  # refused as the other strategies refuse it
 
     def predict(self, inputs: Tensor) -> Tensor:
         return self.net(inputs)

@@ -248,6 +248,7 @@ class SMCD(Adaptation):
         self._filter.reset(batch_shape)
 
     def observe(self, inputs: Tensor, targets: Tensor) -> None:
+        self._check_transition(inputs, targets)
         sigma, log_norm, filt, forward = self._sigma, self._log_norm, self._filter, self.particle_forward
         student, dof = self.likelihood == "student-t", self.dof
         assert forward is not None
