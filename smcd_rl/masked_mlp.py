@@ -107,6 +107,8 @@ class MaskedMLP(nn.Module):
         if not layers or not all(0 <= i < len(hidden) for i in layers):
             raise ValueError(f"masked_layers must index hidden layers 0..{len(hidden) - 1}, got {masked_layers}")
         mask_groups = _checked_groups(mask_groups, hidden, layers)
+        if dtype is not None and not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+            raise TypeError(f"dtype must be a real floating torch dtype such as torch.float32, got {dtype!r}")
         self.in_features = in_features
         self.out_features = out_features
         self.hidden = hidden
@@ -235,6 +237,7 @@ class MaskedMLP(nn.Module):
             raise ValueError(
                 f"masks must have shape [..., N, {self.mask_dim}] (mask_dim={self.mask_dim}), got {list(masks.shape)}"
             )
+        _check_mask_values(masks)
         shared = x.dim() < masks.dim()
         h = x
         # list(...)[:-1], not self.linears[:-1]: slicing a ModuleList builds a new Module every call.
@@ -259,6 +262,7 @@ class MaskedMLP(nn.Module):
             raise ValueError(
                 f"mask must have shape [..., {self.mask_dim}] (mask_dim={self.mask_dim}), got {list(mask.shape)}"
             )
+        _check_mask_values(mask)
         return _as_multiplier(mask, dtype) * (1.0 / self.keep_prob)
 
     def _run(self, x: Tensor, scaled: Tensor | None) -> Tensor:
@@ -296,6 +300,18 @@ class MaskedMLP(nn.Module):
         if x.dim() < 1 or x.shape[-1] != self.in_features:
             raise ValueError(
                 f"input must have shape [..., {self.in_features}] (in_features={self.in_features}), got {list(x.shape)}"
+            )
+
+
+def _check_mask_values(mask: Tensor) -> None:
+    """Refuse a mask value outside ``[0, 1]``: a mask keeps a unit (1), drops it (0) or keeps a share
+    of it, and a value of 2, -1 or NaN would scale units into outputs that look plausible and mean nothing."""
+    if mask.dtype != torch.bool:  # bool masks, the particles' own, cannot be out of range
+        inside = (mask >= 0) & (mask <= 1)  # False for NaN too
+        if not bool(inside.all()):
+            raise ValueError(
+                "mask values must lie in [0, 1] (bool, or the share of each unit kept, as an MMSE mask), got "
+                f"{mask[~inside].flatten()[0].item():.3g}"
             )
 
 

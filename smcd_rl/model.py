@@ -154,7 +154,9 @@ class AdaptiveModel(TensorDictModuleBase):
 
     @fitted.setter
     def fitted(self, value: bool) -> None:
-        self._declared.fitted = bool(value)
+        if not isinstance(value, bool):  # bool("no") is True: a string or a tensor would declare it trained
+            raise TypeError(f"model.fitted must be True or False, got {value!r}")
+        self._declared.fitted = value
 
     @property
     def residual_scale(self) -> Tensor | None:
@@ -513,7 +515,9 @@ class AdaptiveModel(TensorDictModuleBase):
         """Load trained weights and normalisation into this model, after checking they fit it.
 
         Raises:
-            CheckpointMismatchError: the checkpoint is of another architecture or keys.
+            CheckpointMismatchError: the checkpoint is of another architecture or keys, or its
+                weights are damaged (inf or NaN, a normaliser scale that is not positive); the
+                model is left as it was.
             smcd_rl.files.UnreadableFileError: the file is empty, truncated or corrupt.
         """
         if not isinstance(checkpoint, dict):
@@ -544,25 +548,32 @@ class AdaptiveModel(TensorDictModuleBase):
                 f"the checkpoint's residual scale, calibration or tuning does not fit its network ({err}); "
                 "save the model again"
             ) from err
-        try:
-            self.load_state_dict(checkpoint["state_dict"])
-            self._declared.fitted = bool(checkpoint.get("declared_fitted", False))
-        except (RuntimeError, TypeError, AttributeError) as err:  # weights missing or of other shapes
-            detail = str(err).strip().splitlines()[0]
+        state = _checked_weights(checkpoint["state_dict"], self.state_dict())
+        declared = checkpoint.get("declared_fitted", False)
+        if not isinstance(declared, bool):
             raise CheckpointMismatchError(
-                f"the checkpoint's weights do not fit its own architecture ({detail}); save the model again"
-            ) from err
+                f"the checkpoint's declared_fitted is {declared!r}, not True or False; save the model again"
+            )
+        self.load_state_dict(state)  # checked first: torch copies tensor by tensor and raises at the end
+        self._declared.fitted = declared
         self._declared.residual_scale, self._declared.calibration = scale, calibration
         self._declared.tuning = tuning
 
     def to(self, *args: Any, **kwargs: Any) -> Self:
-        """Move or cast the model as :meth:`torch.nn.Module.to` does; the meta device is refused.
+        """Move or cast the model as :meth:`torch.nn.Module.to` does; the meta device and non-real dtypes are refused.
 
         Raises:
             ValueError: the target is the meta device, where tensors have shapes but no values: the
-                move would throw the trained weights away. The model is left as it was.
+                move would throw the trained weights away; or a dtype that is not a real floating
+                one (complex, integer). The model is left as it was.
         """
-        device = torch._C._nn._parse_to(*args, **kwargs)[0]  # how nn.Module.to reads its arguments
+        device, dtype = torch._C._nn._parse_to(*args, **kwargs)[:2]  # how nn.Module.to reads its arguments
+        if dtype is not None and not dtype.is_floating_point:
+            # torch casts only the floating tensors to a complex dtype, and then no forward runs.
+            raise ValueError(
+                f"model.to({dtype}): the network computes in a real floating dtype (torch.float32 or torch.float64); "
+                "the model is unchanged"
+            )
         if device is not None and device.type == "meta":
             raise ValueError(
                 "model.to('meta'): the meta device holds tensors with shapes but no values, so the move would "
@@ -874,6 +885,40 @@ def _foreign_pickle(path: Path) -> bool:
     except Exception:  # breaks off or is no pickle: damaged
         return False
     return True
+
+
+def _checked_weights(state: Any, own: Mapping[str, Tensor]) -> Mapping[str, Tensor]:
+    """A checkpoint's ``state_dict``, refused unless it holds exactly ``own``'s tensors, of their
+    shapes, finite, with positive normaliser scales (a scale of 0 predicts a constant)."""
+    if not isinstance(state, Mapping):
+        raise CheckpointMismatchError(
+            f"the checkpoint's state_dict is a {type(state).__name__}, not a dict of tensors; save the model again"
+        )
+    missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+    if missing or unexpected:
+        raise CheckpointMismatchError(
+            f"the checkpoint's weights do not fit its own architecture (missing {missing}, unexpected "
+            f"{unexpected}); save the model again"
+        )
+    for key, tensor in own.items():
+        value = state[key]
+        if not isinstance(value, Tensor) or value.shape != tensor.shape:
+            got = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
+            raise CheckpointMismatchError(
+                f"the checkpoint's weights do not fit its own architecture ({key!r} is {got}, the model's "
+                f"{list(tensor.shape)}); save the model again"
+            )
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise CheckpointMismatchError(
+                f"the checkpoint's {key!r} holds inf or NaN, so every prediction would; the file is corrupt or "
+                "the training diverged: train the model again"
+            )
+        if key.endswith("norm.std") and not bool((value > 0).all()):
+            raise CheckpointMismatchError(
+                f"the checkpoint's {key!r} is not positive everywhere, so the model would predict a constant; "
+                "the file is corrupt: save the model again"
+            )
+    return state
 
 
 def _checked_where(where: Any, batch_shape: tuple[int, ...]) -> Tensor:

@@ -1,5 +1,7 @@
 """MaskedMLP: explicit masks, particle batches and dropout scaling."""
 
+import math
+
 import pytest
 import torch
 
@@ -76,3 +78,16 @@ def test_bad_shapes_name_the_expected_shape(net: smcd_rl.MaskedMLP) -> None:
         net.forward_particles(torch.randn(3), torch.ones(24))
     with pytest.raises(ValueError, match="dropout"):
         smcd_rl.MaskedMLP(3, 2, dropout=1.0)
+
+
+@pytest.mark.parametrize("value", [2.0, -1.0, math.nan, math.inf])
+def test_a_mask_value_outside_0_1_is_refused(net: smcd_rl.MaskedMLP, value: float) -> None:
+    """A mask of 2 once scaled its units into outputs that looked plausible, and NaN gave NaN."""
+    mask = torch.full((3, net.mask_dim), 0.5)
+    mask[1, 2] = value
+    x = torch.rand(3, net.in_features)
+    for forward in (lambda: net(x, mask=mask), lambda: net.forward_particles(x, mask.unsqueeze(0))):
+        with pytest.raises(ValueError, match=r"mask values must lie in \[0, 1\]"):
+            forward()
+    for good in (mask.clamp(0, 1).nan_to_num(0.5), mask.ge(0.5).to(torch.uint8)):
+        assert bool(torch.isfinite(net(x, mask=good)).all())

@@ -218,6 +218,45 @@ def test_checkpoint_of_another_architecture_is_refused(tmp_path, two_link_model)
         smcd_rl.load(tmp_path / "missing.pt")
 
 
+@pytest.mark.parametrize(
+    ("corrupt", "message"),
+    [
+        (lambda c: c["state_dict"].pop("net.linears.1.bias"), r"missing \['net.linears.1.bias'\]"),
+        (lambda c: c["state_dict"].update(extra=torch.zeros(1)), r"unexpected \['extra'\]"),
+        (lambda c: c["state_dict"].update({"net.linears.1.bias": torch.zeros(3)}), r"'net.linears.1.bias' is \[3\]"),
+        (lambda c: c["state_dict"]["net.linears.0.weight"].fill_(math.nan), "'net.linears.0.weight' holds inf or NaN"),
+        (lambda c: c["state_dict"]["output_norm.std"].zero_(), "'output_norm.std' is not positive"),
+        (lambda c: c.update(declared_fitted="no"), "declared_fitted is 'no', not True or False"),
+        (lambda c: c.update(state_dict=[1.0]), "state_dict is a list"),
+    ],
+)
+def test_a_damaged_checkpoint_is_refused_before_any_weight_changes(corrupt, message) -> None:
+    """torch's load_state_dict copies tensor by tensor and raises at the end: a checkpoint missing
+    one bias once replaced every other weight and then refused. NaN weights and a normaliser scale
+    of 0 loaded silently, the model then predicting NaN or a constant."""
+
+    def model(seed: int) -> smcd_rl.AdaptiveModel:
+        torch.manual_seed(seed)
+        return smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+
+    target, checkpoint = model(0), model(1).checkpoint()
+    before = {k: v.clone() for k, v in target.state_dict().items()}
+    corrupt(checkpoint)
+    with pytest.raises(smcd_rl.CheckpointMismatchError, match=message):
+        target.load_checkpoint(checkpoint)
+    assert all(torch.equal(before[k], v) for k, v in target.state_dict().items())
+    assert not target.fitted
+
+
+def test_fitted_takes_only_a_bool() -> None:
+    """``bool("no")`` is True: a string once declared the model trained."""
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+    for value in ("no", 1, torch.tensor(True)):
+        with pytest.raises(TypeError, match="model.fitted must be True or False"):
+            model.fitted = value  # type: ignore[assignment]
+    assert not model.fitted
+
+
 def test_bad_observations_raise_and_leave_the_filter_unchanged(two_link_model) -> None:
     model = two_link_model.with_adaptation(_smcd(n=32))
     model.reset(batch_shape=(2,))
@@ -564,3 +603,15 @@ def test_the_predictive_mean_refuses_inputs_that_do_not_start_with_the_batch_sha
             with pytest.raises(ValueError, match="do not start with the model's batch shape"):
                 smcd.predict(inputs)
         assert smcd.predict(torch.rand(6, 4, 2)).shape == (6, 4, 2)  # extra dims after the batch are fine
+
+
+def test_a_cast_to_a_complex_or_integer_dtype_is_refused_and_changes_nothing() -> None:
+    """torch casts only the floating tensors: a complex model was accepted and no forward ran after."""
+    model = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+    for dtype in (torch.complex64, torch.int64):
+        with pytest.raises(ValueError, match=f"model.to\\({dtype}\\): the network computes in a real floating dtype"):
+            model.to(dtype)
+    assert model.net.readout_layer.weight.dtype == torch.float32
+    for dtype in (torch.int64, torch.complex64, "float32"):
+        with pytest.raises(TypeError, match="dtype must be a real floating torch dtype"):
+            smcd_rl.MaskedMLP(2, 2, hidden=(8,), dtype=dtype)  # type: ignore[arg-type]
