@@ -333,6 +333,7 @@ def fit_latent(
         raise TypeError(f"fit_latent trains a LatentVariableModel, got {type(model).__name__}")
     if epochs < 0 or batch_size < 1 or lr <= 0:
         raise ValueError(f"need epochs >= 0, batch_size >= 1 and lr > 0, got {epochs}, {batch_size}, {lr}")
+    loop = _Loop("fit_latent", epochs, seed, checkpoint, progress, callback)
     _require_samples(data, "fit_latent")
     device = model.cell.weight_hh.device
     x, y = _normalised_pairs(model, data.reshape(-1), device)  # [windows, 2, features]
@@ -345,5 +346,4 @@ def fit_latent(
             n, batch_size, optimizer, generator, lambda idx: model.negative_elbo(x[idx], y[idx], generator).mean()
         )
 
-    loop = _Loop("fit_latent", epochs, seed, checkpoint, progress, callback)
     return _train(model, one_epoch, data, loop, trained=model, settings=settings, optimizer=optimizer)

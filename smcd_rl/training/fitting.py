@@ -17,7 +17,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from smcd_rl.checks import check_count, check_key, check_real, check_tensordict
+from smcd_rl.checks import check_count, check_key, check_real, check_seed, check_tensordict
 from smcd_rl.digests import content_digest
 from smcd_rl.feature_readout import FeatureReadout
 from smcd_rl.files import CheckpointMismatchError, load_file, save_file
@@ -196,8 +196,9 @@ def fit(
     epochs, batch_size = check_count(epochs, "epochs", minimum=0), check_count(batch_size, "batch_size")
     lr = _checked_rate(lr, "lr")
     weight_decay = check_real(weight_decay, "weight_decay", low=0.0, high=_LARGEST)
+    loop = _Loop("fit", epochs, seed, checkpoint, progress, callback)
     _require_samples(data, "fit")
-    _check_validation(validation, "fit")
+    _check_validation(validation, model, "fit")
     net = model.net
     _require_own_network(net, "fit")
     if mask_training not in ("random", "task"):
@@ -220,9 +221,9 @@ def fit(
     device = next(net.parameters()).device
     # Read before the normalisation is fitted below: bad task ids leave the model untouched.
     tasks = task_index(data, task_key, device) if mask_training == "task" else None
-    x, y = _normalised_pairs(model, data.reshape(-1), device)
     if not isinstance(group_masks, bool):
         raise TypeError(f"group_masks must be True or False, got {group_masks!r} ({type(group_masks).__name__})")
+    x, y = _normalised_pairs(model, data.reshape(-1), device)
     if tasks is not None and group_masks and net.mask_groups is None:
         # Task masks identify a task far better, and train faster, on blocks of units than on
         # single units (the task-mask settings page): the network takes the measured grouping.
@@ -269,7 +270,6 @@ def fit(
         train_epoch, before_epoch = task_epoch, task_epoch.start
 
     _forget_fitted_records(model)
-    loop = _Loop("fit", epochs, seed, checkpoint, progress, callback)
     history = _train(
         model, train_epoch, data, loop, trained=net, settings=settings, optimizer=optimizer, before_epoch=before_epoch
     )
@@ -385,8 +385,9 @@ def fit_reptile(
             f"fit_reptile needs data whose first batch dim indexes tasks, [tasks, *samples], got batch "
             f"{list(data.batch_size)}; e.g. data.reshape(num_tasks, -1), or smcd_rl.fit for pooled multi-task training"
         )
+    loop = _Loop("fit_reptile", epochs, seed, checkpoint, progress, callback)
     _require_samples(data, "fit_reptile")
-    _check_validation(validation, "fit_reptile")
+    _check_validation(validation, model, "fit_reptile")
     _require_own_network(model.net, "fit_reptile")
     num_tasks = data.batch_size[0]
     if tasks_per_batch > num_tasks:
@@ -443,7 +444,6 @@ def fit_reptile(
         return total / (num_tasks * n * inner_epochs)
 
     _forget_fitted_records(model)
-    loop = _Loop("fit_reptile", epochs, seed, checkpoint, progress, callback)
     history = _train(model, one_epoch, data, loop, trained=net, settings=settings, optimizer=None)
     _record_residual_scale(
         model, (x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])) if validation is None else validation
@@ -480,11 +480,18 @@ def _require_samples(data: TensorDictBase, what: str) -> None:
         raise ValueError(f"{what} got an empty dataset (no transitions); collect data before training")
 
 
-def _check_validation(validation: Any, what: str) -> None:
+def _check_validation(validation: Any, model: AdaptiveModel, what: str) -> None:
+    """Refuse validation data the end of the run could not read (a missing key, a wrong width, NaN)
+    now: the run would otherwise train in full, then fail with the new weights in place."""
     if validation is None:
         return
     check_tensordict(validation, f"{what}(validation=...)")
     _require_samples(validation, f"{what}(validation=...)")
+    try:
+        model.training_pairs(validation.reshape(-1))
+    except (KeyError, ValueError, TypeError) as err:
+        message = str(err.args[0]) if err.args else str(err)
+        raise type(err)(f"{what}(validation=...): {message.removeprefix('fit: ')}") from err
 
 
 #: The largest finite float: a rate or decay of inf passes a check for "> 0" and trains to NaN.
@@ -559,6 +566,25 @@ class _Loop:
     checkpoint: str | os.PathLike[str] | None
     progress: bool
     callback: Callable[[int, float], None] | None
+
+    def __post_init__(self) -> None:
+        """Refuse a bad option now, before the trainer changes the model: a bad seed or checkpoint
+        path otherwise failed once the normalisation was fitted, and a bad callback after a whole epoch."""
+        object.__setattr__(self, "seed", check_seed(self.seed))
+        if self.checkpoint is not None:
+            if not isinstance(self.checkpoint, (str, os.PathLike)):
+                raise TypeError(
+                    f"{self.name}: checkpoint must be a file path (str or pathlib.Path), got "
+                    f"{type(self.checkpoint).__name__}"
+                )
+            if Path(self.checkpoint).is_dir():
+                raise ValueError(
+                    f"{self.name}: checkpoint {str(self.checkpoint)!r} is a directory; pass a file path in it"
+                )
+        if self.callback is not None and not callable(self.callback):
+            raise TypeError(
+                f"{self.name}: callback must be callable as callback(epoch, mean_loss), got {type(self.callback).__name__}"
+            )
 
 
 def _train(

@@ -103,6 +103,19 @@ def test_seeded_training_is_repeatable() -> None:
         ({"epochs": 1.5}, TypeError, r"epochs must be an int, got 1.5"),  # once Python's raw range() error
         ({"batch_size": 0}, ValueError, "batch_size must be >= 1"),
         ({"weight_decay": -0.1}, ValueError, "weight_decay must be in"),
+        # These once failed after the normalisation was fitted (the model then declared trained):
+        ({"seed": 0.5}, TypeError, r"seed must be an int, got 0.5"),  # torch's "manual_seed expected a long"
+        ({"seed": 2**70}, ValueError, r"seed must be in \[0, 2\*\*64 - 1\]"),
+        ({"checkpoint": 5}, TypeError, "fit: checkpoint must be a file path"),
+        ({"group_masks": "yes"}, TypeError, "group_masks must be True or False"),
+        # ... and these after a whole epoch, or the whole run:
+        ({"callback": 5}, TypeError, r"fit: callback must be callable as callback\(epoch, mean_loss\)"),
+        ({"validation": TensorDict({"q": torch.rand(8, 2)}, [8])}, KeyError, r"fit\(validation=...\): .*no key 'ee'"),
+        (
+            {"validation": TensorDict({"q": torch.rand(8, 2), "ee": torch.full((8, 2), math.nan)}, [8])},
+            ValueError,
+            r"fit\(validation=...\): 'ee' contains NaN",
+        ),
     ],
 )
 def test_bad_training_settings_are_refused_before_any_step(settings, error, message) -> None:
@@ -111,3 +124,11 @@ def test_bad_training_settings_are_refused_before_any_step(settings, error, mess
     with pytest.raises(error, match=message):
         smcd_rl.fit(model, _data(), **{"epochs": 1, **settings}, progress=False)
     assert all(torch.equal(v, model.state_dict()[k]) for k, v in before.items())
+    assert not model.fitted
+
+
+def test_a_checkpoint_path_that_is_a_directory_is_refused_before_any_step(tmp_path) -> None:
+    model = _model()
+    with pytest.raises(ValueError, match="is a directory; pass a file path in it"):
+        smcd_rl.fit(model, _data(), epochs=1, checkpoint=tmp_path, progress=False)
+    assert not model.fitted
