@@ -15,7 +15,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from smcd_rl.checks import check_count, check_real, check_shape, checked_rows
+from smcd_rl.checks import check_count, check_real, check_real_tensor, check_shape, checked_rows
 from smcd_rl.resampling import ResamplingScheme, check_scheme, resample_indices
 
 __all__ = ["ParticleFilter", "SMCDFilter", "sample_flip_positions", "flat_particle_index", "Transition"]
@@ -264,7 +264,23 @@ class ParticleFilter:
         return {**vars(self), "_derived": dict(self._derived)}, self.generator.get_state()
 
     def restore(self, snapshot: tuple[dict[str, Any], Tensor]) -> None:
-        """Put back a :meth:`snapshot` of this filter, generator included."""
+        """Put back a :meth:`snapshot` of this filter, generator included.
+
+        Raises:
+            ValueError: ``snapshot`` is not one of this filter's (another filter's would make the
+                two share one random generator); the filter is left as it was.
+        """
+        if (
+            not isinstance(snapshot, tuple)
+            or len(snapshot) != 2
+            or not isinstance(snapshot[0], dict)
+            or snapshot[0].get("generator") is not self.generator
+            or snapshot[0].keys() != vars(self).keys()
+        ):
+            raise ValueError(
+                "restore takes a snapshot() of this same filter; to copy another filter's state use "
+                "load_state_dict(other.state_dict())"
+            )
         attributes, generator = snapshot
         vars(self).update(attributes, _derived=dict(attributes["_derived"]))
         self.generator.set_state(generator)
@@ -305,8 +321,31 @@ class ParticleFilter:
                 f"{fits} (another batch size, particle count or network?); reset the model to the batch shape "
                 "it was saved with"
             )
+        if current is not None and particles.dtype != current.dtype:
+            raise ValueError(f"the state's particles are {particles.dtype}, this filter's {current.dtype}")
+        if not log_weights.is_floating_point() or not log_evidence.is_floating_point():
+            raise ValueError(
+                f"the state's log weights and evidence must be float tensors, got {log_weights.dtype} and "
+                f"{log_evidence.dtype}"
+            )
         if bool(torch.isnan(log_weights).any()) or not bool(torch.isfinite(log_weights).any(-1).all()):
             raise ValueError("the state's log weights are NaN, or -inf for every particle of a batch element")
+        # Normalised, as every update leaves them: unnormalised weights would skew the ESS and the evidence.
+        total = torch.logsumexp(log_weights.to(torch.float64), dim=-1)
+        if bool((total.abs() > NORMALISED_TOLERANCE).any()):
+            raise ValueError(
+                f"the state's weights sum to {total.exp().max().item():.6g}, not 1; pass a state_dict() of a filter"
+            )
+        if bool(torch.isnan(log_evidence).any()):
+            raise ValueError("the state's log evidence is NaN")
+        for name, shape in (("last_ess", log_evidence.shape), ("ancestors", log_weights.shape)):
+            value = state.get(name)
+            if value is not None and (not isinstance(value, Tensor) or value.shape != shape):
+                got = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
+                raise ValueError(f"the state's {name} is {got}, expected None or a tensor of shape {list(shape)}")
+        ancestors = state.get("ancestors")
+        if ancestors is not None:
+            _check_ancestors(ancestors, particles)
         try:
             torch.Generator().set_state(state["generator"])
         except (RuntimeError, TypeError) as err:
@@ -345,13 +384,14 @@ class ParticleFilter:
     def _checked_rows(self, state: dict[str, Any], rows: Tensor) -> Tensor:
         """``rows`` as bool ``[*batch]`` on the filter's device, after checking it and ``state`` fit the filter."""
         particles = self._state()[0]
-        saved = state.get("particles")
+        saved = state.get("particles") if isinstance(state, dict) else None
         if not isinstance(saved, Tensor) or saved.shape != particles.shape:
             got = list(saved.shape) if isinstance(saved, Tensor) else type(saved).__name__
             raise ValueError(
                 f"restore_rows needs a state_dict() of this filter with particles {list(particles.shape)}, got {got}; "
                 "save the state after the reset whose rows you restore"
             )
+        self._check_state(state)  # NaN weights, weights of another shape: refused, not mixed in
         return checked_rows(torch.as_tensor(rows, device=self.device), self.batch_shape)
 
     def _checked_log_likelihood(self, log_likelihood: Tensor) -> tuple[Tensor, bool]:
@@ -369,7 +409,10 @@ class ParticleFilter:
                 f"log_likelihood must have shape [*batch, N] = {list(log_weights.shape)}, "
                 f"got {list(log_likelihood.shape)}"
             )
-        log_likelihood = log_likelihood.to(log_weights.dtype)  # overflows to -inf here, if it does
+        check_real_tensor(log_likelihood, "log_likelihood")  # a complex one would lose its imaginary part
+        # Detached: weights that kept the likelihood's autograd graph would chain every update's graph
+        # to the next, and hold them all in memory.
+        log_likelihood = log_likelihood.detach().to(log_weights.dtype)  # overflows to -inf here, if it does
         finite = bool(torch.isfinite(log_likelihood).all())
         if not finite:  # one pass above; the checks below name the problem
             if torch.isnan(log_likelihood).any():
@@ -453,6 +496,33 @@ class ParticleFilter:
         self.particles = _gather_particles(particles, idx)
         self.log_weights = new_log_weights
         self.ancestors = idx
+
+
+#: How far from 0 a loaded state's ``logsumexp(log_weights)`` may be: the updates leave the weights
+#: normalised up to float32 rounding, far inside it.
+NORMALISED_TOLERANCE = 1e-3
+
+
+def _check_ancestors(ancestors: Tensor, particles: Tensor) -> None:
+    """Refuse ``ancestors`` unless they are particle indices under which every copy equals its ancestor's row.
+
+    The MMSE mask and the SMCD update read one row per ancestor: fake ancestors would silently
+    stand one particle in for others.
+    """
+    n = particles.shape[-2]
+    if ancestors.is_floating_point() or ancestors.dtype == torch.bool or ancestors.is_complex():
+        raise ValueError(f"the state's ancestors must be integer particle indices, got {ancestors.dtype}")
+    if bool(((ancestors < 0) | (ancestors >= n)).any()):
+        raise ValueError(f"the state's ancestors must be particle indices in [0, {n}); pass a filter's state_dict()")
+    # One particle per ancestor stands for its copies: any one, since they must all be equal.
+    index = ancestors.long()
+    representative = torch.zeros_like(index).scatter_(-1, index, torch.arange(n, device=index.device).expand_as(index))
+    chosen = representative.gather(-1, index)
+    rows = particles.gather(-2, chosen.unsqueeze(-1).expand_as(particles))
+    if not torch.equal(rows, particles):
+        raise ValueError(
+            "the state's ancestors call particles copies that differ; pass a filter's state_dict() as it was saved"
+        )
 
 
 def _clone(value: Tensor | None, device: torch.device | None = None) -> Tensor | None:
@@ -666,12 +736,33 @@ class SMCDFilter(ParticleFilter):
 
     def _check_state(self, state: Any) -> None:
         super()._check_state(state)
+        particles = state["particles"]
+        if particles.dtype != torch.bool or particles.shape[-1] != self.mask_dim:
+            raise ValueError(
+                f"the state's particles are {particles.dtype} masks of {particles.shape[-1]} bits, this filter's "
+                f"bool masks of {self.mask_dim}; pass a state_dict() of a filter of the same network"
+            )
         mask = state.get("mean_mask")
         if mask is not None and (
             not isinstance(mask, Tensor)
-            or mask.shape != state["particles"].shape[:-2] + (state["particles"].shape[-1],)
+            or mask.shape != particles.shape[:-2] + (particles.shape[-1],)
+            or not mask.is_floating_point()
+            or not bool(((mask >= 0) & (mask <= 1)).all())
         ):
-            raise ValueError("the state's MMSE mask does not fit its particles; pass this filter's state_dict()")
+            raise ValueError(
+                "the state's MMSE mask does not fit its particles (its shape, or values outside [0, 1]); pass this "
+                "filter's state_dict()"
+            )
+        flips = state.get("last_flips")
+        if flips is not None and (
+            not isinstance(flips, Tensor)
+            or flips.dim() != 1
+            or flips.is_floating_point()
+            or bool(((flips < 0) | (flips >= particles.numel())).any())
+        ):
+            raise ValueError(
+                "the state's last_flips are not positions in its particles; pass this filter's state_dict()"
+            )
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
         """As :meth:`ParticleFilter.restore_rows`; the restored rows' MMSE mask is restored bit for bit too.

@@ -402,3 +402,79 @@ def test_a_log_evidence_that_would_overflow_is_refused_and_changes_nothing() -> 
     for key in ("particles", "log_weights", "log_evidence", "last_ess", "generator"):
         assert torch.equal(state[key], after[key]), key
     assert torch.isfinite(filt.log_evidence).all()
+
+
+def _resampled_state(batch: tuple[int, ...] = (2,)) -> tuple[smcd_rl.SMCDFilter, dict]:
+    """A filter whose last update resampled, so that its state names ancestors (copies)."""
+    filt = smcd_rl.SMCDFilter(4, num_particles=8, generator=_gen())
+    filt.reset(batch_shape=batch)
+    filt.update(lambda m: -10.0 * (m.sum(-1).float() - 4).square())
+    assert filt.ancestors is not None
+    return filt, filt.state_dict()
+
+
+def _edited(state: dict, **changes: object) -> dict:
+    return {**state, **changes}
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        # Each was once taken as it was: a state that would go on as wrong numbers, or fail later.
+        (lambda s: _edited(s, last_ess=[1.0, 1.0]), r"last_ess is list"),  # once half-loaded, then AttributeError
+        (lambda s: _edited(s, ancestors=torch.zeros(2, 8, dtype=torch.long)), "ancestors call particles copies"),
+        (lambda s: _edited(s, ancestors=torch.full((2, 8), 99)), r"particle indices in \[0, 8\)"),
+        (lambda s: _edited(s, mean_mask=torch.full((2, 4), 7.0)), r"values outside \[0, 1\]"),
+        (lambda s: _edited(s, log_weights=torch.zeros(2, 8)), "weights sum to 8, not 1"),
+        (lambda s: _edited(s, log_weights=s["log_weights"].long()), "must be float tensors"),
+        (lambda s: _edited(s, particles=s["particles"].float()), "particles are torch.float32"),
+        (lambda s: _edited(s, log_evidence=torch.full((2,), math.nan)), "log evidence is NaN"),
+        (lambda s: _edited(s, last_ess=torch.ones(3)), r"last_ess is \[3\]"),
+        (lambda s: _edited(s, last_flips=torch.tensor([10_000])), "last_flips are not positions"),
+    ],
+)
+def test_a_state_that_is_not_one_a_filter_could_be_in_is_refused_and_changes_nothing(edit, message) -> None:
+    target, _ = _resampled_state()
+    before = target.state_dict()
+    with pytest.raises(ValueError, match=message):
+        target.load_state_dict(edit(_resampled_state()[1]))
+    after = target.state_dict()
+    for key, value in before.items():
+        assert (value is None and after[key] is None) or torch.equal(value, after[key]), key
+
+
+def test_a_filter_never_reset_refuses_a_state_of_another_mask_width() -> None:
+    """With no particles of its own to compare, it once took 4-bit masks into a 6-bit filter."""
+    _, state = _resampled_state()
+    with pytest.raises(ValueError, match="masks of 4 bits, this filter's bool masks of 6"):
+        smcd_rl.SMCDFilter(6, num_particles=8).load_state_dict(state)
+
+
+def test_restore_rows_refuses_nan_weights_instead_of_mixing_them_in() -> None:
+    filt, state = _resampled_state()
+    state["log_weights"][0, 0] = math.nan
+    before = filt.state_dict()
+    with pytest.raises(ValueError, match="log weights are NaN"):
+        filt.restore_rows(state, torch.tensor([True, False]))
+    assert torch.equal(filt.state_dict()["log_weights"], before["log_weights"])
+
+
+def test_restore_takes_only_this_filters_snapshot() -> None:
+    """Another filter's snapshot once replaced this one's state and made the two share one generator."""
+    a, _ = _resampled_state()
+    b, _ = _resampled_state()
+    particles = a.particles
+    for snapshot in (b.snapshot(), None, ({}, a.generator.get_state())):
+        with pytest.raises(ValueError, match="restore takes a snapshot\\(\\) of this same filter"):
+            a.restore(snapshot)  # type: ignore[arg-type]
+    assert a.particles is particles and a.generator is not b.generator
+
+
+def test_a_complex_log_likelihood_is_refused_and_a_graph_is_not_kept() -> None:
+    filt, _ = _resampled_state()
+    with pytest.raises(TypeError, match="log_likelihood is complex"):
+        filt.update(lambda m: torch.zeros(2, 8, dtype=torch.complex64))
+    scale = torch.tensor(1.0, requires_grad=True)
+    filt.update(lambda m: -scale * m.sum(-1).float())  # a likelihood with autograd (a learnt noise, say)
+    assert filt.log_weights is not None and filt.log_weights.grad_fn is None
+    assert filt.log_evidence is not None and filt.log_evidence.grad_fn is None
