@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 import smcd_rl.strategies.stream_weights as stream_weights
-from smcd_rl.checks import check_count, check_real
+from smcd_rl.checks import check_count, check_real, checked_rows
 from smcd_rl.masked_mlp import MaskedMLP
 from smcd_rl.strategies.base import Adaptation
 
@@ -184,29 +184,69 @@ class GradientDescent(Adaptation):
         return bool(torch.isfinite(observed * self._output_scale).all())
 
     def state_dict(self) -> dict[str, Any]:
-        assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
+        inputs, targets, count = self._state()
         return {
             "params": {k: v.clone() for k, v in self._params.items()},
-            "inputs": self._inputs.clone(),
-            "targets": self._targets.clone(),
-            "count": self._count.clone(),
+            "inputs": inputs.clone(),
+            "targets": targets.clone(),
+            "count": count.clone(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._checked_state(state)
         self._params = {k: v.clone() for k, v in state["params"].items()}
         self._inputs, self._targets = state["inputs"].clone(), state["targets"].clone()
         self._count = state["count"].clone()
 
     def restore_rows(self, state: dict[str, Any], rows: Tensor) -> None:
-        assert self._inputs is not None and self._targets is not None and self._count is not None, "call reset() first"
-        rows = rows.to(self._count.device).reshape(-1)
+        self._checked_state(state)
+        inputs, targets, count = self._state()
+        rows = checked_rows(torch.as_tensor(rows, device=count.device), self._batch_shape).reshape(-1)
 
         def pick(saved: Tensor, current: Tensor) -> Tensor:
             return torch.where(rows.reshape(-1, *([1] * (current.dim() - 1))), saved, current)
 
         self._params = {k: pick(state["params"][k], p) for k, p in self._params.items()}
-        self._inputs, self._targets = pick(state["inputs"], self._inputs), pick(state["targets"], self._targets)
-        self._count = pick(state["count"], self._count)
+        self._inputs, self._targets = pick(state["inputs"], inputs), pick(state["targets"], targets)
+        self._count = pick(state["count"], count)
+
+    def _state(self) -> tuple[Tensor, Tensor, Tensor]:
+        if self._inputs is None or self._targets is None or self._count is None:
+            raise RuntimeError("GradientDescent has no weights yet; call model.reset() first")
+        return self._inputs, self._targets, self._count
+
+    def _checked_state(self, state: Any) -> None:
+        """Refuse ``state`` unless it is a :meth:`state_dict` of this strategy at its batch shape, finite."""
+        current: dict[str, Any] = {
+            "params": self._params,
+            **dict(zip(("inputs", "targets", "count"), self._state(), strict=True)),
+        }
+        if not isinstance(state, Mapping) or state.keys() != current.keys() or not isinstance(state["params"], Mapping):
+            raise ValueError(
+                f"a gradient descent state is a dict of {sorted(current)} (its state_dict()), got "
+                f"{sorted(state) if isinstance(state, Mapping) else type(state).__name__}"
+            )
+        given: dict[str, Any] = {
+            **{f"params.{k}": v for k, v in state["params"].items()},
+            **{k: state[k] for k in current if k != "params"},
+        }
+        own: dict[str, Tensor] = {
+            **{f"params.{k}": v for k, v in self._params.items()},
+            **{k: v for k, v in current.items() if k != "params"},
+        }
+        for name, value in own.items():
+            got = given.get(name)
+            if not isinstance(got, Tensor) or got.shape != value.shape or got.dtype != value.dtype:
+                described = f"{got.dtype} {list(got.shape)}" if isinstance(got, Tensor) else type(got).__name__
+                raise ValueError(
+                    f"a gradient descent state whose {name} is {described}, this one's {value.dtype} "
+                    f"{list(value.shape)} (another batch size or network?); reset the model to the batch shape it "
+                    "was saved with"
+                )
+            if got.is_floating_point() and not bool(torch.isfinite(got).all()):
+                raise ValueError(f"a gradient descent state with inf or NaN in its {name}; pass its state_dict()")
+        if given.keys() != own.keys():
+            raise ValueError(f"a gradient descent state with weights {sorted(given)}, this one's {sorted(own)}")
 
     def predict(self, inputs: Tensor) -> Tensor:
         self._extra_dims(inputs)

@@ -229,3 +229,43 @@ def test_a_refused_observation_leaves_the_weights_of_in_place_steps_untouched(mo
         assert torch.equal(before[key], after[key]), key
     for key, value in before["params"].items():
         assert torch.equal(value, after["params"][key]), key
+
+
+def _stream_strategy(batch: int) -> smcd_rl.GradientDescent:
+    torch.manual_seed(0)
+    model = smcd_rl.AdaptiveModel(
+        smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee", adaptation=smcd_rl.GradientDescent(lr=0.05)
+    )
+    model.fitted = True  # a random network: the state, not the fit, is under test
+    model.reset(batch_shape=(batch,))
+    model.adaptation.observe(torch.rand(batch, 2), torch.rand(batch, 2))
+    return model.adaptation
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        # Each was once taken: the first after replacing the weights, the others to fail or predict NaN later.
+        (lambda s: {"params": s["params"]}, r"a dict of \['count', 'inputs', 'params', 'targets'\]"),
+        (lambda s: _stream_strategy(2).state_dict(), r"params.linears.0.weight is torch.float32 \[2, 8, 2\]"),
+        (
+            lambda s: {**s, "params": {k: v.fill_(math.nan) for k, v in s["params"].items()}},
+            "inf or NaN in its params",
+        ),
+    ],
+)
+def test_a_foreign_or_broken_state_is_refused_and_changes_nothing(edit, message) -> None:
+    strategy = _stream_strategy(3)
+    probe = torch.rand(3, 2)
+    before = strategy.predict(probe)
+    with pytest.raises(ValueError, match=message):
+        strategy.load_state_dict(edit(_stream_strategy(3).state_dict()))
+    with pytest.raises(ValueError, match=message):
+        strategy.restore_rows(edit(_stream_strategy(3).state_dict()), torch.tensor([True, False, True]))
+    assert torch.equal(strategy.predict(probe), before)
+
+
+def test_state_dict_before_reset_says_to_reset() -> None:
+    """It was a bare assert, which ``python -O`` removes."""
+    with pytest.raises(RuntimeError, match="call model.reset\\(\\) first"):
+        smcd_rl.GradientDescent().state_dict()
