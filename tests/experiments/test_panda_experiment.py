@@ -310,3 +310,19 @@ def test_measurements_arrive_every_nth_step_and_model_reference_control_needs_a_
     # length to 1 cm by accident is rare, and 8 leaves room for such arms.
     settled = (blind["final_distance"] - tools.abs()).abs() < 0.01
     assert int(settled.sum()) >= 8
+
+
+def test_the_plan_ranks_the_evaluations_as_the_default_run_measured_them() -> None:
+    """Counted in forwards, the plan put SMCD's updates above gradient descent's, which the default
+    run measured six times dearer (every arm steps its own weights): the time left swung from 18
+    minutes to over an hour as the stages ran. Measured there: the combination and GD at n = 1
+    are the two longest evaluations, and M+G at n = 1 took seven times M+S's."""
+    costs = panda.stage_costs(panda.PandaConfig())
+    evaluations = sorted((cost, name) for name, cost in costs.items() if name.startswith("evaluate "))
+    assert [name for _, name in evaluations[-2:]] == ["evaluate M+G n=1", "evaluate M+C n=1"]
+    assert costs["evaluate M+G n=1"] > 5 * costs["evaluate M+S n=1"]
+    assert costs["evaluate M+SL n=1"] > costs["evaluate M+S(paper) n=1"] > costs["evaluate M+S n=1"]
+    # The settings scale it: twice the arms, twice each evaluation; SMCD's updates follow the particles.
+    wider = panda.stage_costs(panda.PandaConfig(tasks=200, particles=200))
+    assert wider["evaluate M+N n=1"] == pytest.approx(2 * costs["evaluate M+N n=1"])
+    assert wider["evaluate M+S n=1"] > 3 * costs["evaluate M+S n=1"]

@@ -82,7 +82,7 @@ from smcd_rl.experiments.panda.tables import describe, table, trial_rows
 from smcd_rl.experiments.panda.task_network import task_data, task_network
 from smcd_rl.experiments.shared.harness import Experiment
 from smcd_rl.experiments.shared.scoreboard_entry import scoreboard_entry
-from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost, update_cost
+from smcd_rl.experiments.shared.stages import estimate, mlp_flops, tuning_cost
 from smcd_rl.experiments.shared.stats import cell_statistics, verdict_table
 from smcd_rl.experiments.shared.task_family import task_mask_settings, task_verdict_table
 from smcd_rl.experiments.shared.tuned_methods import ms_column, tuned_variants
@@ -306,44 +306,74 @@ def _write_videos(
     return names
 
 
-def stage_costs(config: PandaConfig) -> dict[str, float]:
-    """Each stage's rough seconds at ``config`` (see :func:`~smcd_rl.experiments.shared.stages.estimate`), in run order.
+#: The default run's measured seconds (``smcd-rl panda``: 100 arms x 3 seeds, a 3 x 256 network,
+#: 100 particles, one process on one thread of a 2-core Intel Xeon): each training and tuning.
+_REFERENCE_SECONDS = {"train": 28.0, "train T": 168.0, "tune M": 45.0, "tune T": 21.0}
+#: The same run's milliseconds per method: one control step of every arm (its Jacobians; gradient
+#: descent's and the combination's are of every arm's own weights, ten times the others') and one
+#: update of every arm, fitted over its five intervals (each stage within 10 %, T+S's within 50 %).
+#: Rough forward counts, which they replace, ranked SMCD's updates above gradient descent's, six
+#: times cheaper, and the progress line's time left swung between 18 minutes and over an hour.
+_REFERENCE_MS = {  # label: (per control step, per update)
+    "FK": (3.5, 0.4),
+    "M+N": (3.0, 0.5),
+    "M+G": (45.0, 310.0),
+    "M+S": (4.2, 47.0),
+    "M+S(evidence)": (4.2, 49.0),
+    "M+S(paper)": (4.1, 98.0),
+    "M+C": (64.0, 549.0),
+    "M+L": (4.4, 22.0),
+    "M+SL": (1.8, 143.0),
+    "T+N": (3.5, 0.7),
+    "T+G": (42.0, 200.0),
+    "T+S": (6.2, 9.7),
+    "T+L": (4.2, 21.0),
+    "T+SL": (4.6, 93.0),
+}
 
-    Training counts its optimiser steps and a forward and backward (3 forwards) per sample and
-    epoch; the tuning its filter runs (:func:`~smcd_rl.experiments.shared.stages.tuning_cost`); each
-    (method, n) ``seeds x steps`` control steps of ``tasks`` arms, each a Jacobian of the model
-    (about 4 forwards; FK's analytic one costs twice a step's overhead instead), plus at every n-th
-    step an update (:func:`~smcd_rl.experiments.shared.stages.update_cost`) of every arm.
+
+def stage_costs(config: PandaConfig) -> dict[str, float]:
+    """Each stage's expected seconds at ``config``, in run order: the default run's, scaled by the settings.
+
+    Training scales as its optimiser steps and forwards
+    (:func:`~smcd_rl.experiments.shared.stages.estimate`), a tuning as its filter runs
+    (:func:`~smcd_rl.experiments.shared.stages.tuning_cost`), and each (method, n) as its ``seeds x
+    steps`` control steps and ``seeds x ceil(steps / n)`` updates, each in proportion to the arms
+    and the network's forward cost (and SMCD's updates to the particles).
 
     Example:
         >>> costs = stage_costs(PandaConfig())
-        >>> list(costs)[:4], costs["evaluate M+S n=20"] > costs["evaluate M+N n=20"]
-        (['train', 'train T', 'tune M', 'tune T'], True)
+        >>> list(costs)[:4], round(costs["evaluate M+G n=1"]), round(costs["evaluate M+S n=1"])
+        (['train', 'train T', 'tune M', 'tune T'], 213, 31)
     """
-    flops = mlp_flops(7, (config.hidden,) * config.depth, 3)
-    costs = {
-        "train": estimate(
-            steps=config.epochs * -(-config.samples // config.batch_size),
-            forwards=3 * config.epochs * config.samples,
-            flops=flops,
-        )
-    }
+    default = PandaConfig()
+
+    def flops(c: PandaConfig) -> float:
+        return mlp_flops(7, (c.hidden,) * c.depth, 3)
+
+    def training(c: PandaConfig) -> float:
+        steps = c.epochs * -(-c.samples // c.batch_size)
+        return estimate(steps=steps, forwards=3 * c.epochs * c.samples, flops=flops(c))
+
+    def tuning(c: PandaConfig) -> float:
+        return tuning_cost(c, episodes=c.tuning_episodes, steps=c.tuning_steps, flops=flops(c))
+
+    trained = training(config) / training(default)
+    costs = {"train": _REFERENCE_SECONDS["train"] * trained}
     if any(m.startswith("T+") for m in config.methods):  # M's training and each tool's posterior every epoch
-        costs["train T"] = 2 * costs["train"]
+        costs["train T"] = _REFERENCE_SECONDS["train T"] * trained
     for net in ("M", "T"):
         if tuned_variants(net, config.methods):
-            costs[f"tune {net}"] = tuning_cost(
-                config, episodes=config.tuning_episodes, steps=config.tuning_steps, flops=flops
-            )
+            costs[f"tune {net}"] = _REFERENCE_SECONDS[f"tune {net}"] * tuning(config) / tuning(default)
+    arms = config.tasks / default.tasks * flops(config) / flops(default)
     for label in method_labels(config):
+        step_ms, update_ms = _REFERENCE_MS[label]
+        if label.partition("+")[2].startswith("S"):  # SMCD, with or without a readout: a forward per particle
+            update_ms *= config.particles / default.particles
         for n in _intervals(label, config):
             steps = config.seeds * config.steps
             updates = config.seeds * -(-config.steps // n)
-            overhead, update = update_cost(label.partition("+")[2] or "N", config)
-            forwards = 0.0 if label == "FK" else config.tasks * (4 * steps + update * updates)
-            costs[f"evaluate {label} n={n}"] = estimate(
-                steps=(2 if label == "FK" else 1) * steps + overhead * updates, forwards=forwards, flops=flops
-            )
+            costs[f"evaluate {label} n={n}"] = arms * (steps * step_ms + updates * update_ms) / 1000
     return costs
 
 
