@@ -186,7 +186,7 @@ class MaskedMLP(nn.Module):
             if not self.training or self.dropout == 0.0:
                 return self._run(x, None)
             mask = torch.rand(*x.shape[:-1], self.mask_dim, device=x.device) < self.keep_prob
-        return self._run(x, self._scaled(mask, x.dtype))
+        return self._run(x, self._scaled(mask, x))
 
     @property
     def readout_layer(self) -> nn.Linear:
@@ -207,7 +207,7 @@ class MaskedMLP(nn.Module):
             (torch.Size([4, 6]), True)
         """
         self._check_input(x)
-        return self._hidden(x, None if mask is None else self._scaled(mask, x.dtype))
+        return self._hidden(x, None if mask is None else self._scaled(mask, x))
 
     def trunk(self, x: Tensor) -> Tensor:
         """What :attr:`linears` read, the part of the network before them that no strategy adapts: here the input.
@@ -239,6 +239,14 @@ class MaskedMLP(nn.Module):
             )
         _check_mask_values(masks)
         shared = x.dim() < masks.dim()
+        try:
+            torch.broadcast_shapes(x.shape[:-1] + ((1,) if shared else ()), masks.shape[:-1])
+        except RuntimeError:
+            raise ValueError(
+                f"masks of shape {list(masks.shape)} for inputs of shape {list(x.shape)}: the inputs' batch dims "
+                "do not broadcast against the masks' [..., N]; pass inputs [..., in] shared by the particles or "
+                "[..., N, in], one per particle"
+            ) from None
         h = x
         # list(...)[:-1], not self.linears[:-1]: slicing a ModuleList builds a new Module every call.
         for i, linear in enumerate(list(self.linears)[:-1]):
@@ -256,14 +264,22 @@ class MaskedMLP(nn.Module):
         return (readout or self.linears[-1])(h)
 
     # ------------------------------------------------------------------ helpers
-    def _scaled(self, mask: Tensor, dtype: torch.dtype) -> Tensor:
+    def _scaled(self, mask: Tensor, x: Tensor) -> Tensor:
+        """``mask`` checked against the inputs ``x`` it masks, as the multiplier of the kept units."""
         check_real_tensor(mask, "mask")
         if mask.dim() == 0 or mask.shape[-1] != self.mask_dim:
             raise ValueError(
                 f"mask must have shape [..., {self.mask_dim}] (mask_dim={self.mask_dim}), got {list(mask.shape)}"
             )
+        try:
+            torch.broadcast_shapes(x.shape[:-1], mask.shape[:-1])
+        except RuntimeError:
+            raise ValueError(
+                f"a mask of shape {list(mask.shape)} for inputs of shape {list(x.shape)}: their batch dims "
+                f"{list(mask.shape[:-1])} and {list(x.shape[:-1])} do not broadcast; pass one mask per input, or one for all"
+            ) from None
         _check_mask_values(mask)
-        return _as_multiplier(mask, dtype) * (1.0 / self.keep_prob)
+        return _as_multiplier(mask, x.dtype) * (1.0 / self.keep_prob)
 
     def _run(self, x: Tensor, scaled: Tensor | None) -> Tensor:
         return self.linears[-1](self._hidden(x, scaled))

@@ -472,7 +472,8 @@ class AdaptiveModel(TensorDictModuleBase):
         self._require_reset()
         particles = getattr(self.adaptation, "particles", None)
         if particles is None:
-            raise AttributeError(f"{type(self.adaptation).__name__} keeps no mask particles; use smcd_rl.SMCD")
+            # Not AttributeError: nn.Module's __getattr__ would swallow it and report a missing attribute.
+            raise TypeError(f"{type(self.adaptation).__name__} keeps no mask particles; use smcd_rl.SMCD")
         return particles
 
     def predict_particles(self, td: TensorDictBase) -> Tensor:
@@ -1076,6 +1077,7 @@ def load(
                 {"name": saved["name"], "settings": on_device(saved["name"], settings_of(saved), "cpu")}
             )
         cls = _CLASSES[checkpoint["class"]]
+        model = _assemble(cls, net, checkpoint["keys"], adaptation)
     except CheckpointMismatchError:
         raise
     except (TypeError, ValueError, KeyError) as err:  # a configuration this version cannot rebuild
@@ -1084,7 +1086,6 @@ def load(
             f"({type(err).__name__}: {err}); save the model again with this version",
             Path(path),
         ) from err
-    model = _assemble(cls, net, checkpoint["keys"], adaptation)
     model.load_checkpoint(checkpoint)
     return model
 

@@ -22,6 +22,7 @@ Example:
 from __future__ import annotations
 
 import importlib
+import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -82,7 +83,16 @@ def build(name: str, settings: Mapping[str, Any]) -> Adaptation:
     """A fresh strategy from its stored settings (see the module doc): the class's ``from_settings``."""
     if not isinstance(settings, Mapping):
         raise TypeError(f"the settings of a {name!r} strategy must be a dict, got {type(settings).__name__}")
-    return strategy_class(name).from_settings(settings)
+    cls = strategy_class(name)
+    try:
+        return cls.from_settings(settings)
+    except TypeError as err:
+        if "unexpected keyword argument" not in str(err):
+            raise
+        known = [p for p in inspect.signature(cls).parameters if p not in ("args", "kwargs")]
+        if "generator" in known:  # stored as the generator's seed and device
+            known[known.index("generator") : known.index("generator") + 1] = ["seed", "device"]
+        raise TypeError(f"{err}; the settings of a {name!r} strategy are {known}") from err
 
 
 def spec(strategy: Adaptation) -> dict[str, Any]:

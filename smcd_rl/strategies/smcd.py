@@ -10,7 +10,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from smcd_rl.checks import check_count, check_real
+from smcd_rl.checks import check_count, check_real, check_seed
 from smcd_rl.feature_readout import NO_MASKS, FeatureReadout
 from smcd_rl.filter import SMCDFilter, Transition, check_transition
 from smcd_rl.masked_mlp import MaskedMLP
@@ -159,7 +159,7 @@ class SMCD(Adaptation):
         settings = dict(settings)
         if "seed" not in settings and "device" not in settings:
             return cls(**settings)  # stored without a generator: one seeded from torch's global generator
-        seed, device = settings.pop("seed", 0), str(settings.pop("device", "cpu"))
+        seed, device = check_seed(settings.pop("seed", 0)), str(settings.pop("device", "cpu"))
         kind = torch.device(device).type
         if kind != "cpu" and not getattr(torch, kind).is_available():
             raise ValueError(

@@ -162,8 +162,11 @@ def tune(
     """
     started = time.perf_counter()
     model = checked_model(model)
+    if isinstance(strategies, str) or not isinstance(strategies, Sequence):
+        hint = f"; for one, pass [{strategies!r}]" if isinstance(strategies, str) else ""
+        raise TypeError(f"strategies must be a list of kinds such as {list(KINDS[:2])}, got {strategies!r}{hint}")
     unknown = [s for s in strategies if s not in KINDS]
-    if unknown or not strategies or isinstance(strategies, str):
+    if unknown or not strategies:
         raise ValueError(f"strategies: unknown {unknown or strategies}; choose one or more of {list(KINDS)}")
     chosen_by = checked_criterion(criterion, horizon)
     if budget_ms is not None:

@@ -91,3 +91,14 @@ def test_a_mask_value_outside_0_1_is_refused(net: smcd_rl.MaskedMLP, value: floa
             forward()
     for good in (mask.clamp(0, 1).nan_to_num(0.5), mask.ge(0.5).to(torch.uint8)):
         assert bool(torch.isfinite(net(x, mask=good)).all())
+
+
+def test_masks_whose_batch_does_not_fit_the_inputs_are_refused_by_name(net: smcd_rl.MaskedMLP) -> None:
+    """torch's "The size of tensor a (3) must match the size of tensor b (4)" named neither tensor."""
+    x = torch.rand(3, net.in_features)
+    with pytest.raises(ValueError, match=r"a mask of shape \[4, \d+\] for inputs of shape \[3, 3\]"):
+        net(x, mask=torch.ones(4, net.mask_dim, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"masks of shape \[4, 5, \d+\] for inputs of shape \[3, 3\]"):
+        net.forward_particles(x, torch.ones(4, 5, net.mask_dim, dtype=torch.bool))
+    assert net.forward_particles(x, torch.ones(3, 5, net.mask_dim, dtype=torch.bool)).shape == (3, 5, 2)
+    assert net(x.unsqueeze(1).expand(3, 7, -1), mask=torch.ones(3, 1, net.mask_dim)).shape == (3, 7, 2)

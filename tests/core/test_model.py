@@ -615,3 +615,25 @@ def test_a_cast_to_a_complex_or_integer_dtype_is_refused_and_changes_nothing() -
     for dtype in (torch.int64, torch.complex64, "float32"):
         with pytest.raises(TypeError, match="dtype must be a real floating torch dtype"):
             smcd_rl.MaskedMLP(2, 2, hidden=(8,), dtype=dtype)  # type: ignore[arg-type]
+
+
+def test_particles_of_a_strategy_without_them_says_which_to_use() -> None:
+    """An AttributeError raised in the property was swallowed by nn.Module, which reported a missing attribute."""
+    model = smcd_rl.AdaptiveModel(
+        smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee", adaptation=smcd_rl.NoAdaptation()
+    )
+    model.fitted = True
+    model.reset()
+    with pytest.raises(TypeError, match="NoAdaptation keeps no mask particles; use smcd_rl.SMCD"):
+        _ = model.particles
+
+
+def test_a_checkpoint_whose_keys_are_not_a_record_is_unreadable_not_a_raw_error(tmp_path) -> None:
+    """Its keys "q" reached the model's constructor: "string indices must be integers"."""
+    path = tmp_path / "m.pt"
+    smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee").save(path)
+    checkpoint = torch.load(path, weights_only=False)
+    checkpoint["keys"] = "q"
+    torch.save(checkpoint, path)
+    with pytest.raises(smcd_rl.files.UnreadableFileError, match="holds a configuration this version of smcd_rl cannot"):
+        smcd_rl.load(path)

@@ -113,3 +113,13 @@ def test_the_old_module_paths_still_import_with_a_deprecation_warning() -> None:
         with pytest.warns(DeprecationWarning, match=f"{old} moved to {new}"):
             module = importlib.import_module(old)
         assert getattr(module, name) is getattr(importlib.import_module(new), name)
+
+
+def test_an_unknown_setting_names_the_strategys_settings() -> None:
+    """Python's "unexpected keyword argument" named the bad key but not the good ones."""
+    with pytest.raises(
+        TypeError, match=r"'bogus'; the settings of a 'smcd' strategy are \['num_particles', .*'seed', 'device'"
+    ):
+        registry.build("smcd", {"bogus": 1})
+    with pytest.raises(TypeError, match="seed must be an int, got 'x'"):  # torch's "manual_seed expected a long"
+        registry.build("smcd", {"seed": "x"})

@@ -397,6 +397,8 @@ def test_smcd_over_any_budget_says_so_and_is_not_said_to_fit(model, monkeypatch)
         ({"gd_grid": {"lr": (0.01, -1.0)}}, ValueError, r"gd_grid\['lr'\]\[1\] must be in \(0, 1e\+30\]"),
         ({"seed": 2**70}, ValueError, r"seed must be in \[0, 2\*\*64 - 1\]"),
         ({"seed": -1}, ValueError, "seed must be >= 0"),
+        # A bare string was read as its letters: "unknown ['s', 'm', 'c', 'd']".
+        ({"strategies": "smcd"}, TypeError, r"strategies must be a list of kinds .*; for one, pass \['smcd'\]"),
     ],
 )
 def test_bad_values_are_refused_before_any_run(model, monkeypatch, options, error, message) -> None:
