@@ -39,6 +39,7 @@ from typing import Any, NoReturn
 import torch
 from torch import Tensor, nn
 
+from smcd_rl.checks import check_count
 from smcd_rl.masked_mlp import MaskedMLP
 
 __all__ = ["FeatureReadout", "NO_MASKS"]
@@ -78,7 +79,8 @@ class FeatureReadout(MaskedMLP):
             )
         # MaskedMLP's constructor builds its own layers; this network is made of the user's.
         nn.Module.__init__(self)
-        self.in_features = _input_size(features) if in_features is None else int(in_features)
+        # check_count, not int(): int(2.9) is 2 and int(True) is 1, an input size no one meant.
+        self.in_features = _input_size(features) if in_features is None else check_count(in_features, "in_features")
         self.out_features = readout.out_features
         self.hidden = (readout.in_features,)
         self.dropout = 0.0
@@ -93,14 +95,31 @@ class FeatureReadout(MaskedMLP):
         self.linears = nn.ModuleList([copy.deepcopy(readout)])
         self.act = nn.Identity()
         like = readout.weight
+        dtypes = sorted({str(p.dtype) for p in self.body.parameters() if p.is_floating_point()} - {str(like.dtype)})
+        if dtypes:
+            raise TypeError(
+                f"the features module's weights are {', '.join(dtypes)} and the readout's {like.dtype}; convert one "
+                "with .to(...) so that both compute in one dtype"
+            )
         probe = torch.zeros(1, self.in_features, dtype=like.dtype, device=like.device)
         try:
             with torch.no_grad():
-                width = self.body(probe).shape[-1]
+                out = self.body(probe)
         except (RuntimeError, ValueError, TypeError) as err:
             raise ValueError(
                 f"the features module does not take an input of {self.in_features} values ({err}); pass in_features"
             ) from err
+        if not isinstance(out, Tensor):
+            raise TypeError(
+                f"the features module returns a {type(out).__name__}, not one tensor of features (an nn.GRU or "
+                "nn.LSTM returns a tuple); wrap it in a module that returns the features the readout reads"
+            )
+        if out.shape[:-1] != probe.shape[:-1]:
+            raise ValueError(
+                f"the features module turns an input of shape {list(probe.shape)} into {list(out.shape)}: it must keep "
+                "the batch dims and change only the last (features) dim"
+            )
+        width = out.shape[-1]
         if width != readout.in_features:
             raise ValueError(
                 f"the features module gives {width} values but the readout reads {readout.in_features}; "
@@ -132,7 +151,10 @@ class FeatureReadout(MaskedMLP):
                 f"the module ends in {last}, not an nn.Linear; the strategies adapt a final linear readout (wrap what "
                 "comes after it around the adapted model instead)"
             )
-        return cls(nn.Sequential(*layers[:-1]), layers[-1])
+        # A lone nn.Linear reads its inputs directly: the features are the inputs (nn.Sequential() is the identity).
+        return cls(
+            nn.Sequential(*layers[:-1]), layers[-1], in_features=layers[-1].in_features if len(layers) == 1 else None
+        )
 
     def train(self, mode: bool = True) -> FeatureReadout:
         """Set the mode of the readout; the features module stays in eval mode (it is frozen)."""

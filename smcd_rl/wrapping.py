@@ -132,6 +132,17 @@ def masked_mlp_from(module: nn.Module) -> MaskedMLP:
     if not 0.0 <= dropout < 1.0:
         raise ValueError(f"Dropout(p={dropout}) keeps no unit; a MaskedMLP needs p in [0, 1)")
     linears = [block["linear"] for block in blocks]
+    for i, linear in enumerate(linears):
+        if isinstance(linear, nn.modules.lazy.LazyModuleMixin) and linear.has_uninitialized_params():
+            raise ValueError(
+                f"Linear layer {i} is lazy and has no weights yet; run the module once on an input (or train it) first"
+            )
+    for i, (a, b) in enumerate(zip(linears, linears[1:], strict=False)):
+        if a.out_features != b.in_features:
+            raise ValueError(
+                f"Linear layer {i} gives {a.out_features} values but Linear layer {i + 1} reads {b.in_features}; the "
+                "module does not run as it is"
+            )
     weight = linears[0].weight
     net = MaskedMLP(
         linears[0].in_features,

@@ -168,3 +168,51 @@ def test_masks_and_smcd_training_are_refused() -> None:
     episodes = _episodes(trunk, readout, torch.zeros(8, 2))
     with pytest.raises(TypeError, match="trained by your own code"):
         smcd_rl.fit(model, episodes.reshape(-1), epochs=1, progress=False)
+
+
+@pytest.mark.parametrize(
+    ("build", "error", "message"),
+    [
+        # in_features went through int(): 2.9 became 2 and True 1; "abc" and -1 gave raw errors.
+        (
+            lambda: smcd_rl.FeatureReadout(nn.Identity(), nn.Linear(2, 2), in_features=2.9),
+            TypeError,
+            "in_features must be an int",
+        ),
+        (
+            lambda: smcd_rl.FeatureReadout(nn.Identity(), nn.Linear(2, 2), in_features=-1),
+            ValueError,
+            "in_features must be >= 1",
+        ),
+        # An RNN's tuple met "'tuple' object has no attribute 'shape'".
+        (
+            lambda: smcd_rl.FeatureReadout(nn.GRU(3, 16), nn.Linear(16, 2), in_features=3),
+            TypeError,
+            "returns a tuple, not one tensor",
+        ),
+        # Flatten(0) was accepted and every later forward failed with "mat1 and mat2 shapes".
+        (
+            lambda: smcd_rl.FeatureReadout(nn.Flatten(0), nn.Linear(3, 2), in_features=3),
+            ValueError,
+            r"turns an input of shape \[1, 3\] into \[3\]",
+        ),
+        # A float64 trunk was told to "pass in_features".
+        (
+            lambda: smcd_rl.FeatureReadout(nn.Sequential(nn.Linear(3, 16).double(), nn.ReLU()), nn.Linear(16, 2)),
+            TypeError,
+            "weights are torch.float64 and the readout's torch.float32",
+        ),
+    ],
+)
+def test_a_features_module_that_cannot_feed_the_readout_is_refused_by_name(build, error, message) -> None:
+    with pytest.raises(error, match=message):
+        build()
+
+
+def test_from_sequential_reads_a_lone_linear_as_a_readout_of_the_inputs() -> None:
+    """It was told to "pass in_features", which from_sequential does not take."""
+    linear = nn.Linear(3, 2)
+    net = smcd_rl.FeatureReadout.from_sequential(nn.Sequential(linear))
+    x = torch.rand(5, 3)
+    assert net.in_features == 3 and net.hidden == (3,)
+    torch.testing.assert_close(net(x), linear(x))

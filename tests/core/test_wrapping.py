@@ -152,3 +152,23 @@ def test_a_network_without_dropout_runs_the_last_layer_and_gd_and_refuses_smcd_b
     assert result.best_of["last_layer"].one_step_rmse < 0.5 * result.best_of["none"].one_step_rmse
     with pytest.raises(ValueError, match=r"\['smcd'\] filter over dropout masks"):
         smcd_rl.tune(model, episodes, strategies=["smcd"], progress=False)
+
+
+@pytest.mark.parametrize(
+    ("module", "message"),
+    [
+        # torch's "The size of tensor a (16) must match the size of tensor b (8)" at the weight copy.
+        (
+            nn.Sequential(nn.Linear(3, 16), nn.ReLU(), nn.Linear(8, 2)),
+            "Linear layer 0 gives 16 values but Linear layer 1 reads 8",
+        ),
+        # "in_features must be >= 1, got 0", about a setting the user never passed.
+        (
+            nn.Sequential(nn.LazyLinear(16), nn.ReLU(), nn.Linear(16, 2)),
+            "Linear layer 0 is lazy and has no weights yet",
+        ),
+    ],
+)
+def test_a_module_that_does_not_run_as_it_is_is_refused_by_name(module, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        smcd_rl.masked_mlp_from(module)
