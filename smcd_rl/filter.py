@@ -89,11 +89,16 @@ class ParticleFilter:
 
     # ------------------------------------------------------------------ to implement
     def _initial(self, batch_shape: tuple[int, ...], num_particles: int) -> Tensor:
-        raise NotImplementedError
+        raise NotImplementedError(
+            f"{type(self).__name__} does not say how to draw its first particles: ParticleFilter is a base class; "
+            "subclass it with _initial and _transition, or use smcd_rl.SMCDFilter for dropout masks"
+        )
 
     def _transition(self, particles: Tensor) -> Tensor:
         """Return the next particles; must not modify ``particles`` in place."""
-        raise NotImplementedError
+        raise NotImplementedError(
+            f"{type(self).__name__} does not say how its particles move: subclass ParticleFilter with _transition"
+        )
 
     # ------------------------------------------------------------------ state
     @property

@@ -724,6 +724,10 @@ class AdaptiveDynamicsModel(AdaptiveModel):
         action_key: NestedKey = "action",
         predict_delta: bool = True,
     ) -> None:
+        check_key(observation_key, "observation_key")
+        check_key(action_key, "action_key")
+        if not isinstance(predict_delta, bool):
+            raise TypeError(f"predict_delta must be True or False, got {predict_delta!r}")
         if net.in_features <= net.out_features:
             raise ValueError(
                 f"the network takes {net.in_features} inputs and predicts {net.out_features} outputs; a dynamics "

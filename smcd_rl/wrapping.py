@@ -133,7 +133,7 @@ def masked_mlp_from(module: nn.Module) -> MaskedMLP:
         raise ValueError(f"Dropout(p={dropout}) keeps no unit; a MaskedMLP needs p in [0, 1)")
     linears = [block["linear"] for block in blocks]
     for i, linear in enumerate(linears):
-        if isinstance(linear, nn.modules.lazy.LazyModuleMixin) and linear.has_uninitialized_params():
+        if isinstance(linear.weight, nn.parameter.UninitializedParameter):
             raise ValueError(
                 f"Linear layer {i} is lazy and has no weights yet; run the module once on an input (or train it) first"
             )

@@ -193,6 +193,7 @@ def fit(
         >>> seen  # epoch 0 has no posteriors yet
         [1, 2]
     """
+    _check_model_and_data(model, data, "fit")
     epochs, batch_size = check_count(epochs, "epochs", minimum=0), check_count(batch_size, "batch_size")
     lr = _checked_rate(lr, "lr")
     weight_decay = check_real(weight_decay, "weight_decay", low=0.0, high=_LARGEST)
@@ -374,6 +375,7 @@ def fit_reptile(
         >>> len(losses)
         2
     """
+    _check_model_and_data(model, data, "fit_reptile")
     epochs, batch_size = check_count(epochs, "epochs", minimum=0), check_count(batch_size, "batch_size")
     lr, inner_lr = _checked_rate(lr, "lr"), _checked_rate(inner_lr, "inner_lr")
     inner_epochs, tasks_per_batch = (
@@ -473,6 +475,16 @@ def _shuffled_epoch(
         optimizer.step()
         total += float(loss.detach()) * idx.shape[0]
     return total / n
+
+
+def _check_model_and_data(model: Any, data: Any, what: str) -> None:
+    """Refuse a bare network or anything but a TensorDict of transitions, with the fix."""
+    if not isinstance(model, AdaptiveModel):
+        hint = (
+            "; wrap it: smcd_rl.AdaptiveModel(net, in_keys=[...], out_key=...)" if isinstance(model, MaskedMLP) else ""
+        )
+        raise TypeError(f"{what} trains an smcd_rl.AdaptiveModel, got {type(model).__name__}{hint}")
+    check_tensordict(data, what)
 
 
 def _require_samples(data: TensorDictBase, what: str) -> None:

@@ -168,6 +168,9 @@ def tune(
     unknown = [s for s in strategies if s not in KINDS]
     if unknown or not strategies:
         raise ValueError(f"strategies: unknown {unknown or strategies}; choose one or more of {list(KINDS)}")
+    for name, flag in (("progress", progress), ("shortcuts", shortcuts)):
+        if not isinstance(flag, bool):
+            raise TypeError(f"{name} must be True or False, got {flag!r}")
     chosen_by = checked_criterion(criterion, horizon)
     if budget_ms is not None:
         budget_ms = check_real(budget_ms, "budget_ms", low=0.0, open_low=True)

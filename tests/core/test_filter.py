@@ -478,3 +478,9 @@ def test_a_complex_log_likelihood_is_refused_and_a_graph_is_not_kept() -> None:
     filt.update(lambda m: -scale * m.sum(-1).float())  # a likelihood with autograd (a learnt noise, say)
     assert filt.log_weights is not None and filt.log_weights.grad_fn is None
     assert filt.log_evidence is not None and filt.log_evidence.grad_fn is None
+
+
+def test_the_base_particle_filter_says_it_is_a_base_class() -> None:
+    """reset() raised a NotImplementedError with no message."""
+    with pytest.raises(NotImplementedError, match="ParticleFilter is a base class.*SMCDFilter"):
+        smcd_rl.ParticleFilter(4).reset()

@@ -637,3 +637,15 @@ def test_a_checkpoint_whose_keys_are_not_a_record_is_unreadable_not_a_raw_error(
     torch.save(checkpoint, path)
     with pytest.raises(smcd_rl.files.UnreadableFileError, match="holds a configuration this version of smcd_rl cannot"):
         smcd_rl.load(path)
+
+
+def test_a_dynamics_model_checks_its_keys_and_flags() -> None:
+    """observation_key=5 met "Value after * must be an iterable, not int"."""
+    net = smcd_rl.MaskedMLP(4, 3, hidden=(8,))
+    for options, error, message in (
+        ({"observation_key": 5}, TypeError, "observation_key must be a key"),
+        ({"action_key": ""}, TypeError, "action_key must be a key"),
+        ({"predict_delta": "yes"}, TypeError, "predict_delta must be True or False"),
+    ):
+        with pytest.raises(error, match=message):
+            smcd_rl.AdaptiveDynamicsModel(net, **options)

@@ -132,3 +132,14 @@ def test_a_checkpoint_path_that_is_a_directory_is_refused_before_any_step(tmp_pa
     with pytest.raises(ValueError, match="is a directory; pass a file path in it"):
         smcd_rl.fit(model, _data(), epochs=1, checkpoint=tmp_path, progress=False)
     assert not model.fitted
+
+
+def test_a_bare_network_or_a_dict_is_refused_with_the_fix() -> None:
+    """They met "'MaskedMLP' object has no attribute 'net'" and "'dict' object has no attribute 'batch_size'"."""
+    data = _data(64)
+    with pytest.raises(TypeError, match=r"fit trains an smcd_rl.AdaptiveModel, got MaskedMLP; wrap it"):
+        smcd_rl.fit(_model().net, data, epochs=1, progress=False)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"fit takes a tensordict.TensorDict, got dict; wrap it"):
+        smcd_rl.fit(_model(), dict(data.items()), epochs=1, progress=False)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="fit_reptile trains an smcd_rl.AdaptiveModel"):
+        smcd_rl.fit_reptile(_model().net, data.reshape(8, 8), epochs=1, progress=False)  # type: ignore[arg-type]
