@@ -67,7 +67,7 @@ class ParticleFilter:
             raise TypeError(f"generator must be a torch.Generator or None, got {type(generator).__name__}")
         if device is None:
             device = generator.device if generator is not None else "cpu"
-        self.device = torch.device(device)
+        self.device = _checked_device(device)
         if generator is None:
             generator = torch.Generator(device=self.device)
             generator.manual_seed(int(torch.randint(0, 2**62, (1,)).item()))
@@ -527,6 +527,18 @@ def _check_ancestors(ancestors: Tensor, particles: Tensor) -> None:
         raise ValueError(
             "the state's ancestors call particles copies that differ; pass a filter's state_dict() as it was saved"
         )
+
+
+def _checked_device(device: Any) -> torch.device:
+    """``device`` as a torch device this machine has (the meta device holds no values to filter)."""
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(f"device must name a torch device such as 'cpu' or 'cuda', got {device!r} ({err})") from None
+    kind = parsed.type
+    if kind == "meta" or (kind != "cpu" and not getattr(getattr(torch, kind, None), "is_available", lambda: False)()):
+        raise ValueError(f"device {str(parsed)!r} is not one this machine can filter on; pass device='cpu'")
+    return parsed
 
 
 def _clone(value: Tensor | None, device: torch.device | None = None) -> Tensor | None:

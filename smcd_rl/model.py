@@ -909,6 +909,11 @@ def _checked_weights(state: Any, own: Mapping[str, Tensor]) -> Mapping[str, Tens
         value = state[key]
         if not isinstance(value, Tensor) or value.shape != tensor.shape:
             got = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
+            if key.startswith("net.body."):  # a FeatureReadout's own features module: the user's, not the file's
+                raise CheckpointMismatchError(
+                    f"the features module's {key.removeprefix('net.body.')!r} is {list(tensor.shape)} here but {got} in "
+                    "the checkpoint; pass features= of the shapes the model was saved with"
+                )
             raise CheckpointMismatchError(
                 f"the checkpoint's weights do not fit its own architecture ({key!r} is {got}, the model's "
                 f"{list(tensor.shape)}); save the model again"

@@ -216,3 +216,13 @@ def test_from_sequential_reads_a_lone_linear_as_a_readout_of_the_inputs() -> Non
     x = torch.rand(5, 3)
     assert net.in_features == 3 and net.hidden == (3,)
     torch.testing.assert_close(net(x), linear(x))
+
+
+def test_loading_with_features_of_other_shapes_names_the_features_not_the_file(tmp_path) -> None:
+    """It said "save the model again", though the file was sound and the module passed back was not."""
+    saved = nn.Sequential(nn.Linear(3, 16), nn.ReLU(), nn.Linear(16, 8), nn.ReLU())
+    model = smcd_rl.adaptive_model_from(smcd_rl.FeatureReadout(saved, nn.Linear(8, 2)), in_keys=["q"], out_key="ee")
+    model.save(tmp_path / "own.pt")
+    other = nn.Sequential(nn.Linear(3, 32), nn.ReLU(), nn.Linear(32, 8), nn.ReLU())  # same class and output width
+    with pytest.raises(CheckpointMismatchError, match=r"features module's '0.weight' is \[32, 3\] here but \[16, 3\]"):
+        smcd_rl.load(tmp_path / "own.pt", features=other)

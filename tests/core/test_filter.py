@@ -484,3 +484,10 @@ def test_the_base_particle_filter_says_it_is_a_base_class() -> None:
     """reset() raised a NotImplementedError with no message."""
     with pytest.raises(NotImplementedError, match="ParticleFilter is a base class.*SMCDFilter"):
         smcd_rl.ParticleFilter(4).reset()
+
+
+@pytest.mark.parametrize("device", ["meta", "nonsense", *([] if torch.cuda.is_available() else ["cuda"])])
+def test_a_device_the_machine_cannot_filter_on_is_refused_by_name(device: str) -> None:
+    """They met "META device type not an accelerator" and torch's CUDA-library message."""
+    with pytest.raises(ValueError, match="device"):
+        smcd_rl.SMCDFilter(4, device=device)
