@@ -62,9 +62,11 @@ class FeatureReadout(MaskedMLP):
             not given.
 
     Raises:
-        TypeError: ``features`` is not an ``nn.Module`` or ``readout`` not an ``nn.Linear``.
+        TypeError: ``features`` is not an ``nn.Module`` or ``readout`` not an ``nn.Linear``;
+            ``in_features`` is not an int; the two compute in different dtypes; or ``features``
+            returns something other than one tensor (an RNN's tuple).
         ValueError: the input size cannot be read (pass ``in_features``), or ``features`` does not
-            map an input of that size to ``readout.in_features`` values.
+            map an input of that size to ``readout.in_features`` values, keeping the batch dims.
     """
 
     def __init__(self, features: nn.Module, readout: nn.Linear, *, in_features: int | None = None) -> None:
