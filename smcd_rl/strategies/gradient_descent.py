@@ -217,23 +217,20 @@ class GradientDescent(Adaptation):
 
     def _checked_state(self, state: Any) -> None:
         """Refuse ``state`` unless it is a :meth:`state_dict` of this strategy at its batch shape, finite."""
-        current: dict[str, Any] = {
-            "params": self._params,
-            **dict(zip(("inputs", "targets", "count"), self._state(), strict=True)),
-        }
-        if not isinstance(state, Mapping) or state.keys() != current.keys() or not isinstance(state["params"], Mapping):
+        inputs, targets, count = self._state()
+        buffers = {"inputs": inputs, "targets": targets, "count": count}
+        if (
+            not isinstance(state, Mapping)
+            or state.keys() != {"params", *buffers}
+            or not isinstance(state["params"], Mapping)
+        ):
             raise ValueError(
-                f"a gradient descent state is a dict of {sorted(current)} (its state_dict()), got "
+                f"a gradient descent state is a dict of {sorted(['params', *buffers])} (its state_dict()), got "
                 f"{sorted(state) if isinstance(state, Mapping) else type(state).__name__}"
             )
-        given: dict[str, Any] = {
-            **{f"params.{k}": v for k, v in state["params"].items()},
-            **{k: state[k] for k in current if k != "params"},
-        }
-        own: dict[str, Tensor] = {
-            **{f"params.{k}": v for k, v in self._params.items()},
-            **{k: v for k, v in current.items() if k != "params"},
-        }
+        # Every tensor by one name: a weight "params.linears.0.weight", a buffer its own name.
+        own = {**{f"params.{k}": v for k, v in self._params.items()}, **buffers}
+        given = {**{f"params.{k}": v for k, v in state["params"].items()}, **{k: state[k] for k in buffers}}
         for name, value in own.items():
             got = given.get(name)
             if not isinstance(got, Tensor) or got.shape != value.shape or got.dtype != value.dtype:

@@ -295,10 +295,10 @@ class SMCDLastLayer(Adaptation):
         return spread, quadratic.to(phi.dtype)
 
     def predict(self, inputs: Tensor) -> Tensor:
-        self._extra_dims(inputs)  # refused here, in SMCDLastLayer's name
         if self.smcd.prediction == "predictive":
+            self._extra_dims(inputs)  # refused here, in SMCDLastLayer's name
             return self.smcd.predict(inputs)  # each particle's own readout, weighted
-        mask = self.smcd._mask_view(self.smcd.mask, inputs, trailing=1)
+        mask = self._mask_view(self.smcd.mask, inputs, trailing=1)  # checks the inputs, in SMCDLastLayer's name
         return self.last_layer.readout(self.net.features(inputs, mask=mask))
 
     def predict_particles(self, inputs: Tensor) -> Tensor:
