@@ -60,6 +60,15 @@ class ParticleFilter:
         generator: torch.Generator | None = None,
         device: torch.device | str | None = None,
     ) -> None:
+        missing = [
+            name for name in ("_initial", "_transition") if getattr(type(self), name) is getattr(ParticleFilter, name)
+        ]
+        if missing:  # checked here, not at the first reset, so the class is fixed where it is written
+            raise TypeError(
+                f"{type(self).__name__} does not define {' and '.join(missing)} (how to draw the first particles and "
+                "how they move): ParticleFilter is a base class; subclass it with both, or use smcd_rl.SMCDFilter "
+                "for dropout masks"
+            )
         num_particles = check_count(num_particles, "num_particles")
         self.ess_threshold = check_real(ess_threshold, "ess_threshold", low=0.0, high=1.0)
         self.resampling: ResamplingScheme = check_scheme(resampling)
@@ -89,16 +98,12 @@ class ParticleFilter:
 
     # ------------------------------------------------------------------ to implement
     def _initial(self, batch_shape: tuple[int, ...], num_particles: int) -> Tensor:
-        raise NotImplementedError(
-            f"{type(self).__name__} does not say how to draw its first particles: ParticleFilter is a base class; "
-            "subclass it with _initial and _transition, or use smcd_rl.SMCDFilter for dropout masks"
-        )
+        """Return the first particles ``[*batch_shape, num_particles, D]`` (a subclass defines it)."""
+        raise NotImplementedError  # unreachable: __init__ refuses a class without it
 
     def _transition(self, particles: Tensor) -> Tensor:
-        """Return the next particles; must not modify ``particles`` in place."""
-        raise NotImplementedError(
-            f"{type(self).__name__} does not say how its particles move: subclass ParticleFilter with _transition"
-        )
+        """Return the next particles; must not modify ``particles`` in place (a subclass defines it)."""
+        raise NotImplementedError  # unreachable: __init__ refuses a class without it
 
     # ------------------------------------------------------------------ state
     @property

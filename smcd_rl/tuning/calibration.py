@@ -336,7 +336,7 @@ def calibrate(
     """
     started = time.perf_counter()
     chosen_by = checked_criterion(criterion, horizon)
-    model, base = checked_model(model), _checked_base(base)
+    model, base = checked_model(model, "calibrate"), _checked_base(base)
     if not isinstance(store, bool):
         raise TypeError(f"store must be True or False, got {store!r} ({type(store).__name__})")
     if per_dimension is not None and not isinstance(per_dimension, bool):  # "no" is truthy: it would mean True
@@ -353,7 +353,7 @@ def calibrate(
     grid = checked_flips(flip_probs, model, base)
     refine = check_count(refine, "refine", minimum=0)
     seed = check_seed(seed)
-    scorer = Scorer(model, stacked(episodes), chosen_by)  # checks keys, shapes and values
+    scorer = Scorer(model, stacked(episodes, "calibrate"), chosen_by, "calibrate")  # checks keys, shapes and values
     result = search_noise(scorer, base, grid, shapes=shapes, refine=refine, seed=seed, progress=progress, reuse=reuse)
     result.seconds = time.perf_counter() - started
     if not store:
@@ -557,9 +557,9 @@ def evidence(
         >>> log_evidence < 0 < rmse
         True
     """
-    model, base, seed = checked_model(model), _checked_base(base), check_seed(seed)
-    td = stacked(episodes)
-    scorer = Scorer(model, td, checked_criterion("one-step"))
+    model, base, seed = checked_model(model, "evidence"), _checked_base(base), check_seed(seed)
+    td = stacked(episodes, "evidence")
+    scorer = Scorer(model, td, checked_criterion("one-step"), "evidence")
     config = {k: v for k, v in base.config().items() if k not in ("noise_std", "flip_prob")}
     device = next(model.net.parameters()).device
     generator = torch.Generator(device=device).manual_seed(seed)

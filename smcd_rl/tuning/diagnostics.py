@@ -100,7 +100,7 @@ def trace(
         particle, or gradient descent whose weights or predictions would turn non-finite) stops the trace there:
         ``rmse`` is ``inf`` and the lists end at the refused step.
     """
-    model = checked_model(model)
+    model = checked_model(model, "trace")
     if not isinstance(strategy, Adaptation):
         raise TypeError(f"trace takes a strategy such as smcd_rl.SMCD(...), got {type(strategy).__name__}")
     if strategy._net is not None:
@@ -108,8 +108,8 @@ def trace(
             "trace needs a fresh strategy: this one is attached to a model, whose state tracing would reset; "
             "pass a new one, e.g. smcd_rl.SMCD(**strategy.config())"
         )
-    td = stacked(episodes)
-    x, y = pairs(model, td)
+    td = stacked(episodes, "trace")
+    x, y = pairs(model, td, "trace")
     lookahead = None if horizon is None else Lookahead(model, td, check_count(horizon, "horizon"))
     return trace_pairs(model, x, y, strategy, lookahead=lookahead)
 

@@ -13,7 +13,7 @@ Example:
     >>> smcd_rl.tune(model, [episode, episode[:4]], progress=False)
     Traceback (most recent call last):
     ...
-    ValueError: calibrate: the episodes have different lengths [4, 5]; cut them to a common length, e.g. [episode[:4] for episode in episodes]
+    ValueError: tune: the episodes have different lengths [4, 5]; cut them to a common length, e.g. [episode[:4] for episode in episodes]
 """
 
 from __future__ import annotations
@@ -30,9 +30,10 @@ from smcd_rl.model import AdaptiveModel
 __all__ = ["checked_model", "stacked", "pairs"]
 
 
-def checked_model(model: AdaptiveModel) -> AdaptiveModel:
+def checked_model(model: AdaptiveModel, caller: str) -> AdaptiveModel:
+    """``model``, fitted and on a real device, or an error that names ``caller`` (``"tune"``, ``"calibrate"``...)."""
     if not isinstance(model, AdaptiveModel):
-        raise TypeError(f"calibrate takes a smcd_rl.AdaptiveModel, got {type(model).__name__}")
+        raise TypeError(f"{caller} takes a smcd_rl.AdaptiveModel, got {type(model).__name__}")
     if next(model.net.parameters()).device.type == "meta":
         raise ValueError(
             "the model's network is on the meta device, whose tensors have shapes but no values, so it cannot "
@@ -41,69 +42,69 @@ def checked_model(model: AdaptiveModel) -> AdaptiveModel:
         )
     if not model.fitted:
         raise ValueError(
-            "calibrate needs a fitted model (its residual scale and the evidence of an untrained network mean "
+            f"{caller} needs a fitted model (its residual scale and the evidence of an untrained network mean "
             "nothing); train it with smcd_rl.fit first, or set model.fitted = True if you trained it yourself"
         )
     return model
 
 
-def stacked(episodes: TensorDictBase | Sequence[TensorDictBase]) -> TensorDictBase:
-    """``episodes`` as one TensorDict of batch ``[E, T]``, ``E, T >= 2``, or a clear error."""
+def stacked(episodes: TensorDictBase | Sequence[TensorDictBase], caller: str) -> TensorDictBase:
+    """``episodes`` as one TensorDict of batch ``[E, T]``, ``E, T >= 2``, or an error that names ``caller``."""
     if isinstance(episodes, TensorDictBase):
         td = episodes
         if td.batch_dims != 2:
             hint = ""
             if td.batch_dims == 1:
-                hint = "; a batch [T] is one episode, and calibration needs at least 2"
+                hint = f"; a batch [T] is one episode, and {caller} needs at least 2"
             elif td.batch_dims > 2:
                 hint = f"; flatten the leading dims, e.g. episodes.reshape(-1, {td.batch_size[-1]})"
             raise ValueError(
-                f"calibrate takes episodes as a TensorDict of batch [E, T] (E episodes of T steps) or a list of "
+                f"{caller} takes episodes as a TensorDict of batch [E, T] (E episodes of T steps) or a list of "
                 f"[T] ones, got batch {list(td.batch_size)}{hint}"
             )
     elif isinstance(episodes, Sequence) and not isinstance(episodes, (str, bytes)):
         items = list(episodes)
         for i, episode in enumerate(items):
-            check_tensordict(episode, f"calibrate (episodes[{i}])")
+            check_tensordict(episode, f"{caller} (episodes[{i}])")
             if episode.batch_dims != 1:
                 raise ValueError(
-                    f"calibrate: episodes[{i}] has batch {list(episode.batch_size)}; a list holds one TensorDict "
+                    f"{caller}: episodes[{i}] has batch {list(episode.batch_size)}; a list holds one TensorDict "
                     "of batch [T] per episode"
                 )
         lengths = sorted({int(episode.batch_size[0]) for episode in items})
         if len(lengths) > 1:
             raise ValueError(
-                f"calibrate: the episodes have different lengths {lengths}; cut them to a common length, "
+                f"{caller}: the episodes have different lengths {lengths}; cut them to a common length, "
                 f"e.g. [episode[:{lengths[0]}] for episode in episodes]"
             )
         if len(items) < 2:
-            raise ValueError(f"calibrate needs at least 2 episodes, got {len(items)}")
+            raise ValueError(f"{caller} needs at least 2 episodes, got {len(items)}")
         try:
             td = torch.stack(items, 0)
         except (RuntimeError, ValueError, KeyError) as err:
             raise ValueError(
-                f"calibrate: the episodes do not all have the same keys and feature shapes ({err})"
+                f"{caller}: the episodes do not all have the same keys and feature shapes ({err})"
             ) from err
     else:
-        check_tensordict(episodes, "calibrate")
+        check_tensordict(episodes, caller)
         raise AssertionError("unreachable")  # check_tensordict refused it
     num_episodes, steps = td.batch_size
     if num_episodes < 2:
         raise ValueError(
-            f"calibrate needs at least 2 episodes, got {num_episodes}: two settings are chosen from the "
-            "evidence, and one episode's evidence mostly measures that episode"
+            f"{caller} needs at least 2 episodes, got {num_episodes}: settings chosen "
+            "on one episode mostly fit that episode"
         )
     if steps < 2:
         raise ValueError(
-            f"calibrate needs episodes of at least 2 steps, got {steps}: the one-step error predicts each "
+            f"{caller} needs episodes of at least 2 steps, got {steps}: the one-step error predicts each "
             "step from the steps before it"
         )
     return td
 
 
-def pairs(model: AdaptiveModel, td: TensorDictBase) -> tuple[Tensor, Tensor]:
+def pairs(model: AdaptiveModel, td: TensorDictBase, caller: str) -> tuple[Tensor, Tensor]:
     """Normalised network inputs and targets ``[E, T, features]`` of the episodes, checked (keys, shapes, NaN)."""
-    what = "calibrate (episodes)"
+    what = f"{caller} (episodes)"
     x = model._raw_inputs(td, what=what, exact=True)
     target = model._read(td, model.target_key, model.net.out_features, what=what, exact=True)
     return model.input_norm(x), model.output_norm(model._to_output(td, target, exact=True))

@@ -161,7 +161,7 @@ def tune(
             another model, other episodes, another seed or another criterion.
     """
     started = time.perf_counter()
-    model = checked_model(model)
+    model = checked_model(model, "tune")
     if isinstance(strategies, str) or not isinstance(strategies, Sequence):
         hint = f"; for one, pass [{strategies!r}]" if isinstance(strategies, str) else ""
         raise TypeError(f"strategies must be a list of kinds such as {list(KINDS[:2])}, got {strategies!r}{hint}")
@@ -180,9 +180,9 @@ def tune(
     weighs = checked_weighings(weighings)
     grid = checked_gd_grid(gd_grid)
     limits = checked_gd_limits(gd_limits, grid)
-    td = stacked(episodes)
+    td = stacked(episodes, "tune")
     # The one scorer of every run, calibrate's included: it checks keys, shapes and values before any run.
-    scorer = Scorer(model, td, chosen_by)
+    scorer = Scorer(model, td, chosen_by, "tune")
     flips = checked_flips(flip_probs, model, SMCD(num_particles=num_particles))
     data = content_digest({"model": model_digest(model), "episodes": content_digest(td), "seed": seed, "flips": flips})
     known = _reusable(reuse, data, chosen_by)
@@ -300,5 +300,5 @@ def ms_per_observation(model: AdaptiveModel, strategy: Adaptation, episode: Tens
         raise TypeError(f"strategy must be an smcd_rl.Adaptation, got {type(strategy).__name__}")
     if not isinstance(episode, TensorDictBase) or episode.batch_dims != 1:
         raise ValueError("episode must be one episode: a TensorDict of batch [T] in the model's keys")
-    x, y = pairs(model, episode.unsqueeze(0))
+    x, y = pairs(model, episode.unsqueeze(0), "time_per_step")
     return Timing(model, x[0], y[0], None).ms_per_step(strategy)

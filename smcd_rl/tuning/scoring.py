@@ -34,9 +34,9 @@ __all__ = ["Scorer"]
 class Scorer:
     """The episodes as normalised pairs (and open-loop targets), and how a run on them scores."""
 
-    def __init__(self, model: AdaptiveModel, td: TensorDictBase, criterion: Criterion) -> None:
+    def __init__(self, model: AdaptiveModel, td: TensorDictBase, criterion: Criterion, caller: str) -> None:
         self.model, self.td, self.criterion = model, td, criterion
-        self.x, self.y = pairs(model, td)  # checks keys, shapes and values
+        self.x, self.y = pairs(model, td, caller)  # checks keys, shapes and values
         self.lookahead = Lookahead(model, td, criterion.horizon) if criterion.looks_ahead else None
 
     def run(self, strategy: Adaptation, rows: slice = slice(None), *, predictions: list[Tensor] | None = None) -> Trace:

@@ -49,7 +49,7 @@ def rollouts(gain: float, count: int = 5, steps: int = 10) -> TensorDict:
 
 def test_a_map_predicts_each_step_ahead_from_its_recorded_inputs_with_the_state_frozen(sine_model) -> None:
     episodes, horizon = shifted_episodes(), 3
-    scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", horizon))
+    scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", horizon), "tune")
     run = scorer.run(smcd_rl.GradientDescent(lr=0.05, steps=2, window=3))
     assert tuple(run.ahead.shape) == (6, 12 - horizon, horizon, 2)
     # The same strategy by hand: observe steps < t, then predict steps t..t+H-1 from their inputs.
@@ -62,14 +62,14 @@ def test_a_map_predicts_each_step_ahead_from_its_recorded_inputs_with_the_state_
                 torch.testing.assert_close(run.ahead[:, t - 1, h], expected, rtol=1e-5, atol=1e-6)
         adapted.observe(episodes[:, t])
     # The first step ahead is the one-step prediction: the scores agree where the horizon is 1.
-    one = Scorer(sine_model, episodes, checked_criterion("lookahead", 1))
+    one = Scorer(sine_model, episodes, checked_criterion("lookahead", 1), "tune")
     first = one.run(smcd_rl.NoAdaptation())
     assert one.score(first) == pytest.approx(first.rmse, rel=1e-6)
 
 
 def test_a_dynamics_model_rolls_its_own_predictions_forward_on_the_recorded_actions(dynamics_model) -> None:
     episodes, horizon = rollouts(gain=0.3), 4
-    scorer = Scorer(dynamics_model, episodes, checked_criterion("lookahead", horizon))
+    scorer = Scorer(dynamics_model, episodes, checked_criterion("lookahead", horizon), "tune")
     run = scorer.run(smcd_rl.GradientDescent(lr=0.05, steps=1, window=2))
     adapted = dynamics_model.with_adaptation(smcd_rl.GradientDescent(lr=0.05, steps=1, window=2))
     adapted.reset(batch_shape=(5,))
@@ -89,7 +89,7 @@ def test_tune_by_lookahead_chooses_by_it_and_reports_both_scores(sine_model) -> 
     episodes = shifted_episodes()
     result = smcd_rl.tune(sine_model, episodes, criterion="lookahead", horizon=4, **FAST)
     assert (result.criterion, result.horizon, result.score_label) == ("lookahead", 4, "4-step look-ahead RMSE")
-    scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", 4))
+    scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", 4), "tune")
     for kind, best in result.best_of.items():
         finite = [c.score for c in result.candidates if c.kind == kind and math.isfinite(c.score)]
         # The rules that keep another than the lowest: a robust form, or the cheaper prediction.
@@ -138,7 +138,7 @@ def test_calibrate_by_lookahead_keeps_the_lowest_lookahead_error(sine_model) -> 
     assert result.criterion == "lookahead" and result.best.score == min(c.score for c in result.candidates)
     assert "3-step look-ahead RMSE" in str(result)
     # The candidate's score is the look-ahead error of that filter run, computed again from scratch.
-    scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", 3))
+    scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", 3), "tune")
     generator = torch.Generator().manual_seed(0)
     again = smcd_rl.SMCD(**{**result.strategy.config(), "num_particles": 16}, generator=generator)
     assert scorer.score(scorer.run(again)) == pytest.approx(result.best.score, rel=1e-6)
@@ -150,7 +150,7 @@ def test_a_dynamics_model_tunes_by_its_rollouts(dynamics_model) -> None:
         c.score for c in result.candidates if c.kind == "combination" and math.isfinite(c.score)
     )
     # The combination of a rollout feeds its mixed prediction back: scored by running it.
-    scorer = Scorer(dynamics_model, rollouts(gain=0.3), checked_criterion("lookahead", 3))
+    scorer = Scorer(dynamics_model, rollouts(gain=0.3), checked_criterion("lookahead", 3), "tune")
     assert scorer.score(scorer.run(result.strategy("combination"))) == pytest.approx(
         result.best_of["combination"].score, rel=1e-5
     )
@@ -195,7 +195,7 @@ def test_the_table_ends_with_what_to_use(sine_model) -> None:
 def test_trace_with_a_horizon_reports_the_lookahead_error(sine_model) -> None:
     episodes = shifted_episodes()
     run = smcd_rl.tuning.diagnostics.trace(sine_model, episodes, smcd_rl.NoAdaptation(), horizon=3)
-    scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", 3))
+    scorer = Scorer(sine_model, episodes, checked_criterion("lookahead", 3), "tune")
     assert run.lookahead_rmse == pytest.approx(scorer.score(scorer.run(smcd_rl.NoAdaptation())), rel=1e-9)
     assert math.isnan(smcd_rl.tuning.diagnostics.trace(sine_model, episodes, smcd_rl.NoAdaptation()).lookahead_rmse)
 

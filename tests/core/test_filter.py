@@ -480,10 +480,25 @@ def test_a_complex_log_likelihood_is_refused_and_a_graph_is_not_kept() -> None:
     assert filt.log_evidence is not None and filt.log_evidence.grad_fn is None
 
 
-def test_the_base_particle_filter_says_it_is_a_base_class() -> None:
-    """reset() raised a NotImplementedError with no message."""
-    with pytest.raises(NotImplementedError, match="ParticleFilter is a base class.*SMCDFilter"):
-        smcd_rl.ParticleFilter(4).reset()
+def test_the_base_particle_filter_and_a_partial_subclass_are_refused_at_construction() -> None:
+    """reset() raised a NotImplementedError with no message; a subclass without _transition failed at the first step."""
+    with pytest.raises(TypeError, match="ParticleFilter does not define _initial and _transition.*SMCDFilter"):
+        smcd_rl.ParticleFilter(4)
+
+    class NoTransition(smcd_rl.ParticleFilter):
+        def _initial(self, batch_shape: tuple[int, ...], num_particles: int) -> torch.Tensor:
+            return torch.zeros(*batch_shape, num_particles, 1)
+
+    with pytest.raises(TypeError, match="NoTransition does not define _transition "):
+        NoTransition(4)
+
+    class Walk(NoTransition):
+        def _transition(self, particles: torch.Tensor) -> torch.Tensor:
+            return particles + 1
+
+    walk = Walk(4)
+    walk.reset((2,))
+    assert walk.particles is not None and walk.particles.shape == (2, 4, 1)
 
 
 @pytest.mark.parametrize("device", ["meta", "nonsense", *([] if torch.cuda.is_available() else ["cuda"])])

@@ -421,6 +421,22 @@ def test_a_model_on_the_meta_device_is_refused_clearly() -> None:
         smcd_rl.calibrate(model, shifted_episodes(0.5), progress=False)
 
 
+def test_the_episodes_and_model_errors_name_the_function_that_was_called(model) -> None:
+    """tune, calibrate and trace share their checks; each error names the call the user made."""
+    one = shifted_episodes(0.5)[:1]
+    unfitted = smcd_rl.AdaptiveModel(smcd_rl.MaskedMLP(2, 2, hidden=(8,)), in_keys=["q"], out_key="ee")
+    calls = {
+        "tune": lambda m, e: smcd_rl.tune(m, e, **FAST),
+        "calibrate": lambda m, e: smcd_rl.calibrate(m, e, progress=False),
+        "trace": lambda m, e: smcd_rl.tuning.diagnostics.trace(m, e, smcd_rl.SMCD(num_particles=8)),
+    }
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=rf"^{name} needs at least 2 episodes"):
+            call(model, one)
+        with pytest.raises(ValueError, match=rf"^{name} needs a fitted model"):
+            call(unfitted, shifted_episodes(0.5))
+
+
 def test_racing_drops_settings_by_their_error_alone_and_keeps_the_runs_exact(model) -> None:
     """Every raced-out setting was worse than the leader by more than RACE_MARGIN on the first episodes,
     every setting that ran on has the errors a run on all episodes gives, and the choice is the one
@@ -523,7 +539,7 @@ def test_smcd_with_a_bayesian_readout_starts_from_the_tuned_smcd_and_last_layer(
     assert all(c.settings["smcd"] == result.best_of["smcd"].settings for c in both)
     readout = result.best_of["last_layer"].settings["prior_scale"]
     factors = sorted(c.settings["last_layer"]["prior_scale"] / readout for c in both)
-    x, _ = smcd_rl.tuning.held_out.pairs(model, shifted_episodes(0.5))
+    x, _ = smcd_rl.tuning.held_out.pairs(model, shifted_episodes(0.5), "tune")
     quiet = kinds.quiet_readout_scale(model, x, result.best_of["smcd"].settings, result.best_of["last_layer"].settings)
     grid = kinds.smcd_last_layer_factors(quiet / readout)
     assert min(grid) < 1 / 100  # this network's features are large: the old grid's low end swamped the filter
