@@ -160,6 +160,13 @@ class BayesianLastLayer(Adaptation):
         """
         self._mean, self._cov, _ = self.updated(features, targets)
 
+    def _take_update(self, mean: Tensor, cov: Tensor) -> None:
+        """Set the posterior to ``mean [B, width + 1, out]`` and ``cov [B, width + 1, width + 1]`` of
+        an update this posterior computed (:meth:`updated`), without :meth:`load_state_dict`'s copies
+        and checks: they are finite by :meth:`updated`'s, and checking a 257 x 257 covariance costs
+        more than the update itself."""
+        self._mean, self._cov = mean.to(STATE_DTYPE), cov
+
     def updated(self, features: Tensor, targets: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The posterior mean and covariance :meth:`update` would set, without setting them, and the
         update's downdate ``u [B, width + 1]``: the new covariance is ``P + q I - u u^T``."""

@@ -131,6 +131,8 @@ class SMCDLastLayer(Adaptation):
         # [B, N, out, D]: each particle's readout mean, transposed so that a particle's readout and
         # its update run along contiguous features (measured: 3-4x faster than [B, N, D, out]).
         self._means: Tensor | None = None
+        self._spare_means: Tensor | None = None  # the last means' storage, reused for the next resampled ones
+        self._wide: Tensor | None = None  # the particles' features in float64 (see _float64)
         # The last particle readout's phi and predictions, then (P + q I) phi and the scale of each particle.
         self._seen: tuple[Tensor, ...] | None = None
         # The shared covariance as the prior's diagonal less the updates' downdates: P_t = (s^2 + q t) I
@@ -148,6 +150,7 @@ class SMCDLastLayer(Adaptation):
         dtype = self.net.readout_layer.weight.dtype
         particles = self.smcd.particles.shape[-2]
         self._means = prior.to(dtype).transpose(-1, -2).unsqueeze(1).expand(-1, particles, -1, -1).clone()
+        self._spare_means = None
         self._seen = None
         self._downdates = prior.new_zeros(prior.shape[0], prior.shape[1], 0)
         self._steps = prior.new_zeros(prior.shape[0])
@@ -190,9 +193,21 @@ class SMCDLastLayer(Adaptation):
             raise
         finally:
             self._seen = None
-        updated = torch.addcmul(means, step, spread.unsqueeze(-2))
+        # In place, and resampled into a buffer kept across observations rather than into fresh
+        # [B, N, out, D] tensors: the means are this filter's own (state_dict hands out copies).
+        updated = means.addcmul_(step, spread.unsqueeze(-2))
         if flat is not None:
-            updated = updated.reshape(streams * particles, -1).index_select(0, flat).reshape(updated.shape)
+            spare = self._spare_means
+            if (
+                spare is None
+                or spare.shape != updated.shape
+                or spare.dtype != updated.dtype
+                or not spare.is_contiguous()
+            ):
+                spare = updated.new_empty(updated.shape)  # contiguous, as index_select's own result was
+            rows = updated.reshape(streams * particles, -1)
+            torch.index_select(rows, 0, flat, out=spare.view(streams * particles, -1))
+            self._spare_means, updated = updated, spare
         self._means = updated
         self._steps = self._steps + 1 if self._steps is not None else None
         self._grow_downdates(downdate)
@@ -200,7 +215,7 @@ class SMCDLastLayer(Adaptation):
         current = self.smcd._filter.weights.reshape(streams, 1, -1).to(updated.dtype)
         mean = torch.bmm(current, updated.reshape(streams, current.shape[-1], -1)).reshape(streams, *updated.shape[2:])
         mean = mean.transpose(-1, -2)  # [B, D, out], the last layer's layout
-        self.last_layer.load_state_dict({"mean": mean, "cov": cov})
+        self.last_layer._take_update(mean, cov)
 
     def _grow_downdates(self, downdate: Tensor) -> None:
         """Append this observation's downdate ``[B, D]`` to ``U``, in a buffer that doubles as it
@@ -275,7 +290,7 @@ class SMCDLastLayer(Adaptation):
             spread = readout.spread(phi.to(torch.float64) if exact else phi)
             return spread.to(phi.dtype), (phi.to(spread.dtype) * spread).sum(-1).to(phi.dtype)
         diagonal = (readout.prior_scale**2 + q * (self._steps + 1)).reshape(-1, 1, 1)  # the drift of this step
-        wide = phi.to(torch.float64)
+        wide = self._float64(phi)
         if bool((diagonal > FLOAT32_SPREAD_LIMIT).any()):  # the cancellation needs float64 (see the constant)
             spread = diagonal * wide - torch.bmm(torch.bmm(wide, self._downdates), self._downdates.transpose(-1, -2))
             return spread.to(phi.dtype), (wide * spread).sum(-1).to(phi.dtype)
@@ -293,6 +308,12 @@ class SMCDLastLayer(Adaptation):
             scaled, projected.to(phi.dtype), downdates, beta=beta, alpha=-1.0
         )  # (s^2 + q t) phi - U U^T phi
         return spread, quadratic.to(phi.dtype)
+
+    def _float64(self, phi: Tensor) -> Tensor:
+        """``phi`` in float64, in a buffer kept across observations (as the readout means are)."""
+        if self._wide is None or self._wide.shape != phi.shape or self._wide.device != phi.device:
+            self._wide = torch.empty(phi.shape, dtype=torch.float64, device=phi.device)
+        return self._wide.copy_(phi)
 
     def predict(self, inputs: Tensor) -> Tensor:
         if self.smcd.prediction == "predictive":

@@ -717,10 +717,12 @@ def test_smcd_with_a_bayesian_readout_restores_a_saved_state_exactly() -> None:
     for x, y in zip(inputs[:4], targets[:4], strict=True):
         both.observe(x, y)
     saved = both.state_dict()
+    means = saved["means"].clone()
     continued = []
     for x, y in zip(inputs[4:], targets[4:], strict=True):
-        both.observe(x, y)
+        both.observe(x, y)  # updates its means in place, in buffers of its own
         continued.append(both.predict(inputs[0]).detach())
+    assert torch.equal(saved["means"], means)
     both.load_state_dict(saved)
     assert both._downdates is not None and both._downdates.shape[-1] == 4
     for (x, y), expected in zip(zip(inputs[4:], targets[4:], strict=True), continued, strict=True):
