@@ -111,7 +111,7 @@ def main() -> None:
     say()
     say("| SMCD | noise | flip | test look-ahead RMSE |")
     say("|---|---|---|---|")
-    ahead = Scorer(model, test, checked_criterion("lookahead", HORIZON))
+    ahead = Scorer(model, test, checked_criterion("lookahead", HORIZON), "bench_tune")
     calibrated = {}
     for shape in ("search", "proportional"):
         calibration = smcd_rl.calibrate(

@@ -643,7 +643,10 @@ def _search_with_two_runs(model, cheap: list[float], dear: list[float]) -> smcd_
     """A search whose two SMCD settings ran with these one-step RMSEs per episode (the MMSE mask's
     prediction and the posterior predictive mean's), the dearer one the best by its pooled score."""
     scorer = smcd_rl.tuning.scoring.Scorer(
-        model, shifted_episodes(0.5, count=len(cheap)), smcd_rl.tuning.criteria.checked_criterion("one-step", None)
+        model,
+        shifted_episodes(0.5, count=len(cheap)),
+        smcd_rl.tuning.criteria.checked_criterion("one-step", None),
+        "tune",
     )
     search = smcd_rl.tuning.search.Search(
         scorer, smcd_rl.tuning.search.Timing(model, scorer.x[0], scorer.y[0], None), False
