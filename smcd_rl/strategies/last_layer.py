@@ -177,7 +177,7 @@ class BayesianLastLayer(Adaptation):
                 f"targets of shape {list(targets.shape)} for {mean.shape[0]} streams of {mean.shape[2]} outputs; "
                 "pass one target per stream"
             )
-        dtype = targets.dtype
+        dtype = self.net.readout_layer.weight.dtype  # the precision its predictions are cast to
         targets = targets.reshape(mean.shape[0], -1).to(STATE_DTYPE)
         spread = self.spread(phi.unsqueeze(1)).squeeze(1)  # (P + q I) phi
         variance = 1.0 + (phi * spread).sum(-1)  # the predictive variance, in units of each output's noise variance

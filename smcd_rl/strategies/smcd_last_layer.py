@@ -131,7 +131,7 @@ class SMCDLastLayer(Adaptation):
         # [B, N, out, D]: each particle's readout mean, transposed so that a particle's readout and
         # its update run along contiguous features (measured: 3-4x faster than [B, N, D, out]).
         self._means: Tensor | None = None
-        self._spare_means: Tensor | None = None  # the last means' storage, reused for the next resampled ones
+        self._spare: Tensor | None = None  # the last means' storage, written by the next observation
         self._wide: Tensor | None = None  # the particles' features in float64 (see _float64)
         # The last particle readout's phi and predictions, then (P + q I) phi and the scale of each particle.
         self._seen: tuple[Tensor, ...] | None = None
@@ -150,7 +150,7 @@ class SMCDLastLayer(Adaptation):
         dtype = self.net.readout_layer.weight.dtype
         particles = self.smcd.particles.shape[-2]
         self._means = prior.to(dtype).transpose(-1, -2).unsqueeze(1).expand(-1, particles, -1, -1).clone()
-        self._spare_means = None
+        self._spare = None
         self._seen = None
         self._downdates = prior.new_zeros(prior.shape[0], prior.shape[1], 0)
         self._steps = prior.new_zeros(prior.shape[0])
@@ -188,34 +188,37 @@ class SMCDLastLayer(Adaptation):
                 weights = weights.reshape(streams, particles)
             mean_features = torch.bmm(weights.unsqueeze(1), phi)[:, 0, :-1]  # the shared covariance's update
             _, cov, downdate = self.last_layer.updated(mean_features, targets)
+            # The new means go into a buffer kept across observations, not into a fresh [B, N, out, D]
+            # tensor nor over the current means: a refused observation leaves those as they were.
+            if flat is None:
+                updated = torch.addcmul(means, step, spread.unsqueeze(-2), out=self._scratch(means))
+            else:  # each mean, step and spread follows its particle, then the step is taken in place
+                updated = self._scratch(means, contiguous=True)  # as index_select's own result was
+                torch.index_select(
+                    means.reshape(streams * particles, -1), 0, flat, out=updated.view(streams * particles, -1)
+                )
+                step = step.reshape(streams * particles, -1).index_select(0, flat).reshape(step.shape)
+                spread = spread.reshape(streams * particles, -1).index_select(0, flat).reshape(spread.shape)
+                updated.addcmul_(step, spread.unsqueeze(-2))
+            # The readout the last layer holds: the particles' means weighted by the filter's weights now.
+            current = self.smcd._filter.weights.reshape(streams, 1, -1).to(updated.dtype)
+            mean = torch.bmm(current, updated.reshape(streams, particles, -1)).reshape(streams, *updated.shape[2:])
+            # Finite exactly when every particle's mean is: one of weight 0 that overflowed makes it NaN (0 * inf).
+            if not bool(torch.isfinite(mean).all()):
+                raise ValueError(
+                    "a particle's readout overflowed on this observation (a target of a far larger scale than the "
+                    "model's); the adaptation state is unchanged"
+                )
         except BaseException:
             self.smcd._filter.restore(before)  # the readout refused it: the filter forgets it too
             raise
         finally:
             self._seen = None
-        # In place, and resampled into a buffer kept across observations rather than into fresh
-        # [B, N, out, D] tensors: the means are this filter's own (state_dict hands out copies).
-        updated = means.addcmul_(step, spread.unsqueeze(-2))
-        if flat is not None:
-            spare = self._spare_means
-            if (
-                spare is None
-                or spare.shape != updated.shape
-                or spare.dtype != updated.dtype
-                or not spare.is_contiguous()
-            ):
-                spare = updated.new_empty(updated.shape)  # contiguous, as index_select's own result was
-            rows = updated.reshape(streams * particles, -1)
-            torch.index_select(rows, 0, flat, out=spare.view(streams * particles, -1))
-            self._spare_means, updated = updated, spare
+        self._spare = means  # the old means (or their copy in the network's precision), free now
         self._means = updated
         self._steps = self._steps + 1 if self._steps is not None else None
         self._grow_downdates(downdate)
-        # The readout the last layer holds: the particles' means weighted by the filter's weights now.
-        current = self.smcd._filter.weights.reshape(streams, 1, -1).to(updated.dtype)
-        mean = torch.bmm(current, updated.reshape(streams, current.shape[-1], -1)).reshape(streams, *updated.shape[2:])
-        mean = mean.transpose(-1, -2)  # [B, D, out], the last layer's layout
-        self.last_layer._take_update(mean, cov)
+        self.last_layer._take_update(mean.transpose(-1, -2), cov)  # [B, D, out], the last layer's layout
 
     def _grow_downdates(self, downdate: Tensor) -> None:
         """Append this observation's downdate ``[B, D]`` to ``U``, in a buffer that doubles as it
@@ -308,6 +311,19 @@ class SMCDLastLayer(Adaptation):
             scaled, projected.to(phi.dtype), downdates, beta=beta, alpha=-1.0
         )  # (s^2 + q t) phi - U U^T phi
         return spread, quadratic.to(phi.dtype)
+
+    def _scratch(self, like: Tensor, contiguous: bool = False) -> Tensor:
+        """A tensor to write new means into, of ``like``'s shape, dtype and layout (or contiguous):
+        the storage the last observation's means left, where it fits, else a new one."""
+        spare, self._spare = self._spare, None
+        if (
+            spare is not None
+            and (spare.shape, spare.dtype, spare.device) == (like.shape, like.dtype, like.device)
+            and (spare.is_contiguous() if contiguous else spare.stride() == like.stride())
+            and spare.data_ptr() != self._state().data_ptr()  # never the current means
+        ):
+            return spare
+        return like.new_empty(like.shape) if contiguous else torch.empty_like(like)
 
     def _float64(self, phi: Tensor) -> Tensor:
         """``phi`` in float64, in a buffer kept across observations (as the readout means are)."""

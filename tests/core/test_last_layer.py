@@ -270,16 +270,32 @@ def test_observe_refuses_transposed_or_wrong_width_tensors_instead_of_reshaping_
     assert torch.equal(before["mean"], after["mean"]) and torch.equal(before["cov"], after["cov"])
 
 
-def test_a_gaussian_last_layer_refuses_a_target_beyond_float32_and_never_predicts_inf() -> None:
-    """A target of 3e38 once moved the float32 readout's mean to inf: every later prediction was inf."""
+@pytest.mark.parametrize(
+    ("kind", "target", "dtype"),
+    [
+        ("last_layer", 3e38, torch.float32),
+        ("last_layer", 1e300, torch.float64),
+        ("smcd_last_layer", 1e38, torch.float64),
+    ],
+)
+def test_a_gaussian_readout_refuses_a_target_beyond_float32_and_never_predicts_inf(kind, target, dtype) -> None:
+    """A target of 3e38 once moved the float32 readout's mean to inf: every later prediction was inf.
+    A float64 target still could (1e300; 1e38 for SMCD with a Bayesian readout, which then
+    predicted NaN), as the check read the largest value from the target's precision, not the
+    network's its predictions are cast to."""
     net = _net(torch.float32)
-    layer = _bound(smcd_rl.BayesianLastLayer(noise_std=0.1, prior_scale=10.0), net)
-    layer.observe(torch.rand(3, 2), torch.rand(3, 2))
+    layer = smcd_rl.BayesianLastLayer(noise_std=0.1, prior_scale=10.0)
+    if kind == "smcd_last_layer":
+        # a filter noise so wide that the filter takes the target: the readout must refuse it
+        smcd = smcd_rl.SMCD(num_particles=20, noise_std=1e19, generator=torch.Generator().manual_seed(0))
+        layer = smcd_rl.SMCDLastLayer(smcd, smcd_rl.BayesianLastLayer(noise_std=0.1, prior_scale=100.0))
+    _bound(layer, net)
+    for _ in range(8):
+        layer.observe(torch.rand(3, 2), torch.rand(3, 2))
     before = layer.state_dict()
     with pytest.raises(ValueError, match="inf or NaN.*unchanged"):
-        layer.observe(torch.rand(3, 2), torch.full((3, 2), 3e38))
-    after = layer.state_dict()
-    assert torch.equal(before["mean"], after["mean"]) and torch.equal(before["cov"], after["cov"])
+        layer.observe(torch.rand(3, 2), torch.full((3, 2), target, dtype=dtype))
+    torch.testing.assert_close(layer.state_dict(), before, rtol=0, atol=0)
     assert bool(torch.isfinite(layer.predict(torch.rand(3, 2))).all())
 
 
