@@ -161,10 +161,10 @@ class BayesianLastLayer(Adaptation):
         self._mean, self._cov, _ = self.updated(features, targets)
 
     def _take_update(self, mean: Tensor, cov: Tensor) -> None:
-        """Set the posterior to ``mean [B, width + 1, out]`` and ``cov [B, width + 1, width + 1]`` of
-        an update this posterior computed (:meth:`updated`), without :meth:`load_state_dict`'s copies
-        and checks: they are finite by :meth:`updated`'s, and checking a 257 x 257 covariance costs
-        more than the update itself."""
+        """Set the posterior to ``mean [B, width + 1, out]`` and ``cov [B, width + 1, width + 1]``
+        from this posterior's own :meth:`updated`, without :meth:`load_state_dict`'s copies and
+        checks: ``updated`` checked the covariance and the caller the mean, and checking a
+        257 x 257 covariance again cost about 0.2 ms an observation."""
         self._mean, self._cov = mean.to(STATE_DTYPE), cov
 
     def updated(self, features: Tensor, targets: Tensor) -> tuple[Tensor, Tensor, Tensor]:
