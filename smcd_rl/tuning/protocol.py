@@ -300,5 +300,5 @@ def ms_per_observation(model: AdaptiveModel, strategy: Adaptation, episode: Tens
         raise TypeError(f"strategy must be an smcd_rl.Adaptation, got {type(strategy).__name__}")
     if not isinstance(episode, TensorDictBase) or episode.batch_dims != 1:
         raise ValueError("episode must be one episode: a TensorDict of batch [T] in the model's keys")
-    x, y = pairs(model, episode.unsqueeze(0), "time_per_step")
+    x, y = pairs(model, episode.unsqueeze(0), "ms_per_observation")
     return Timing(model, x[0], y[0], None).ms_per_step(strategy)

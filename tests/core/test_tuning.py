@@ -12,6 +12,7 @@ from tensordict import TensorDict
 import smcd_rl
 import smcd_rl.tuning.held_out
 import smcd_rl.tuning.kinds
+import smcd_rl.tuning.protocol
 import smcd_rl.tuning.search
 
 # Small and fast: a few particles and a small GD grid; each test runs in seconds.
@@ -435,6 +436,9 @@ def test_the_episodes_and_model_errors_name_the_function_that_was_called(model) 
             call(model, one)
         with pytest.raises(ValueError, match=rf"^{name} needs a fitted model"):
             call(unfitted, shifted_episodes(0.5))
+    episode = shifted_episodes(0.5)[0].exclude("ee")
+    with pytest.raises(KeyError, match=r"ms_per_observation \(episodes\): the TensorDict has no key 'ee'"):
+        smcd_rl.tuning.protocol.ms_per_observation(model, smcd_rl.SMCD(num_particles=8), episode)
 
 
 def test_racing_drops_settings_by_their_error_alone_and_keeps_the_runs_exact(model) -> None:
