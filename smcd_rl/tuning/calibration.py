@@ -271,8 +271,8 @@ def calibrate(
     criterion: the one-step error weighs each dimension by its own residual (proportional), while
     a look-ahead may need the filter to listen to a dimension whose residual is large but where
     the task shows most (a pendulum's angular velocity). ``noise_shape="search"`` (the default)
-    lets the criterion choose; ``"proportional"`` (the search before shapes were searched),
-    ``"sqrt"`` or ``"scalar"`` searches that shape alone. Search, in log factor:
+    lets the criterion choose; ``"proportional"``, ``"sqrt"`` or ``"scalar"`` searches that
+    shape alone. Search, in log factor:
 
     1. a bracket of factors 1/8 .. 8 in doublings at the middle of ``flip_probs`` (7 runs),
        extended past an end while the best value lies there (the proportional shape first, when
