@@ -13,7 +13,7 @@ written as a Markdown report (``--out``) and printed:
 * each kind's choice's one-step RMSE on 50 test arms under both searches, their ratio, and the
   best strategy of the shortcut search against the best of the full search;
 * ``smcd_rl.calibrate(criterion="lookahead", horizon=10)`` (the noise's shape searched, and the
-  residual's proportions alone, as before the search existed) against SMCD at each single noise
+  residual's proportions alone, ``noise_shape="proportional"``) against SMCD at each single noise
   of a sweep: the test arms' 10-step look-ahead RMSE.
 
     python scripts/bench_tune.py
